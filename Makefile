@@ -1,0 +1,42 @@
+# thermognn — one command for the whole pipeline (`make demo`), one for the tests (`make test`).
+# Both run `setup` first, which is idempotent.
+
+SHELL := /bin/bash
+VENV  := .venv
+PY    := $(VENV)/bin/python
+SUDO  := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+DEB_PKGS := python3-dolfinx python3-gmsh python3-meshio python3-h5py python3-venv
+STAMP := $(VENV)/.thermognn-installed
+DEMO_DIR ?= runs/demo
+
+.PHONY: setup demo test test-fast bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@missing=""; for p in $(DEB_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages:$$missing"; \
+	  $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq $$missing; \
+	fi
+	@[ -x $(PY) ] || /usr/bin/python3 -m venv --system-site-packages $(VENV)
+	$(PY) -m pip install -q --upgrade "pip>=23"
+	$(PY) -m pip install -q "numpy<2" "torch==2.13.0" torch-geometric typer "hydra-core>=1.3" rich pytest
+	$(PY) -m pip install -q --no-deps -e .
+	@$(PY) -c "import numpy, dolfinx, torch, torch_geometric, h5py, meshio; assert numpy.__version__ < '2', numpy.__version__"
+	@touch $(STAMP)
+
+demo: setup
+	$(VENV)/bin/thermognn demo --out $(DEMO_DIR)
+
+test: setup
+	$(PY) -m pytest -q
+
+test-fast: setup
+	$(PY) -m pytest -q -m "not slow"
+
+bench: setup
+	$(PY) benchmarks/run_all.py
+
+clean:
+	rm -rf runs outputs .pytest_cache

@@ -1,0 +1,74 @@
+"""Hydra configuration, composed with the compose API (no @hydra.main, no working-dir change).
+
+Overrides are the trailing arguments of every CLI command, e.g.
+``thermognn train scene=block train.epochs=5``. The resolved config is stored in every
+output (HDF5 attribute, checkpoint, exported model) as YAML.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Sequence
+
+from omegaconf import DictConfig, OmegaConf
+
+from .errors import ConfigError
+
+#: ``conf/`` at the project root; ``THERMOGNN_CONF`` points elsewhere.
+CONF_DIR = Path(os.environ.get("THERMOGNN_CONF", Path(__file__).resolve().parents[2] / "conf"))
+#: project root, against which relative paths in configs (``meshes/...``) resolve.
+PROJECT_ROOT = Path(__file__).resolve().parents[2]
+
+
+def load_config(overrides: Sequence[str] = (), config_name: str = "config") -> DictConfig:
+    """Compose ``conf/<config_name>.yaml`` with ``overrides``; raise ConfigError on bad keys."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    if not CONF_DIR.is_dir():
+        raise ConfigError(f"config directory {CONF_DIR} not found (set THERMOGNN_CONF)")
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose(config_name=config_name, overrides=list(overrides))
+    except (HydraException, OmegaConfBaseException) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ConfigError(f"config: {first}") from None
+    finally:
+        GlobalHydra.instance().clear()
+    try:
+        OmegaConf.resolve(cfg)
+    except OmegaConfBaseException as exc:
+        raise ConfigError(f"config: {str(exc).splitlines()[0]}") from None
+    OmegaConf.set_struct(cfg, True)  # later reads of unknown keys fail loudly
+    return cfg
+
+
+def to_yaml(cfg: DictConfig) -> str:
+    return OmegaConf.to_yaml(cfg, resolve=True)
+
+
+def from_yaml(text: str) -> DictConfig:
+    return OmegaConf.create(text)
+
+
+def project_path(p: str | os.PathLike) -> Path:
+    """Resolve a config path: absolute as is, else relative to cwd if it exists, else to the project root."""
+    p = Path(p)
+    if p.is_absolute() or p.exists():
+        return p
+    return PROJECT_ROOT / p
+
+
+def require(cfg: DictConfig, key: str, kind: type | tuple[type, ...], where: str = "config"):
+    """Read ``key`` (dotted) from ``cfg`` and check its type; ConfigError names the key otherwise."""
+    value = OmegaConf.select(cfg, key, default=None)
+    if value is None:
+        raise ConfigError(f"{where}: missing key '{key}'")
+    if not isinstance(value, kind):
+        names = kind.__name__ if isinstance(kind, type) else " or ".join(k.__name__ for k in kind)
+        raise ConfigError(f"{where}: key '{key}' = {value!r}, expected {names}")
+    return value

@@ -1,0 +1,236 @@
+"""The HDF5 dataset that ``generate`` writes and ``train`` reads (schema version 1).
+
+Layout (units SI)::
+
+    /                       attrs: schema_version (int), scene (str), config (YAML str),
+                                   versions (JSON str), state_layout (JSON str), dt [s],
+                                   effects (JSON list), config_hash (str)
+    /mesh/nodes             (N, 3) float64  reference positions X [m]
+    /mesh/tets              (T, 4) int64    tetrahedra (node indices)
+    /mesh/node_type         (N,)   int8     0 free, 1 clamped (Dirichlet), 2 loadable surface
+    /mesh/edges             (2, E) int64    optional: graph edges (both directions); when absent
+                                            they are the tetrahedra's edges (imported datasets
+                                            such as the TIGNN beam have edges but no tets)
+    /trajectories/<name>/   attrs: status ('ok' | 'failed'), reason (str), load_point (3,) [m]
+        time                (S,)        float64  [s]
+        z                   (S, N, D)   float64  state per node, columns as in state_layout
+        force               (S, N, 3)   float64  external nodal force [N]
+        load_nodes          (K,)        int64    nodes the load acts on
+
+Time convention: ``force[s]`` is the external load at ``time[s]``; the step
+``z[s] -> z[s+1]`` is driven by ``force[s+1]`` (the load an implicit FE step solves with).
+
+A failed trajectory keeps the steps that converged (no NaN is ever written) and says why.
+Writing goes to ``<path>.partial`` and is renamed at the end; re-running resumes from
+the trajectories already in the partial file when its config_hash matches.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DataError
+from .state import StateLayout
+
+SCHEMA_VERSION = 1
+NODE_FREE, NODE_CLAMPED, NODE_SURFACE = 0, 1, 2
+
+
+@dataclass
+class Mesh:
+    """Tetrahedral mesh with node types. nodes (N,3) [m], tets (T,4), node_type (N,)."""
+
+    nodes: np.ndarray
+    tets: np.ndarray
+    node_type: np.ndarray
+    graph_edges: np.ndarray | None = None
+
+    def edges(self) -> np.ndarray:
+        """Graph edges, both directions: (2, E) int64 (stored ones, else the tets' edges)."""
+        if self.graph_edges is not None:
+            return np.asarray(self.graph_edges, dtype=np.int64)
+        t = self.tets
+        pairs = np.concatenate([t[:, [i, j]] for i in range(4) for j in range(i + 1, 4)])
+        pairs = np.sort(pairs, axis=1)
+        pairs = np.unique(pairs, axis=0)
+        return np.concatenate([pairs.T, pairs[:, ::-1].T], axis=1).astype(np.int64)
+
+    def boundary_faces(self) -> np.ndarray:
+        """Triangles on the boundary (faces belonging to one tet only): (F, 3) int64."""
+        t = self.tets
+        faces = np.concatenate([t[:, [0, 1, 2]], t[:, [0, 1, 3]], t[:, [0, 2, 3]], t[:, [1, 2, 3]]])
+        key = np.sort(faces, axis=1)
+        _, idx, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
+        return faces[idx[counts == 1]].astype(np.int64)
+
+
+@dataclass
+class Trajectory:
+    """One simulated load case. time (S,), z (S,N,D), force (S,N,3), load_nodes (K,)."""
+
+    name: str
+    time: np.ndarray
+    z: np.ndarray
+    force: np.ndarray
+    load_nodes: np.ndarray
+    load_point: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    status: str = "ok"
+    reason: str = ""
+
+
+def config_hash(config_yaml: str) -> str:
+    return hashlib.sha256(config_yaml.encode()).hexdigest()[:16]
+
+
+class DatasetWriter:
+    """Write a dataset atomically and resumably.
+
+    >>> with DatasetWriter(path, mesh, layout, dt, config_yaml, versions_json, scene, effects) as w:
+    ...     for name in names:
+    ...         if not w.has(name):
+    ...             w.write(trajectory)
+    ... # on clean exit the partial file is renamed onto ``path``
+    """
+
+    def __init__(self, path, mesh: Mesh, layout: StateLayout, dt: float, config_yaml: str,
+                 versions_json: str, scene: str, effects) -> None:
+        import h5py
+
+        self.path = Path(path)
+        self.partial = self.path.with_name(self.path.name + ".partial")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        chash = config_hash(config_yaml)
+        if self.partial.exists():
+            try:
+                with h5py.File(self.partial, "r") as f:
+                    stale = f.attrs.get("config_hash") != chash
+            except OSError:
+                stale = True
+            if stale:
+                self.partial.unlink()
+        fresh = not self.partial.exists()
+        self._f = h5py.File(self.partial, "a")
+        if fresh:
+            a = self._f.attrs
+            a["schema_version"] = SCHEMA_VERSION
+            a["scene"] = scene
+            a["config"] = config_yaml
+            a["config_hash"] = chash
+            a["versions"] = versions_json
+            a["state_layout"] = layout.to_json()
+            a["effects"] = json.dumps(list(effects))
+            a["dt"] = float(dt)
+            g = self._f.create_group("mesh")
+            g.create_dataset("nodes", data=np.asarray(mesh.nodes, dtype=np.float64))
+            g.create_dataset("tets", data=np.asarray(mesh.tets, dtype=np.int64))
+            g.create_dataset("node_type", data=np.asarray(mesh.node_type, dtype=np.int8))
+            if mesh.graph_edges is not None:
+                g.create_dataset("edges", data=np.asarray(mesh.graph_edges, dtype=np.int64))
+            self._f.create_group("trajectories")
+            self._f.flush()
+        self.layout = layout
+
+    def has(self, name: str) -> bool:
+        return name in self._f["trajectories"]
+
+    def write(self, traj: Trajectory) -> None:
+        """Write one trajectory (flushed at once, so an interruption keeps it)."""
+        if not np.all(np.isfinite(traj.z)) or not np.all(np.isfinite(traj.force)):
+            raise ValueError(f"trajectory {traj.name}: non-finite values must not be written")
+        if traj.z.ndim != 3 or traj.z.shape[2] != self.layout.dim:
+            raise ValueError(f"trajectory {traj.name}: z shape {traj.z.shape}, expected (S, N, {self.layout.dim})")
+        grp = self._f["trajectories"]
+        if traj.name in grp:
+            del grp[traj.name]
+        g = grp.create_group(traj.name)
+        g.create_dataset("time", data=np.asarray(traj.time, np.float64))
+        g.create_dataset("z", data=np.asarray(traj.z, np.float64), compression="gzip", compression_opts=1)
+        g.create_dataset("force", data=np.asarray(traj.force, np.float64), compression="gzip",
+                         compression_opts=1)
+        g.create_dataset("load_nodes", data=np.asarray(traj.load_nodes, np.int64))
+        g.attrs["status"] = traj.status
+        g.attrs["reason"] = traj.reason
+        g.attrs["load_point"] = np.asarray(traj.load_point, np.float64)
+        self._f.flush()
+
+    def close(self, finalize: bool) -> None:
+        self._f.close()
+        if finalize:
+            os.replace(self.partial, self.path)
+
+    def __enter__(self) -> "DatasetWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.close(finalize=exc_type is None)
+
+
+class Dataset:
+    """Read-only view of a thermognn HDF5 dataset; validates the schema on open."""
+
+    def __init__(self, path) -> None:
+        import h5py
+
+        self.path = Path(path)
+        if not self.path.exists():
+            raise DataError(f"{self.path}: dataset not found (run `thermognn generate` first)")
+        try:
+            f = h5py.File(self.path, "r")
+        except OSError as exc:
+            raise DataError(f"{self.path}: not a readable HDF5 file ({exc.__class__.__name__})") from None
+        with f:
+            attrs = dict(f.attrs)
+            for key in ("schema_version", "state_layout", "dt", "config"):
+                if key not in attrs:
+                    raise DataError(f"{self.path}: missing root attribute '{key}' (not a thermognn dataset?)")
+            if int(attrs["schema_version"]) != SCHEMA_VERSION:
+                raise DataError(f"{self.path}: schema_version {attrs['schema_version']}, expected {SCHEMA_VERSION}")
+            for key in ("mesh/nodes", "mesh/tets", "mesh/node_type", "trajectories"):
+                if key not in f:
+                    raise DataError(f"{self.path}: missing '{key}'")
+            self.mesh = Mesh(f["mesh/nodes"][()], f["mesh/tets"][()], f["mesh/node_type"][()],
+                             f["mesh/edges"][()] if "mesh/edges" in f else None)
+            self.names = sorted(f["trajectories"].keys(), key=_natural_key)
+            self.status = {n: str(f["trajectories"][n].attrs.get("status", "ok")) for n in self.names}
+        self.layout = StateLayout.from_json(str(attrs["state_layout"]))
+        self.dt = float(attrs["dt"])
+        self.config_yaml = str(attrs["config"])
+        self.scene = str(attrs.get("scene", ""))
+        self.effects = tuple(json.loads(str(attrs.get("effects", '["elastic"]'))))
+        self.versions = str(attrs.get("versions", "{}"))
+
+    @property
+    def ok_names(self) -> list[str]:
+        return [n for n in self.names if self.status[n] == "ok"]
+
+    def read(self, name: str) -> Trajectory:
+        import h5py
+
+        with h5py.File(self.path, "r") as f:
+            if name not in f["trajectories"]:
+                raise DataError(f"{self.path}: no trajectory '{name}'")
+            g = f["trajectories"][name]
+            try:
+                traj = Trajectory(name=name, time=g["time"][()], z=g["z"][()], force=g["force"][()],
+                                  load_nodes=g["load_nodes"][()],
+                                  load_point=np.asarray(g.attrs.get("load_point", np.zeros(3))),
+                                  status=str(g.attrs.get("status", "ok")),
+                                  reason=str(g.attrs.get("reason", "")))
+            except KeyError as exc:
+                raise DataError(f"{self.path}: trajectory '{name}' lacks {exc}") from None
+        n = self.mesh.nodes.shape[0]
+        if traj.z.shape[1:] != (n, self.layout.dim):
+            raise DataError(f"{self.path}: trajectory '{name}' z has shape {traj.z.shape}, "
+                            f"expected (S, {n}, {self.layout.dim})")
+        return traj
+
+
+def _natural_key(s: str):
+    import re
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]

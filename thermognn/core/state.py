@@ -1,0 +1,86 @@
+"""Which state variables z a scene carries, derived from its declared effects.
+
+A scene declares effects, a subset of::
+
+    elastic   hyperelastic strain energy (always present for a solid)
+    viscous   Prony-series viscoelasticity (internal variables per term)
+    inertia   dynamics: mass matrix, velocity is a state variable
+    gravity   body force rho*g
+
+The per-node state z (the paper's z = (q, v, sigma)) follows from them:
+
+    q      (3)  current position x = X + u              [m]
+    v      (3)  velocity, only with ``inertia``          [m/s]
+    sigma  (6)  Cauchy stress, Voigt order s11 s22 s33 s12 s13 s23 [Pa]
+    xi_k   (6)  viscous internal stress of Prony term k, only with ``viscous`` and
+                ``store_internal``                      [Pa]
+
+Pure Python: used by generate (no torch), train and serve (no dolfinx).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+from .errors import ConfigError
+
+EFFECTS = ("elastic", "viscous", "inertia", "gravity")
+VOIGT = ("11", "22", "33", "12", "13", "23")
+
+
+@dataclass(frozen=True)
+class StateLayout:
+    """Ordered variable groups of the per-node state vector z, e.g. (("q",3),("v",3),("sigma",6))."""
+
+    groups: tuple[tuple[str, int], ...]
+
+    @property
+    def dim(self) -> int:
+        return sum(d for _, d in self.groups)
+
+    def slice(self, name: str) -> slice:
+        start = 0
+        for g, d in self.groups:
+            if g == name:
+                return slice(start, start + d)
+            start += d
+        raise KeyError(f"state variable '{name}' not in layout {self.names}")
+
+    @property
+    def names(self) -> list[str]:
+        return [g for g, _ in self.groups]
+
+    def to_json(self) -> str:
+        return json.dumps([list(g) for g in self.groups])
+
+    @classmethod
+    def from_json(cls, text: str) -> "StateLayout":
+        return cls(tuple((str(n), int(d)) for n, d in json.loads(text)))
+
+
+def check_effects(effects) -> tuple[str, ...]:
+    effects = tuple(str(e) for e in effects)
+    for e in effects:
+        if e not in EFFECTS:
+            raise ConfigError(f"scene.effects: unknown effect '{e}', expected some of {list(EFFECTS)}")
+    if "elastic" not in effects:
+        raise ConfigError("scene.effects: a solid needs 'elastic'")
+    return effects
+
+
+def state_layout(effects, n_prony: int = 0, store_internal: bool = False) -> StateLayout:
+    """The state layout a scene's effects call for (see module docstring)."""
+    effects = check_effects(effects)
+    groups: list[tuple[str, int]] = [("q", 3)]
+    if "inertia" in effects:
+        groups.append(("v", 3))
+    groups.append(("sigma", 6))
+    if "viscous" in effects and store_internal:
+        groups += [(f"xi{k + 1}", 6) for k in range(n_prony)]
+    return StateLayout(tuple(groups))
+
+
+def is_reversible(effects) -> bool:
+    """Reversible (Hamiltonian) scenes have no dissipation: no viscous term."""
+    return "viscous" not in tuple(effects)
