@@ -21,7 +21,9 @@ $(STAMP): pyproject.toml
 	fi
 	@[ -x $(PY) ] || /usr/bin/python3 -m venv --system-site-packages $(VENV)
 	$(PY) -m pip install -q --upgrade "pip>=23"
-	$(PY) -m pip install -q "numpy<2" "torch==2.13.0" torch-geometric typer "hydra-core>=1.3" rich pytest
+	@# numpy pinned to Debian's own build (dolfinx and h5py are compiled against it; never numpy 2)
+	$(PY) -m pip install -q "numpy==$$(/usr/bin/python3 -c 'import numpy; print(numpy.__version__)')" \
+	  "torch==2.13.0" torch-geometric typer "hydra-core>=1.3" rich pytest matplotlib
 	$(PY) -m pip install -q --no-deps -e .
 	@$(PY) -c "import numpy, dolfinx, torch, torch_geometric, h5py, meshio; assert numpy.__version__ < '2', numpy.__version__"
 	@touch $(STAMP)

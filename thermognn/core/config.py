@@ -35,8 +35,7 @@ def load_config(overrides: Sequence[str] = (), config_name: str = "config") -> D
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             cfg = compose(config_name=config_name, overrides=list(overrides))
     except (HydraException, OmegaConfBaseException) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ConfigError(f"config: {first}") from None
+        raise ConfigError(f"config: {_one_line(str(exc))}") from None
     finally:
         GlobalHydra.instance().clear()
     try:
@@ -45,6 +44,30 @@ def load_config(overrides: Sequence[str] = (), config_name: str = "config") -> D
         raise ConfigError(f"config: {str(exc).splitlines()[0]}") from None
     OmegaConf.set_struct(cfg, True)  # later reads of unknown keys fail loudly
     return cfg
+
+
+def _one_line(message: str) -> str:
+    """Condense Hydra's multi-line composition errors into one line naming the key and what exists."""
+    import re
+
+    lines = [ln.strip() for ln in message.strip().splitlines() if ln.strip()]
+    if not lines:
+        return "composition failed"
+    m = re.search(r"Could not override '([^']+)'", lines[0])
+    if m:
+        key = m.group(1)
+        return f"unknown key '{key}' (check the spelling against conf/, or prefix '+' to add a new key)"
+    m = re.search(r"Could not find '([^/']+)/([^']+)'", lines[0])
+    if m:
+        group, option = m.groups()
+        options = []
+        for ln in lines[1:]:
+            if ln.startswith("Config search"):
+                break
+            if not ln.startswith("Available"):
+                options.append(ln)
+        return f"no '{option}' in config group '{group}'; available: {', '.join(options)}"
+    return lines[0]
 
 
 def to_yaml(cfg: DictConfig) -> str:

@@ -4,7 +4,9 @@ Layout (units SI)::
 
     /                       attrs: schema_version (int), scene (str), config (YAML str),
                                    versions (JSON str), state_layout (JSON str), dt [s],
-                                   effects (JSON list), config_hash (str)
+                                   effects (JSON list), config_hash (str),
+                                   split (optional JSON {"train": [names], "val": [...], "test": [...]}:
+                                   a fixed reference split that training must use)
     /mesh/nodes             (N, 3) float64  reference positions X [m]
     /mesh/tets              (T, 4) int64    tetrahedra (node indices)
     /mesh/node_type         (N,)   int8     0 free, 1 clamped (Dirichlet), 2 loadable surface
@@ -136,6 +138,10 @@ class DatasetWriter:
             self._f.flush()
         self.layout = layout
 
+    def set_split(self, split: dict[str, list[str]]) -> None:
+        """Fix the train/val/test split (trajectory names), e.g. a published reference split."""
+        self._f.attrs["split"] = json.dumps({k: list(v) for k, v in split.items()})
+
     def has(self, name: str) -> bool:
         return name in self._f["trajectories"]
 
@@ -204,6 +210,8 @@ class Dataset:
         self.scene = str(attrs.get("scene", ""))
         self.effects = tuple(json.loads(str(attrs.get("effects", '["elastic"]'))))
         self.versions = str(attrs.get("versions", "{}"))
+        #: fixed split {"train": [...], "val": [...], "test": [...]} or None (then split at random)
+        self.split = json.loads(str(attrs["split"])) if "split" in attrs else None
 
     @property
     def ok_names(self) -> list[str]:

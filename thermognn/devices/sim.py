@@ -1,0 +1,112 @@
+"""A virtual haptic device: the tool follows a scripted path relative to the body.
+
+Paths (option ``path``), placed on the model's reference bounding box (``attach_scene``), all
+starting ``clearance`` above the top face (z = max) and pressing ``depth`` into it:
+
+    press     up and down at the centre of the top face, period ``period`` [s]
+    palpate   one press per point of a 3x3 grid over the top face
+    drag      press to depth, then slide along x and back
+
+Positions are in the model frame (``scene_frame = True``); velocity by central difference of
+the path. Limits mirror a Geomagic Touch unless overridden (``max_force`` etc. options).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from thermognn.core.errors import DeviceError
+
+from .base import Device, DeviceReading, DeviceSpecs
+
+PATHS = ("press", "palpate", "drag")
+
+
+class SimDevice(Device):
+    """Scripted virtual tool (a real plugin: same interface, limits and timing as hardware)."""
+
+    scene_frame = True
+
+    def __init__(self, path: str = "press", period: float = 2.0, depth: float | None = None,
+                 clearance: float | None = None, max_force: float = 3.3,
+                 max_continuous_force: float = 0.88, max_stiffness: float = 1000.0,
+                 max_force_rate: float = 1000.0, **options) -> None:
+        super().__init__(**options)
+        if path not in PATHS:
+            raise DeviceError(f"serve.path: unknown sim path '{path}', expected one of {list(PATHS)}")
+        if period <= 0:
+            raise DeviceError(f"sim device: period = {period}, expected > 0 s")
+        self.path = path
+        self.period = float(period)        # [s]
+        self._depth = depth                # [m] below the undeformed top face (None: 20 % of height)
+        self._clearance = clearance        # [m] above it at rest (None: 10 % of height)
+        self.specs = DeviceSpecs("sim", float(max_force), float(max_continuous_force), float(max_stiffness),
+                                 (0.16, 0.12, 0.07), 1000.0, float(max_force_rate))
+        self.lo = np.array([-0.02, -0.02, 0.0])
+        self.hi = np.array([0.02, 0.02, 0.02])
+        self.tool_radius = 0.003
+        self.forces: list[np.ndarray] = []  # not recorded (no allocation per tick); kept for API symmetry
+        self.last_force = np.zeros(3)
+        self._t0 = 0.0
+        self._x = np.zeros(3)
+
+    def attach_scene(self, lo, hi, tool_radius: float) -> None:
+        self.lo = np.asarray(lo, dtype=float).copy()
+        self.hi = np.asarray(hi, dtype=float).copy()
+        self.tool_radius = float(tool_radius)
+
+    # geometry of the path -----------------------------------------------------------------
+    @property
+    def depth(self) -> float:
+        return self._depth if self._depth is not None else 0.2 * float(self.hi[2] - self.lo[2])
+
+    @property
+    def clearance(self) -> float:
+        return self._clearance if self._clearance is not None else 0.1 * float(self.hi[2] - self.lo[2])
+
+    def position_at(self, t: float, out: np.ndarray | None = None) -> np.ndarray:
+        """Tool centre [3] m at time ``t`` [s] after open."""
+        out = np.empty(3) if out is None else out
+        c = 0.5 * (self.lo + self.hi)
+        ext = self.hi - self.lo
+        z_rest = self.hi[2] + self.tool_radius + self.clearance
+        travel = self.clearance + self.depth
+        T = self.period
+        x, y = c[0], c[1]
+        if self.path == "press":
+            s = 0.5 * (1.0 - math.cos(2.0 * math.pi * t / T))
+        elif self.path == "palpate":
+            k = int(t // T) % 9
+            x = c[0] + 0.3 * ext[0] * (k % 3 - 1)
+            y = c[1] + 0.3 * ext[1] * (k // 3 - 1)
+            s = 0.5 * (1.0 - math.cos(2.0 * math.pi * t / T))
+        else:  # drag: descend in T/2, then slide +-30 % of the length along x
+            if t < 0.5 * T:
+                s = 0.5 * (1.0 - math.cos(2.0 * math.pi * t / T))
+            else:
+                s = 1.0
+                x = c[0] + 0.3 * ext[0] * math.sin(2.0 * math.pi * (t - 0.5 * T) / (2.0 * T))
+        out[0], out[1], out[2] = x, y, z_rest - travel * s
+        return out
+
+    # device interface ----------------------------------------------------------------------
+    def _open(self) -> None:
+        self._t0 = time.perf_counter()
+
+    def _read(self) -> DeviceReading:
+        now = time.perf_counter()
+        t = now - self._t0
+        r = self.reading
+        r.t = now
+        self.position_at(t, r.position)
+        h = 5e-4
+        self.position_at(t + h, self._x)
+        np.subtract(self._x, r.position, out=r.velocity)
+        r.velocity /= h
+        return r
+
+    def _set_force(self, force: np.ndarray) -> None:
+        self.last_force[:] = force

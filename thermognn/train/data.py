@@ -1,0 +1,203 @@
+"""Dataset -> tensors for training: trajectory-wise split, normalisation statistics, batches.
+
+All trajectories of a dataset share one mesh, so a sample is a snapshot pair (z[s], z[s+1]) with
+the force f[s+1] that drives the step; a batch concatenates B snapshots into one disjoint graph
+(``torch_geometric.data.Batch``, edge indices offset per graph).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from thermognn.core.errors import DataError
+from thermognn.core.schema import NODE_CLAMPED, Dataset
+from thermognn.core.state import StateLayout
+
+
+@dataclass
+class Graph:
+    """The mesh graph shared by all snapshots. ref_pos [N, 3] m, edge_index [2, E], node_type [N]."""
+
+    ref_pos: Tensor
+    edge_index: Tensor
+    node_type: Tensor
+    surface_faces: Tensor
+
+    @property
+    def n_nodes(self) -> int:
+        return int(self.ref_pos.shape[0])
+
+
+@dataclass
+class TrajectoryTensors:
+    """One trajectory as tensors: z [S, N, D], force [S, N, 3], time [S]."""
+
+    name: str
+    z: Tensor
+    force: Tensor
+    time: Tensor
+
+
+@dataclass
+class LoadedData:
+    """Everything training needs from one dataset."""
+
+    path: Path
+    dataset: Dataset
+    graph: Graph
+    layout: StateLayout
+    dt: float
+    split: dict[str, list[str]]
+    trajectories: dict[str, TrajectoryTensors] = field(default_factory=dict)
+
+    def of(self, part: str) -> list[TrajectoryTensors]:
+        return [self.trajectories[n] for n in self.split[part]]
+
+
+def fingerprint(ds: Dataset) -> dict:
+    """What a checkpoint must agree on with a dataset: sizes and the state layout."""
+    return {"n_nodes": int(ds.mesh.nodes.shape[0]), "dim": int(ds.layout.dim),
+            "n_edges": int(ds.mesh.edges().shape[1]), "state_layout": ds.layout.to_json()}
+
+
+def check_fingerprint(expected: dict, ds: Dataset, ckpt_path) -> None:
+    """DataError (one line, naming both files) when a dataset does not match a checkpoint."""
+    got = fingerprint(ds)
+    for key in ("n_nodes", "dim", "n_edges", "state_layout"):
+        if expected.get(key) != got[key]:
+            raise DataError(f"{ckpt_path} does not match dataset {ds.path}: {key} {expected.get(key)} "
+                            f"in the checkpoint, {got[key]} in the dataset")
+
+
+def split_names(ds: Dataset, fractions, seed: int) -> dict[str, list[str]]:
+    """Trajectory-wise train/val/test split of the 'ok' trajectories.
+
+    A fixed split stored in the dataset (``Dataset.split``) wins; otherwise a seeded permutation
+    with the fractions (train, val, test). With fewer than 3 trajectories all three parts are the
+    same list (nothing to hold out)."""
+    ok = ds.ok_names
+    if not ok:
+        raise DataError(f"{ds.path}: no trajectory with status 'ok'")
+    fixed = getattr(ds, "split", None)
+    if fixed:
+        okset = set(ok)
+        parts = {k: [n for n in fixed.get(k, []) if n in okset] for k in ("train", "val", "test")}
+        if parts["train"]:
+            for k in ("val", "test"):
+                parts[k] = parts[k] or parts["train"]
+            return parts
+    fr = [float(x) for x in fractions]
+    if len(fr) != 3 or min(fr) < 0 or sum(fr) <= 0:
+        raise DataError(f"train.split = {fractions}: expected three non-negative fractions")
+    n = len(ok)
+    if n < 3:
+        return {"train": list(ok), "val": list(ok), "test": list(ok)}
+    total = sum(fr)
+    n_val = max(1, int(round(fr[1] / total * n)))
+    n_test = max(1, int(round(fr[2] / total * n)))
+    n_train = max(1, n - n_val - n_test)
+    perm = np.random.default_rng(seed).permutation(n)
+    names = [ok[i] for i in perm]
+    return {"train": sorted(names[:n_train], key=ok.index),
+            "val": sorted(names[n_train:n_train + n_val], key=ok.index),
+            "test": sorted(names[n_train + n_val:n_train + n_val + n_test], key=ok.index)}
+
+
+def load_graph(ds: Dataset, dtype: torch.dtype) -> Graph:
+    mesh = ds.mesh
+    faces = mesh.boundary_faces() if len(mesh.tets) else np.zeros((0, 3), np.int64)
+    return Graph(ref_pos=torch.as_tensor(mesh.nodes, dtype=dtype),
+                 edge_index=torch.as_tensor(mesh.edges(), dtype=torch.long),
+                 node_type=torch.as_tensor(np.asarray(mesh.node_type, np.int64)),
+                 surface_faces=torch.as_tensor(faces, dtype=torch.long).reshape(-1, 3))
+
+
+def load_data(path, fractions, seed: int, dtype: torch.dtype = torch.float32,
+              parts=("train", "val", "test")) -> LoadedData:
+    """Open the dataset, split it and read the trajectories of ``parts`` into tensors."""
+    ds = Dataset(path)
+    if ds.layout.names[0] != "q" or ds.layout.groups[0][1] != 3:
+        raise DataError(f"{ds.path}: state_layout {ds.layout.to_json()} must start with q (3)")
+    split = split_names(ds, fractions, seed)
+    data = LoadedData(path=Path(path), dataset=ds, graph=load_graph(ds, dtype), layout=ds.layout,
+                      dt=ds.dt, split=split)
+    wanted = sorted({n for p in parts for n in split[p]}, key=ds.names.index)
+    for name in wanted:
+        t = ds.read(name)
+        if t.z.shape[0] < 2:
+            raise DataError(f"{ds.path}: trajectory '{name}' has {t.z.shape[0]} states, need at least 2")
+        data.trajectories[name] = TrajectoryTensors(name, torch.as_tensor(t.z, dtype=dtype),
+                                                    torch.as_tensor(t.force, dtype=dtype),
+                                                    torch.as_tensor(t.time, dtype=torch.float64))
+    return data
+
+
+def velocity_columns(layout: StateLayout) -> list[int]:
+    return list(range(*layout.slice("v").indices(layout.dim))) if "v" in layout.names else []
+
+
+def _safe_std(x: Tensor) -> Tensor:
+    """Std with degenerate (constant) columns mapped to 1."""
+    s = x.std(0, unbiased=False)
+    return torch.where(s > 1e-12 * (1.0 + x.abs().mean(0)), s, torch.ones_like(s))
+
+
+def compute_stats(train: list[TrajectoryTensors], graph: Graph, dt: float,
+                  reference_edges: bool) -> dict[str, Tensor]:
+    """Per-column normalisation from the TRAINING trajectories only (float64, SI units).
+
+    z_mean/z_std [D] over all snapshots and nodes; edge_mean/edge_std [4|8] over edge features;
+    f_mean/f_std [3] over the driving forces; dzdt_std [D] root mean square of (z[s+1]-z[s])/dt
+    (scale only, no shift, so that a zero rate stays zero)."""
+    z = torch.cat([t.z for t in train]).double()                    # [sum S, N, D]
+    f = torch.cat([t.force[1:] for t in train]).double()            # [sum (S-1), N, 3]
+    dzdt = torch.cat([(t.z[1:] - t.z[:-1]).double() / dt for t in train])  # [sum (S-1), N, D]
+    D = z.shape[-1]
+    zf = z.reshape(-1, D)
+    src, dst = graph.edge_index[0], graph.edge_index[1]
+    dq = (z[:, dst, :3] - z[:, src, :3]).reshape(-1, 3)                      # [sum S * E, 3]
+    feats = [dq, dq.norm(dim=1, keepdim=True)]
+    if reference_edges:
+        X = graph.ref_pos.double()
+        dx = X[dst] - X[src]
+        feats += [dx, dx.norm(dim=1, keepdim=True)]
+        feats = [feats[0], feats[1], feats[2].repeat(z.shape[0], 1), feats[3].repeat(z.shape[0], 1)]
+    ef = torch.cat(feats, 1)
+    rms = dzdt.reshape(-1, D).pow(2).mean(0).sqrt()
+    return {"z_mean": zf.mean(0), "z_std": _safe_std(zf),
+            "edge_mean": ef.mean(0), "edge_std": _safe_std(ef),
+            "f_mean": torch.zeros(3, dtype=torch.float64),
+            "f_std": _safe_std(torch.cat([f.reshape(-1, 3), -f.reshape(-1, 3)])),
+            "dzdt_std": torch.where(rms > 1e-30, rms, torch.ones_like(rms))}
+
+
+def samples(trajs: list[TrajectoryTensors]) -> list[tuple[int, int]]:
+    """(trajectory index, step s) for every transition z[s] -> z[s+1]."""
+    return [(i, s) for i, t in enumerate(trajs) for s in range(t.z.shape[0] - 1)]
+
+
+def make_batch(trajs: list[TrajectoryTensors], items: list[tuple[int, int]], graph: Graph):
+    """Concatenate snapshot pairs into one disjoint graph (torch_geometric Batch).
+
+    Batch fields: z [B*N, D], z_next [B*N, D], f [B*N, 3], pos [B*N, 3] (reference X),
+    node_type [B*N], edge_index [2, B*E] (offset per graph)."""
+    from torch_geometric.data import Batch, Data
+
+    data = [Data(z=trajs[i].z[s], z_next=trajs[i].z[s + 1], f=trajs[i].force[s + 1], pos=graph.ref_pos,
+                 node_type=graph.node_type, edge_index=graph.edge_index, num_nodes=graph.n_nodes)
+            for i, s in items]
+    return Batch.from_data_list(data)
+
+
+def clamped_mask(node_type: Tensor) -> Tensor:
+    return node_type == NODE_CLAMPED
+
+
+def layout_json(layout: StateLayout) -> str:
+    return json.dumps([list(g) for g in layout.groups])

@@ -1,0 +1,258 @@
+"""Thermodynamics-informed graph network (TIGNN): encode-process-decode with a GENERIC decoder.
+
+Notation (per node i of a graph with N nodes, state dimension D, E directed edges)::
+
+    z   [N, D]   state (q, v, sigma, ...) in SI units; zn = (z - z_mean) / z_std (normalised)
+    f   [N, 3]   external nodal force [N]
+    edge features  [E, 4 or 8]   q_i - q_j, |q_i - q_j|  (+ X_i - X_j, |X_i - X_j|)  [m]
+    node features  [N, D-3+3+3]  zn without q (v, sigma, ...), node type one-hot, normalised force
+
+Positions enter only as differences along edges (Galilean invariance). The decoder gives per node
+``l`` (D x D), ``m`` (D x D), E_i and S_i; with L = l - l^T (skew), M = m m^T (PSD),
+E = sum_i E_i, S = sum_i S_i and the gradients taken by autograd with respect to zn::
+
+    dzn/dt = L dE/dzn + M dS/dzn (+ W fn, the port term)          GENERIC
+    dzn/dt = L dE/dzn            (+ W fn)                          Hamiltonian
+    dz/dt  = dzn/dt * dzdt_std   [SI units per second]
+    z_{n+1} = z_n + dt dz/dt,  then q = X, v = 0 imposed on clamped nodes.
+
+Everything here is TorchScript-able (``torch.jit.script``): message passing is written with
+``index_select``/``index_add`` rather than PyG's MessagePassing. The module must never run under
+``torch.no_grad()``: dE/dz and dS/dz come from ``torch.autograd.grad``.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, List, Tuple
+
+import torch
+from torch import Tensor, nn
+
+NODE_TYPES = 3  # free, clamped, loadable surface
+CLAMPED = 1
+
+
+class MLP(nn.Module):
+    """``layers`` hidden SiLU layers of width ``hidden`` (smooth: the model is differentiated twice),
+    then a linear output, optionally followed by LayerNorm. [*, n_in] -> [*, n_out]."""
+
+    def __init__(self, n_in: int, hidden: int, n_out: int, layers: int, layer_norm: bool) -> None:
+        super().__init__()
+        mods: List[nn.Module] = []
+        d = n_in
+        for _ in range(layers):
+            mods += [nn.Linear(d, hidden), nn.SiLU()]
+            d = hidden
+        mods.append(nn.Linear(d, n_out))
+        if layer_norm:
+            mods.append(nn.LayerNorm(n_out))
+        self.net = nn.Sequential(*mods)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.net(x)
+
+
+class ProcessorBlock(nn.Module):
+    """One residual MeshGraphNet block: edge update from (e_ij, h_i, h_j), node update from
+    (h_i, aggregated incoming edges). h [N, H], e [E, H], edge_index [2, E] (row 0 source j,
+    row 1 target i)."""
+
+    def __init__(self, hidden: int, layers: int, mean_aggregation: bool) -> None:
+        super().__init__()
+        self.edge_mlp = MLP(3 * hidden, hidden, hidden, layers, True)
+        self.node_mlp = MLP(2 * hidden, hidden, hidden, layers, True)
+        self.mean_aggregation = mean_aggregation
+
+    def forward(self, h: Tensor, e: Tensor, edge_index: Tensor, inv_degree: Tensor) -> Tuple[Tensor, Tensor]:
+        src, dst = edge_index[0], edge_index[1]
+        e = e + self.edge_mlp(torch.cat([e, h.index_select(0, dst), h.index_select(0, src)], dim=1))
+        agg = torch.zeros(h.shape[0], e.shape[1], dtype=e.dtype, device=e.device).index_add(0, dst, e)
+        if self.mean_aggregation:
+            agg = agg * inv_degree  # [N, H] * [N, 1]
+        h = h + self.node_mlp(torch.cat([h, agg], dim=1))
+        return h, e
+
+
+def skew(l: Tensor) -> Tensor:
+    """L = l - l^T for a batch of matrices [N, D, D]."""
+    return l - l.transpose(1, 2)
+
+
+def psd(m: Tensor) -> Tensor:
+    """M = m m^T for a batch of matrices [N, D, D]."""
+    return torch.bmm(m, m.transpose(1, 2))
+
+
+def degeneracy_loss(L: Tensor, M: Tensor, grad_E: Tensor, grad_S: Tensor) -> Tensor:
+    """Mean over nodes of ||L dS/dz||^2 + ||M dE/dz||^2. L, M [N, D, D]; gradients [N, D]."""
+    l_ds = torch.bmm(L, grad_S.unsqueeze(-1)).squeeze(-1)
+    m_de = torch.bmm(M, grad_E.unsqueeze(-1)).squeeze(-1)
+    return (l_ds.pow(2).sum(1) + m_de.pow(2).sum(1)).mean()
+
+
+class TIGNN(nn.Module):
+    """The learned integrator. Normalisation statistics are buffers (set by ``set_stats``)."""
+
+    def __init__(self, dim: int, velocity_columns: List[int], hidden: int = 64, mlp_layers: int = 2,
+                 message_passing: int = 4, shared_weights: bool = False, aggregation: str = "sum",
+                 hamiltonian: bool = False, port: bool = True, reference_edges: bool = True) -> None:
+        super().__init__()
+        if aggregation not in ("sum", "mean"):
+            raise ValueError(f"aggregation '{aggregation}', expected sum or mean")
+        self.dim = dim
+        self.hamiltonian = hamiltonian
+        self.use_port = port
+        self.reference_edges = reference_edges
+        n_edge = 8 if reference_edges else 4
+        n_node = (dim - 3) + NODE_TYPES + 3
+        self.node_encoder = MLP(n_node, hidden, hidden, mlp_layers, True)
+        self.edge_encoder = MLP(n_edge, hidden, hidden, mlp_layers, True)
+        n_blocks = 1 if shared_weights else message_passing
+        self.repeats = message_passing if shared_weights else 1
+        self.blocks = nn.ModuleList([ProcessorBlock(hidden, mlp_layers, aggregation == "mean")
+                                     for _ in range(n_blocks)])
+        # decoder outputs: l (D*D), E (1) [, m (D*D), S (1)]
+        self.n_out = dim * dim + 1 if hamiltonian else 2 * (dim * dim + 1)
+        self.decoder = MLP(hidden, hidden, self.n_out, mlp_layers, False)
+        self.port = nn.Linear(3, dim, bias=False)
+        # normalisation (identity until set_stats)
+        self.register_buffer("z_mean", torch.zeros(dim))
+        self.register_buffer("z_std", torch.ones(dim))
+        self.register_buffer("edge_mean", torch.zeros(n_edge))
+        self.register_buffer("edge_std", torch.ones(n_edge))
+        self.register_buffer("f_mean", torch.zeros(3))
+        self.register_buffer("f_std", torch.ones(3))
+        self.register_buffer("dzdt_std", torch.ones(dim))
+        # columns imposed on clamped nodes: q (0..2) and v
+        imposed = torch.zeros(dim, dtype=torch.bool)
+        imposed[:3] = True
+        for c in velocity_columns:
+            imposed[c] = True
+        self.register_buffer("imposed_columns", imposed)
+
+    def set_stats(self, stats: Dict[str, Tensor]) -> None:
+        """Copy normalisation statistics (keys as the buffers: z_mean, z_std, ...) into the buffers."""
+        for k, v in stats.items():
+            getattr(self, k).copy_(torch.as_tensor(v, dtype=getattr(self, k).dtype))
+
+    # --- features -------------------------------------------------------------------------
+    def edge_features(self, q: Tensor, ref_pos: Tensor, edge_index: Tensor) -> Tensor:
+        """Normalised edge features [E, 4|8] from positions q [N, 3] and reference X [N, 3]."""
+        src, dst = edge_index[0], edge_index[1]
+        dq = q.index_select(0, dst) - q.index_select(0, src)  # [E, 3], q_i - q_j
+        feats = [dq, torch.sqrt(dq.pow(2).sum(1, keepdim=True) + 1e-30)]
+        if self.reference_edges:
+            dx = ref_pos.index_select(0, dst) - ref_pos.index_select(0, src)
+            feats.append(dx)
+            feats.append(torch.sqrt(dx.pow(2).sum(1, keepdim=True)))
+        return (torch.cat(feats, 1) - self.edge_mean) / self.edge_std
+
+    def inv_degree(self, n: int, edge_index: Tensor, like: Tensor) -> Tensor:
+        deg = torch.zeros(n, 1, dtype=like.dtype, device=like.device)
+        deg = deg.index_add(0, edge_index[1], torch.ones(edge_index.shape[1], 1, dtype=like.dtype,
+                                                         device=like.device))
+        return 1.0 / deg.clamp(min=1.0)
+
+    # --- network --------------------------------------------------------------------------
+    def decode(self, zn: Tensor, fn: Tensor, edge_index: Tensor, node_type: Tensor,
+               ref_pos: Tensor) -> Tensor:
+        """Raw decoder output [N, n_out] for normalised state zn [N, D] and force fn [N, 3]."""
+        q = zn[:, :3] * self.z_std[:3] + self.z_mean[:3]  # positions back in metres
+        onehot = torch.nn.functional.one_hot(node_type, 3).to(zn.dtype)
+        h = self.node_encoder(torch.cat([zn[:, 3:], onehot, fn], 1))
+        e = self.edge_encoder(self.edge_features(q, ref_pos, edge_index))
+        inv_deg = self.inv_degree(zn.shape[0], edge_index, zn)
+        for _ in range(self.repeats):
+            for block in self.blocks:
+                h, e = block(h, e, edge_index, inv_deg)
+        return self.decoder(h)
+
+    @torch.jit.export
+    def rates(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
+              create_graph: bool) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """GENERIC rates. Returns (dzn/dt [N, D], L [N, D, D], M [N, D, D], dE/dzn [N, D],
+        dS/dzn [N, D], degeneracy loss (0-dim)). M and dS/dzn are zero for Hamiltonian models."""
+        D = self.dim
+        zn = ((z - self.z_mean) / self.z_std).detach().requires_grad_(True)
+        fn = (f - self.f_mean) / self.f_std
+        out = self.decode(zn, fn, edge_index, node_type, ref_pos)
+        n = zn.shape[0]
+        L = skew(out[:, : D * D].reshape(n, D, D))
+        energy = out[:, D * D].sum()
+        if self.hamiltonian:
+            grads = torch.autograd.grad([energy], [zn], create_graph=create_graph)
+            g_e = grads[0]
+            assert g_e is not None
+            g_s = torch.zeros_like(g_e)
+            M = torch.zeros_like(L)
+            dzdt = torch.bmm(L, g_e.unsqueeze(-1)).squeeze(-1)
+            deg = torch.zeros((), dtype=z.dtype, device=z.device)
+        else:
+            k = D * D + 1
+            M = psd(out[:, k: k + D * D].reshape(n, D, D))
+            entropy = out[:, k + D * D].sum()
+            g_e_opt = torch.autograd.grad([energy], [zn], create_graph=create_graph, retain_graph=True)[0]
+            g_s_opt = torch.autograd.grad([entropy], [zn], create_graph=create_graph)[0]
+            assert g_e_opt is not None
+            assert g_s_opt is not None
+            g_e, g_s = g_e_opt, g_s_opt
+            dzdt = (torch.bmm(L, g_e.unsqueeze(-1)) + torch.bmm(M, g_s.unsqueeze(-1))).squeeze(-1)
+            deg = degeneracy_loss(L, M, g_e, g_s)
+        if self.use_port:
+            dzdt = dzdt + self.port(fn)
+        return dzdt, L, M, g_e, g_s, deg
+
+    @torch.jit.export
+    def impose(self, z: Tensor, node_type: Tensor, ref_pos: Tensor) -> Tensor:
+        """Clamped nodes: q = reference position X, v = 0. z [N, D]."""
+        fixed = torch.cat([ref_pos, torch.zeros(z.shape[0], self.dim - 3, dtype=z.dtype, device=z.device)], 1)
+        mask = (node_type == 1).unsqueeze(1) & self.imposed_columns.unsqueeze(0)  # [N, D]
+        return torch.where(mask, fixed, z)
+
+    @torch.jit.export
+    def step(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
+             dt: Tensor) -> Tensor:
+        """One explicit step z_n -> z_{n+1} [N, D] in SI units, driven by the force f [N, 3] at t_{n+1}."""
+        dzdt_n = self.rates(z, f, edge_index, node_type, ref_pos, False)[0]
+        z_next = z.detach() + dt * dzdt_n.detach() * self.dzdt_std
+        return self.impose(z_next, node_type, ref_pos)
+
+    @torch.jit.export
+    def energy_entropy(self, z: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
+                       f: Tensor) -> Tuple[Tensor, Tensor]:
+        """Learned total energy E and entropy S (0-dim; S = 0 for Hamiltonian models)."""
+        D = self.dim
+        zn = (z - self.z_mean) / self.z_std
+        fn = (f - self.f_mean) / self.f_std
+        out = self.decode(zn, fn, edge_index, node_type, ref_pos)
+        energy = out[:, D * D].sum()
+        if self.hamiltonian:
+            return energy, torch.zeros_like(energy)
+        return energy, out[:, 2 * D * D + 1].sum()
+
+
+def hyperparameters(cfg_model, dim: int, velocity_columns: List[int], hamiltonian: bool) -> dict:
+    """The constructor arguments of TIGNN from the ``model`` config group (stored in checkpoints)."""
+    from omegaconf import OmegaConf
+
+    sel = lambda k, d: OmegaConf.select(cfg_model, k, default=d)  # noqa: E731
+    return {
+        "dim": int(dim),
+        "velocity_columns": [int(c) for c in velocity_columns],
+        "hidden": int(sel("hidden", 64)),
+        "mlp_layers": int(sel("mlp_layers", 2)),
+        "message_passing": int(sel("message_passing", 4)),
+        "shared_weights": bool(sel("shared_weights", False)),
+        "aggregation": str(sel("aggregation", "sum")),
+        "hamiltonian": bool(hamiltonian),
+        "port": bool(sel("port", True)),
+        "reference_edges": bool(sel("reference_edges", True)),
+    }
+
+
+def build_model(hparams: dict, dtype: torch.dtype = torch.float32) -> TIGNN:
+    return TIGNN(**hparams).to(dtype)
+
+
+def parameter_count(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())
