@@ -35,7 +35,7 @@ class DeviceSpecs:
     max_stiffness: float             # largest stable rendered stiffness [N/m]
     workspace: tuple[float, float, float]  # usable extent x y z [m]
     native_rate: float = 1000.0      # device servo rate [Hz]
-    max_force_rate: float = 1000.0   # force impulse limit [N/s] (change per tick = this / rate)
+    max_force_rate: float = 100.0    # force impulse limit [N/s] (change per tick = this / rate)
     max_damping: float = 5.0         # largest stable damping [N s/m]
     n_fingers: int = 0               # gloves: number of force-feedback fingers
 

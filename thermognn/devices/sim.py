@@ -33,7 +33,7 @@ class SimDevice(Device):
     def __init__(self, path: str = "press", period: float = 2.0, depth: float | None = None,
                  clearance: float | None = None, max_force: float = 3.3,
                  max_continuous_force: float = 0.88, max_stiffness: float = 1000.0,
-                 max_force_rate: float = 1000.0, **options) -> None:
+                 max_force_rate: float = 100.0, **options) -> None:
         super().__init__(**options)
         if path not in PATHS:
             raise DeviceError(f"serve.path: unknown sim path '{path}', expected one of {list(PATHS)}")
@@ -48,7 +48,6 @@ class SimDevice(Device):
         self.lo = np.array([-0.02, -0.02, 0.0])
         self.hi = np.array([0.02, 0.02, 0.02])
         self.tool_radius = 0.003
-        self.forces: list[np.ndarray] = []  # not recorded (no allocation per tick); kept for API symmetry
         self.last_force = np.zeros(3)
         self._t0 = 0.0
         self._x = np.zeros(3)

@@ -66,13 +66,13 @@ def fingerprint(ds: Dataset) -> dict:
             "n_edges": int(ds.mesh.edges().shape[1]), "state_layout": ds.layout.to_json()}
 
 
-def check_fingerprint(expected: dict, ds: Dataset, ckpt_path) -> None:
+def check_fingerprint(expected: dict, ds: Dataset, ckpt_path, hint: str = "") -> None:
     """DataError (one line, naming both files) when a dataset does not match a checkpoint."""
     got = fingerprint(ds)
     for key in ("n_nodes", "dim", "n_edges", "state_layout"):
         if expected.get(key) != got[key]:
             raise DataError(f"{ckpt_path} does not match dataset {ds.path}: {key} {expected.get(key)} "
-                            f"in the checkpoint, {got[key]} in the dataset")
+                            f"in the checkpoint, {got[key]} in the dataset" + (f" ({hint})" if hint else ""))
 
 
 def split_names(ds: Dataset, fractions, seed: int) -> dict[str, list[str]]:
@@ -162,16 +162,17 @@ def compute_stats(train: list[TrajectoryTensors], graph: Graph, dt: float,
     zf = z.reshape(-1, D)
     src, dst = graph.edge_index[0], graph.edge_index[1]
     dq = (z[:, dst, :3] - z[:, src, :3]).reshape(-1, 3)                      # [sum S * E, 3]
-    feats = [dq, dq.norm(dim=1, keepdim=True)]
-    if reference_edges:
+    dq_feats = torch.cat([dq, dq.norm(dim=1, keepdim=True)], 1)              # [sum S * E, 4]
+    edge_mean, edge_std = [dq_feats.mean(0)], [_safe_std(dq_feats)]
+    if reference_edges:  # the reference geometry is the same in every snapshot: one copy suffices
         X = graph.ref_pos.double()
         dx = X[dst] - X[src]
-        feats += [dx, dx.norm(dim=1, keepdim=True)]
-        feats = [feats[0], feats[1], feats[2].repeat(z.shape[0], 1), feats[3].repeat(z.shape[0], 1)]
-    ef = torch.cat(feats, 1)
+        dx_feats = torch.cat([dx, dx.norm(dim=1, keepdim=True)], 1)           # [E, 4]
+        edge_mean.append(dx_feats.mean(0))
+        edge_std.append(_safe_std(dx_feats))
     rms = dzdt.reshape(-1, D).pow(2).mean(0).sqrt()
     return {"z_mean": zf.mean(0), "z_std": _safe_std(zf),
-            "edge_mean": ef.mean(0), "edge_std": _safe_std(ef),
+            "edge_mean": torch.cat(edge_mean), "edge_std": torch.cat(edge_std),
             "f_mean": torch.zeros(3, dtype=torch.float64),
             "f_std": _safe_std(torch.cat([f.reshape(-1, 3), -f.reshape(-1, 3)])),
             "dzdt_std": torch.where(rms > 1e-30, rms, torch.ones_like(rms))}
@@ -183,16 +184,21 @@ def samples(trajs: list[TrajectoryTensors]) -> list[tuple[int, int]]:
 
 
 def make_batch(trajs: list[TrajectoryTensors], items: list[tuple[int, int]], graph: Graph):
-    """Concatenate snapshot pairs into one disjoint graph (torch_geometric Batch).
+    """Concatenate snapshot pairs into one disjoint graph (a ``torch_geometric.data.Data``, laid
+    out as ``Batch.from_data_list`` would, built directly since all snapshots share one mesh).
 
-    Batch fields: z [B*N, D], z_next [B*N, D], f [B*N, 3], pos [B*N, 3] (reference X),
-    node_type [B*N], edge_index [2, B*E] (offset per graph)."""
-    from torch_geometric.data import Batch, Data
+    Fields: z [B*N, D], z_next [B*N, D], f [B*N, 3], pos [B*N, 3] (reference X),
+    node_type [B*N], edge_index [2, B*E] (graph b's indices offset by b*N), batch [B*N]."""
+    from torch_geometric.data import Data
 
-    data = [Data(z=trajs[i].z[s], z_next=trajs[i].z[s + 1], f=trajs[i].force[s + 1], pos=graph.ref_pos,
-                 node_type=graph.node_type, edge_index=graph.edge_index, num_nodes=graph.n_nodes)
-            for i, s in items]
-    return Batch.from_data_list(data)
+    B, N = len(items), graph.n_nodes
+    z = torch.stack([trajs[i].z[s] for i, s in items]).reshape(B * N, -1)
+    z_next = torch.stack([trajs[i].z[s + 1] for i, s in items]).reshape(B * N, -1)
+    f = torch.stack([trajs[i].force[s + 1] for i, s in items]).reshape(B * N, 3)
+    offsets = (torch.arange(B) * N).view(B, 1, 1)                              # [B, 1, 1]
+    edge_index = (graph.edge_index.unsqueeze(0) + offsets).permute(1, 0, 2).reshape(2, -1)  # [2, B*E]
+    return Data(z=z, z_next=z_next, f=f, pos=graph.ref_pos.repeat(B, 1), node_type=graph.node_type.repeat(B),
+                edge_index=edge_index, batch=torch.arange(B).repeat_interleave(N), num_nodes=B * N)
 
 
 def clamped_mask(node_type: Tensor) -> Tensor:

@@ -55,17 +55,27 @@ class MLP(nn.Module):
 class ProcessorBlock(nn.Module):
     """One residual MeshGraphNet block: edge update from (e_ij, h_i, h_j), node update from
     (h_i, aggregated incoming edges). h [N, H], e [E, H], edge_index [2, E] (row 0 source j,
-    row 1 target i)."""
+    row 1 target i).
+
+    The edge MLP's first linear layer W [e, h_i, h_j] = W_e e + (W_i h)_i + (W_j h)_j is applied to
+    the nodes before gathering (N H^2 instead of 2 E H^2 multiply-adds; identical function)."""
 
     def __init__(self, hidden: int, layers: int, mean_aggregation: bool) -> None:
         super().__init__()
-        self.edge_mlp = MLP(3 * hidden, hidden, hidden, layers, True)
+        if layers < 1:
+            raise ValueError(f"mlp_layers = {layers}, expected >= 1")
+        self.edge_in = nn.Linear(hidden, hidden)
+        self.edge_in_target = nn.Linear(hidden, hidden, bias=False)
+        self.edge_in_source = nn.Linear(hidden, hidden, bias=False)
+        self.edge_mlp = MLP(hidden, hidden, hidden, layers - 1, True)
         self.node_mlp = MLP(2 * hidden, hidden, hidden, layers, True)
         self.mean_aggregation = mean_aggregation
 
     def forward(self, h: Tensor, e: Tensor, edge_index: Tensor, inv_degree: Tensor) -> Tuple[Tensor, Tensor]:
         src, dst = edge_index[0], edge_index[1]
-        e = e + self.edge_mlp(torch.cat([e, h.index_select(0, dst), h.index_select(0, src)], dim=1))
+        first = (self.edge_in(e) + self.edge_in_target(h).index_select(0, dst)
+                 + self.edge_in_source(h).index_select(0, src))                      # [E, H]
+        e = e + self.edge_mlp(torch.nn.functional.silu(first))
         agg = torch.zeros(h.shape[0], e.shape[1], dtype=e.dtype, device=e.device).index_add(0, dst, e)
         if self.mean_aggregation:
             agg = agg * inv_degree  # [N, H] * [N, 1]

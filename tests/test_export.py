@@ -1,0 +1,105 @@
+"""Export: TorchScript contract (docs/stages.md), parity with the eager model, errors, imports."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from thermognn.core.config import load_config
+from thermognn.core.errors import DataError
+from thermognn.export import export
+from thermognn.train import train
+from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint
+from thermognn.train.synthetic import write_oscillator_dataset
+
+SMALL = ["train.threads=1", "model.hidden=16", "model.message_passing=2", "train.epochs=2", "train.batch_size=4"]
+
+
+@pytest.fixture(scope="module", params=["float32", "float64"])
+def exported(request, tmp_path_factory):
+    out = tmp_path_factory.mktemp(f"export_{request.param}")
+    write_oscillator_dataset(out / "dataset.h5", n_trajectories=4, steps=5, viscous=True)
+    cfg = load_config([f"out={out}", *SMALL, f"model.dtype={request.param}"])
+    train(cfg)
+    return out, cfg, export(cfg)
+
+
+def test_contract_buffers_methods_and_metadata(exported):
+    out, cfg, path = exported
+    extra = {"thermognn.json": ""}
+    m = torch.jit.load(str(path), _extra_files=extra)
+    meta = json.loads(extra["thermognn.json"])
+    assert set(meta) >= {"format", "scene", "effects", "state_layout", "dt", "structure", "config", "versions"}
+    assert meta["format"] == "thermognn-model/1" and meta["structure"] == "generic"
+    assert json.loads(meta["state_layout"]) == [["q", 3], ["v", 3], ["sigma", 6]]
+    dtype = torch.float32 if cfg.model.dtype == "float32" else torch.float64
+    n = 27
+    assert m.reference_positions.shape == (n, 3) and m.reference_positions.dtype == dtype
+    assert m.z0.shape == (n, 12) and m.z0.dtype == dtype
+    assert m.edge_index.dtype == torch.int64 and m.edge_index.shape[0] == 2
+    assert m.node_type.shape == (n,) and m.node_type.dtype == torch.int64
+    assert m.surface_faces.dtype == torch.int64 and m.surface_faces.shape[1] == 3 and m.surface_faces.shape[0] > 0
+    assert m.dt.dim() == 0 and abs(float(m.dt) - meta["dt"]) < 1e-9
+    z1 = m(m.z0, torch.zeros(n, 3, dtype=dtype))
+    assert z1.shape == (n, 12) and z1.dtype == dtype and torch.isfinite(z1).all()
+    clamped = m.node_type == 1
+    assert torch.equal(z1[clamped, :3], m.reference_positions[clamped])
+    e, s = m.energy_entropy(m.z0)
+    assert e.dim() == 0 and s.dim() == 0
+
+
+def test_parity_with_eager_model(exported):
+    out, cfg, path = exported
+    m = torch.jit.load(str(path))
+    core = model_from_checkpoint(load_checkpoint(out / "model.ckpt"))
+    dtype = m.z0.dtype
+    g = torch.Generator().manual_seed(0)
+    z = m.z0.clone()
+    f = 0.1 * torch.randn(z.shape[0], 3, generator=g, dtype=dtype)
+    for _ in range(3):
+        a = m(z, f)
+        b = core.step(z, f, m.edge_index, m.node_type, m.reference_positions, m.dt)
+        scale = b.abs().amax(0).clamp(min=1e-30)
+        assert float(((a - b).abs() / scale).max()) < (1e-4 if dtype == torch.float32 else 1e-10)
+        z = a
+
+
+def test_loads_with_torch_only(exported):
+    out, cfg, path = exported
+    code = ("import sys, torch\n"
+            f"m = torch.jit.load({str(path)!r})\n"
+            "z = m(m.z0, torch.zeros(m.z0.shape[0], 3, dtype=m.z0.dtype))\n"
+            "assert not any(k.startswith('thermognn') for k in sys.modules), 'thermognn imported'\n"
+            "print(tuple(z.shape))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd="/")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "(27, 12)" in r.stdout
+
+
+def test_export_rejects_mismatched_dataset(exported, tmp_path):
+    out, cfg, path = exported
+    write_oscillator_dataset(tmp_path / "other.h5", n_trajectories=2, steps=3, shape=(3, 3, 4), viscous=True)
+    cfg2 = load_config([f"out={tmp_path}", f"paths.checkpoint={out / 'model.ckpt'}",
+                        f"paths.dataset={tmp_path / 'other.h5'}"])
+    with pytest.raises(DataError) as err:
+        export(cfg2)
+    assert "\n" not in str(err.value) and "other.h5" in str(err.value)
+    assert not (tmp_path / "model.pt").exists()
+
+
+def test_export_missing_checkpoint(tmp_path):
+    cfg = load_config([f"out={tmp_path}"])
+    with pytest.raises(DataError, match="not found"):
+        export(cfg)
+
+
+def test_learned_stages_never_import_dolfinx():
+    code = ("import sys\n"
+            "import thermognn.train, thermognn.export\n"
+            "import thermognn.train.loop, thermognn.train.evaluation, thermognn.export.exporter\n"
+            "bad = [m for m in ('dolfinx', 'gmsh', 'ufl', 'basix') if m in sys.modules]\n"
+            "assert not bad, bad\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]

@@ -1,0 +1,159 @@
+"""The generate stage end to end on a tiny block (real dolfinx solves)."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from thermognn.core.config import load_config
+from thermognn.core.errors import ConfigError, ThermoGNNError
+from thermognn.core.schema import NODE_CLAMPED, NODE_SURFACE, Dataset
+
+TINY = ["scene.loads.n_trajectories=3", "scene.time.steps=4", "scene.loads.ramp_steps=2",
+        "scene.mesh.cell_size=0.01"]
+
+
+def _cfg(tmp_path, *extra):
+    return load_config([f"out={tmp_path}", *TINY, *extra])
+
+
+def test_import_generate_does_not_import_torch():
+    code = "import sys, thermognn.generate, thermognn.generate.pipeline; print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def test_generate_tiny_block_writes_valid_dataset(tmp_path):
+    pytest.importorskip("dolfinx")
+    from thermognn.generate import generate
+
+    path = generate(_cfg(tmp_path))
+    assert path == tmp_path / "dataset.h5" and path.exists()
+    assert not path.with_name("dataset.h5.partial").exists()
+    d = Dataset(path)
+    assert d.names == ["traj_0", "traj_1", "traj_2"] and d.ok_names == d.names
+    assert d.layout.names == ["q", "v", "sigma"] and d.dt == pytest.approx(0.01)
+    assert d.effects == ("elastic", "inertia") and d.scene == "block"
+    n = d.mesh.nodes.shape[0]
+    assert set(np.unique(d.mesh.node_type)) == {0, NODE_CLAMPED, NODE_SURFACE}
+    assert np.allclose(d.mesh.nodes[d.mesh.node_type == NODE_CLAMPED, 2], 0.0)
+    assert np.allclose(d.mesh.nodes[d.mesh.node_type == NODE_SURFACE, 2], 0.02)
+    assert d.mesh.tets.shape[1] == 4 and d.mesh.tets.max() == n - 1
+    for name in d.names:
+        t = d.read(name)
+        assert t.z.shape == (5, n, 12) and t.force.shape == (5, n, 3)
+        assert np.all(np.isfinite(t.z))
+        assert np.allclose(t.z[0, :, :3], d.mesh.nodes) and np.allclose(t.z[0, :, 3:], 0.0)
+        clamped = d.mesh.node_type == NODE_CLAMPED
+        assert np.allclose(t.z[:, clamped, :3], d.mesh.nodes[clamped]) and np.allclose(t.z[:, clamped, 3:6], 0)
+        total = t.force.sum(axis=1)  # (S, 3): ramp 0, 0.5, 1, 1, 1 of 1 N pressing down
+        assert np.allclose(total[:, 2], [0.0, -0.5, -1.0, -1.0, -1.0]) and np.allclose(total[:, :2], 0)
+        assert set(np.flatnonzero(np.abs(t.force[-1]).sum(1))) == set(t.load_nodes.tolist())
+        assert np.all(d.mesh.node_type[t.load_nodes] == NODE_SURFACE)
+        moved = t.z[-1, t.load_nodes, 2] - d.mesh.nodes[t.load_nodes, 2]
+        assert np.all(moved < 0)  # pressed in
+        assert np.abs(t.z[-1, :, 6:]).max() > 100.0  # stresses of order 1 N / (1 cm)^2
+
+
+def test_effects_decide_state_layout(tmp_path):
+    """Quasi-static elastic scene: no velocity in z; viscous with store_internal: one xi per term."""
+    pytest.importorskip("dolfinx")
+    from thermognn.generate import generate
+
+    d = Dataset(generate(_cfg(tmp_path / "a", "scene.effects=[elastic]", "scene.loads.n_trajectories=1")))
+    assert d.layout.names == ["q", "sigma"] and d.read("traj_0").z.shape[2] == 9
+    d = Dataset(generate(_cfg(tmp_path / "b", "scene.effects=[elastic,viscous]", "scene.store_internal=true",
+                              "scene.material.prony=[{g: 0.3, tau: 0.05}]", "scene.loads.n_trajectories=1")))
+    assert d.layout.names == ["q", "sigma", "xi1"]
+    t = d.read("traj_0")
+    assert d.status["traj_0"] == "ok" and np.abs(t.z[-1, :, 9:15]).max() > 0
+
+
+def test_generate_resumes_and_skips_done_trajectories(tmp_path, monkeypatch):
+    pytest.importorskip("dolfinx")
+    from thermognn.generate import generate, pipeline
+
+    cfg = _cfg(tmp_path)
+    real = pipeline.simulate
+    calls = []
+
+    def crash_after_first(solid, spec, layout, k, *a):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(k)
+        return real(solid, spec, layout, k, *a)
+
+    monkeypatch.setattr(pipeline, "simulate", crash_after_first)
+    with pytest.raises(KeyboardInterrupt):
+        generate(cfg)
+    assert (tmp_path / "dataset.h5.partial").exists() and not (tmp_path / "dataset.h5").exists()
+
+    done = []
+    monkeypatch.setattr(pipeline, "simulate", lambda solid, spec, layout, k, *a: done.append(k) or
+                        real(solid, spec, layout, k, *a))
+    generate(cfg)
+    assert done == [1, 2]
+    d = Dataset(tmp_path / "dataset.h5")
+    assert d.ok_names == ["traj_0", "traj_1", "traj_2"]
+
+
+def test_generate_failed_trajectory_is_recorded_without_nan(tmp_path):
+    pytest.importorskip("dolfinx")
+    from thermognn.generate import generate
+
+    path = generate(_cfg(tmp_path, "scene.loads.magnitude=1e4", "scene.loads.n_trajectories=1"))
+    d = Dataset(path)
+    assert d.status == {"traj_0": "failed"}
+    t = d.read("traj_0")
+    assert "floor" in t.reason and np.all(np.isfinite(t.z)) and len(t.time) < 5
+    assert t.z.shape[0] == t.force.shape[0] == len(t.time)
+
+
+@pytest.mark.parametrize("override, needle", [
+    ("scene.material.law=mooney", "scene.material.law"),
+    ("scene.mesh.geometry=meshes/nope.geo", "nope.geo"),
+    ("scene.time.integrator=leapfrog", "scene.time.integrator"),
+    ("scene.effects=[elastic,plastic]", "plastic"),
+    ("scene.time.dt=-1", "scene.time.dt"),
+    ("scene.mesh.clamp=left", "scene.mesh.clamp"),
+])
+def test_bad_scene_config_gives_one_line_error(tmp_path, override, needle):
+    pytest.importorskip("dolfinx")
+    from thermognn.generate import generate
+
+    with pytest.raises(ThermoGNNError) as e:
+        generate(_cfg(tmp_path, override))
+    msg = str(e.value)
+    assert "\n" not in msg and needle in msg
+    assert not (tmp_path / "dataset.h5").exists()
+
+
+def test_unknown_scene_key_is_config_error(tmp_path):
+    with pytest.raises(ConfigError):
+        _cfg(tmp_path, "scene.no_such_key=1")
+
+
+@pytest.mark.parametrize("scene, extra", [
+    ("shell", []),
+    ("liver", ["scene.store_internal=true"]),
+    ("bunny", []),
+])
+def test_other_scenes_generate(tmp_path, scene, extra):
+    """Shell (own geometry), liver (Ogden + 2 Prony terms, meshio .msh) and bunny (neo-Hookean +
+    Prony, .vtu): one short trajectory each; the shared meshes are optional (skipped if absent)."""
+    pytest.importorskip("dolfinx")
+    from thermognn.core.config import PROJECT_ROOT
+    from thermognn.generate import generate
+
+    if scene in ("liver", "bunny") and not (PROJECT_ROOT.parent / "shared" / "meshes").is_dir():
+        pytest.skip("../shared/meshes not available")
+    cfg = load_config([f"out={tmp_path}", f"scene={scene}", "scene.loads.n_trajectories=1",
+                       "scene.time.steps=2", *extra])
+    d = Dataset(generate(cfg))
+    t = d.read("traj_0")
+    assert d.status["traj_0"] == "ok" and np.all(np.isfinite(t.z)) and t.z.shape[0] == 3
+    if scene == "liver":
+        assert d.layout.names == ["q", "v", "sigma", "xi1", "xi2"]
+        assert np.abs(t.z[-1, :, d.layout.slice("xi2")]).max() > 0
+    assert np.all(d.mesh.node_type[t.load_nodes] == NODE_SURFACE)

@@ -1,0 +1,107 @@
+"""TIGNN structure: skew L, PSD M, degeneracy, energy conservation, TorchScript."""
+
+import pytest
+import torch
+
+from thermognn.train.model import TIGNN, degeneracy_loss, psd, skew
+
+
+def _graph(n=20, n_edges=80, seed=0, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    src = torch.randint(0, n, (n_edges,), generator=g)
+    dst = (src + 1 + torch.randint(0, n - 1, (n_edges,), generator=g)) % n  # no self loops
+    edge_index = torch.cat([torch.stack([src, dst]), torch.stack([dst, src])], 1)
+    ref = torch.rand(n, 3, generator=g, dtype=dtype) * 0.04
+    z = torch.randn(n, 12, generator=g, dtype=dtype)
+    z[:, :3] = ref + 1e-3 * z[:, :3]
+    f = torch.randn(n, 3, generator=g, dtype=dtype)
+    node_type = torch.randint(0, 3, (n,), generator=g)
+    return z, f, edge_index, node_type, ref
+
+
+def _model(hamiltonian=False, port=False, **kw):
+    torch.manual_seed(0)
+    return TIGNN(12, [3, 4, 5], hidden=16, mlp_layers=2, message_passing=2, hamiltonian=hamiltonian,
+                 port=port, **kw).double()
+
+
+def test_L_skew_and_M_symmetric_psd():
+    z, f, ei, nt, ref = _graph()
+    _, L, M, _, _, _ = _model().rates(z, f, ei, nt, ref, False)
+    assert L.shape == (20, 12, 12) and M.shape == (20, 12, 12)
+    assert torch.allclose(L, -L.transpose(1, 2), atol=1e-14)
+    assert torch.allclose(M, M.transpose(1, 2), atol=1e-12)
+    eig = torch.linalg.eigvalsh(M)
+    assert eig.min() >= -1e-10 * eig.abs().max()
+
+
+def test_degeneracy_zero_for_constructed_case():
+    # L = [a]_x (cross product with a) annihilates dS/dz = a; M = m m^T with m's columns orthogonal to dE/dz
+    a = torch.tensor([[0.3, -1.2, 0.7]], dtype=torch.float64)
+    ax = torch.tensor([[[0.0, -0.7, -1.2], [0.7, 0.0, -0.3], [1.2, 0.3, 0.0]]], dtype=torch.float64)
+    L = skew(0.5 * ax)  # = ax, already skew
+    grad_e = torch.tensor([[1.0, 2.0, -1.0]], dtype=torch.float64)
+    u = torch.tensor([[2.0, -1.0, 0.0]], dtype=torch.float64)   # u . grad_e = 0
+    w = torch.linalg.cross(u, grad_e)                              # w . grad_e = 0
+    m = torch.stack([u[0], w[0], torch.zeros(3, dtype=torch.float64)], 1).unsqueeze(0)
+    M = psd(m)
+    assert float(degeneracy_loss(L, M, grad_e, a)) < 1e-24
+    assert float(degeneracy_loss(L, M, a, grad_e)) > 1e-3  # swapped: not degenerate
+
+
+def test_hamiltonian_conserves_energy():
+    z, f, ei, nt, ref = _graph()
+    model = _model(hamiltonian=True)
+    dzdt, L, M, g_e, g_s, deg = model.rates(z, f, ei, nt, ref, False)
+    # dE/dt = sum_i dE/dz_i . L_i dE/dz_i = 0 to round-off (no port term)
+    power = (g_e * dzdt).sum()
+    assert abs(float(power)) < 1e-10 * float(g_e.pow(2).sum() * L.abs().max() + 1e-30)
+    assert float(M.abs().max()) == 0.0 and float(deg) == 0.0
+
+
+def test_generic_entropy_production_non_negative():
+    z, f, ei, nt, ref = _graph(seed=3)
+    model = _model()
+    _, _, M, _, g_s, deg = model.rates(z, f, ei, nt, ref, False)
+    production = torch.einsum("ni,nij,nj->n", g_s, M, g_s)
+    assert float(production.min()) >= -1e-12 * float(production.abs().max())
+    assert float(deg) > 0.0  # an untrained model is not degenerate: the loss has something to do
+
+
+@pytest.mark.parametrize("hamiltonian", [False, True])
+@pytest.mark.parametrize("shared,aggregation", [(False, "sum"), (True, "mean")])
+def test_scripted_matches_eager(hamiltonian, shared, aggregation):
+    z, f, ei, nt, ref = _graph(seed=1)
+    model = _model(hamiltonian=hamiltonian, port=True, shared_weights=shared, aggregation=aggregation)
+    scripted = torch.jit.script(model)
+    dt = torch.tensor(0.01, dtype=torch.float64)
+    a = model.step(z, f, ei, nt, ref, dt)
+    b = scripted.step(z, f, ei, nt, ref, dt)
+    assert torch.allclose(a, b, rtol=1e-10, atol=1e-12)
+    ea, sa = model.energy_entropy(z, ei, nt, ref, f)
+    eb, sb = scripted.energy_entropy(z, ei, nt, ref, f)
+    assert torch.allclose(ea, eb) and torch.allclose(sa, sb)
+
+
+def test_clamped_nodes_imposed():
+    z, f, ei, nt, ref = _graph(seed=2)
+    model = _model(port=True)
+    out = model.step(z, f, ei, nt, ref, torch.tensor(0.01, dtype=torch.float64))
+    clamped = nt == 1
+    assert clamped.any()
+    assert torch.equal(out[clamped, :3], ref[clamped])
+    assert torch.equal(out[clamped, 3:6], torch.zeros_like(out[clamped, 3:6]))
+
+
+def test_galilean_invariance():
+    """A rigid translation of q (and X) changes nothing but q itself."""
+    z, f, ei, nt, ref = _graph(seed=4)
+    model = _model(port=True)
+    shift = torch.tensor([0.1, -0.2, 0.05], dtype=torch.float64)
+    # normalisation centres q: shift the mean with it so the normalised q moves rigidly too
+    d1 = model.rates(z, f, ei, nt, ref, False)[0]
+    z2 = z.clone()
+    z2[:, :3] += shift
+    model.z_mean[:3] += shift
+    d2 = model.rates(z2, f, ei, nt, ref + shift, False)[0]
+    assert torch.allclose(d1, d2, atol=1e-10)

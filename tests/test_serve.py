@@ -1,0 +1,439 @@
+"""serve stage end to end on a real exported TorchScript model (a damped spring network on a
+tet box, built by thermognn.serve.toy per the "Exported model" contract), plus the pieces it
+is made of: seqlock shared memory, contact, multirate blending."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from thermognn.core.config import load_config
+from thermognn.core.errors import ConfigError, DataError, DeviceError
+from thermognn.serve import serve
+from thermognn.serve.contact import SurfaceContact, closest_points_on_triangles
+from thermognn.serve.loop import Blender
+from thermognn.serve import protocol as P
+from thermognn.serve.shm import SharedArrays, VersionedBuffer, versioned_layout
+
+REQUIRED = ("loop_rate_hz", "period_p50_ms", "period_p99_ms", "period_p999_ms", "worst_gap_ms", "physics_rate_hz",
+            "max_force_N", "max_force_step_N", "contact_ticks", "final_force_N", "exit_reason")
+
+
+@pytest.fixture(scope="module")
+def exported_model(tmp_path_factory) -> Path:
+    """A real model.pt: scripted spring network saved with torch.jit.save(_extra_files=thermognn.json)."""
+    torch = pytest.importorskip("torch")
+    from thermognn.serve.toy import export_spring_model
+    path = export_spring_model(tmp_path_factory.mktemp("model") / "model.pt")
+    extra = {"thermognn.json": ""}
+    module = torch.jit.load(str(path), _extra_files=extra)
+    meta = json.loads(extra["thermognn.json"])
+    assert meta["format"] == "thermognn-model/1" and "state_layout" in meta
+    for name in ("reference_positions", "z0", "edge_index", "node_type", "surface_faces", "dt"):
+        assert hasattr(module, name)
+    z1 = module(module.z0, torch.zeros(module.z0.shape[0], 3, dtype=module.z0.dtype))
+    assert z1.shape == module.z0.shape
+    return path
+
+
+def make_cfg(model: Path, out: Path, *overrides: str):
+    return load_config([f"paths.exported={model}", f"out={out}", "serve.panel=false", *overrides])
+
+
+@pytest.fixture(scope="module")
+def sim_session(exported_model, tmp_path_factory):
+    out = tmp_path_factory.mktemp("serve")
+    summary = serve(make_cfg(exported_model, out, "serve.duration=2", "serve.device=sim", "serve.path=press"))
+    return summary, out / "serve_log.csv"
+
+
+def test_serve_sim_press_produces_contact_and_ends_at_zero_force(sim_session):
+    summary, log = sim_session
+    for key in REQUIRED:
+        assert key in summary, key
+    assert summary["exit_reason"] == "duration"
+    assert summary["contact_ticks"] > 0 and summary["max_force_N"] > 0.05
+    assert summary["final_force_N"] == 0.0
+    assert summary["loop_rate_hz"] > 0 and summary["physics_rate_hz"] > 0
+    assert summary["max_force_N"] <= 3.3 + 1e-9                      # device peak limit
+    rows = np.loadtxt(log, delimiter=",", skiprows=1)
+    assert open(log).readline().strip() == "t,x,y,z,fx,fy,fz,physics_step,contact"
+    assert rows.shape[1] == 9 and len(rows) > 500
+    assert np.all(rows[-1, 4:7] == 0.0)                              # last command: zero force
+    assert rows[:, 7].max() > 10                                     # physics stepped
+    in_contact = rows[:, 8] > 0
+    strongest = np.argmax(np.linalg.norm(rows[:, 4:7], axis=1))
+    assert rows[strongest, 6] > 0.9 * np.linalg.norm(rows[strongest, 4:7])   # pressing down: pushed up
+    assert rows[in_contact, 6].mean() > 0     # (passivity damping may pull a little while retracting)
+
+
+def test_serve_replay_of_a_session_log(sim_session, exported_model, tmp_path):
+    _, log = sim_session
+    summary = serve(make_cfg(exported_model, tmp_path, "serve.device=replay", f"serve.replay_file={log}",
+                             "serve.duration=0"))
+    assert summary["exit_reason"] == "device_finished"
+    assert summary["contact_ticks"] > 0 and summary["final_force_N"] == 0.0
+    replayed = np.loadtxt(tmp_path / "serve_log.csv", delimiter=",", skiprows=1)
+    assert replayed[:, 3].min() == pytest.approx(np.loadtxt(log, delimiter=",", skiprows=1)[:, 3].min(), abs=2e-4)
+
+
+def test_watchdog_on_killed_physics_process(exported_model, tmp_path):
+    """SIGKILL the physics process mid-contact: the force fades (no step) and the session ends
+    with zero force and reason physics_crash."""
+    killed = {}
+
+    def monitor(status):
+        if "t" not in killed and status["force_N"] > 0.05:           # pressing into the body
+            killed["t"] = status["elapsed_s"]
+            os.kill(status["physics_pid"], signal.SIGKILL)
+
+    summary = serve(make_cfg(exported_model, tmp_path, "serve.duration=20", "serve.stale_ms=50"), monitor=monitor)
+    assert "t" in killed
+    assert summary["exit_reason"] == "physics_crash" and "-9" in summary["exit_detail"]
+    assert summary["final_force_N"] == 0.0
+    rows = np.loadtxt(tmp_path / "serve_log.csv", delimiter=",", skiprows=1)
+    force = np.linalg.norm(rows[:, 4:7], axis=1)
+    assert force.max() > 0.05                                        # it was in contact
+    assert force[-1] == 0.0
+    last_step = rows[:, 7].max()
+    after = force[rows[:, 7] == last_step]                           # ticks after physics died
+    assert after[0] > 0.03 and after[-1] == 0.0 and len(after) > 20
+    assert np.abs(np.diff(force)).max() < 0.05                       # faded, never stepped
+    assert rows[-1, 0] < 15                                          # stopped long before duration
+
+
+def test_watchdog_fades_on_stalled_physics_and_recovers(exported_model, tmp_path):
+    """SIGSTOP the physics process for 0.4 s mid-press: the force fades to zero within
+    stale_ms + fade_ms, then comes back through the ramp-in once physics resumes (engage
+    threshold raised so that it may re-engage while pressing); the session goes on."""
+    stalled = {}
+
+    def monitor(status):
+        if "t" not in stalled and status["force_N"] > 0.05:
+            stalled["t"] = status["elapsed_s"]
+            os.kill(status["physics_pid"], signal.SIGSTOP)
+            threading.Timer(0.4, os.kill, (status["physics_pid"], signal.SIGCONT)).start()
+
+    summary = serve(make_cfg(exported_model, tmp_path, "serve.duration=2.0", "serve.stale_ms=50",
+                             "serve.fade_ms=100", "serve.engage_threshold=5.0", "serve.ramp_s=0.2"),
+                    monitor=monitor)
+    assert "t" in stalled
+    assert summary["exit_reason"] == "duration" and summary["final_force_N"] == 0.0
+    rows = np.loadtxt(tmp_path / "serve_log.csv", delimiter=",", skiprows=1)
+    force = np.linalg.norm(rows[:, 4:7], axis=1)
+    change = np.flatnonzero(np.diff(rows[:, 7])) + 1                 # ticks where a new physics step arrived
+    longest = np.argmax(np.diff(change))
+    a, b = change[longest], change[longest + 1]                      # the stall
+    assert b - a > 300                                               # ~400 ticks without physics
+    assert force[a] > 0.03 and np.all(force[a + 200:b] == 0.0)       # faded to zero within 200 ms
+    assert np.abs(np.diff(force[a:b])).max() < 0.02                  # a fade, not a step
+    assert force[b:].max() > 0.02                                    # back after resuming
+    assert np.abs(np.diff(force[b:])).max() < 0.05                   # through a ramp, no full-force step
+
+
+def test_nan_from_model_stops_with_zero_force(tmp_path):
+    pytest.importorskip("torch")
+    from thermognn.serve.toy import export_spring_model
+    model = export_spring_model(tmp_path / "nan.pt", nan_after=300)
+    summary = serve(make_cfg(model, tmp_path, "serve.duration=20"))
+    assert summary["exit_reason"] == "physics_nan"
+    assert "not finite" in summary["exit_detail"]
+    assert summary["final_force_N"] == 0.0
+
+
+@pytest.mark.parametrize("signum, reason", [(signal.SIGINT, "sigint"), (signal.SIGTERM, "sigterm")])
+def test_signal_stops_cleanly(exported_model, tmp_path, signum, reason):
+    """Ctrl-C / SIGTERM on a CLI-like process: zero force, summary with the reason, exit code 0."""
+    script = tmp_path / "run.py"
+    script.write_text(
+        "import json, sys\n"
+        "from thermognn.core.config import load_config\n"
+        "from thermognn.serve import serve\n"
+        "if __name__ == '__main__':\n"
+        f"    cfg = load_config(['paths.exported={exported_model}', 'out={tmp_path}', 'serve.duration=30',"
+        " 'serve.panel=false'])\n"
+        "    print('SUMMARY ' + json.dumps(serve(cfg)))\n")
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and len(_children(proc.pid)) < 3:   # tracker, physics, haptic
+            time.sleep(0.05)
+        time.sleep(1.0)
+        proc.send_signal(signum)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err[-2000:]
+    summary = json.loads(out.split("SUMMARY ", 1)[1])
+    assert summary["exit_reason"] == reason and summary["final_force_N"] == 0.0
+    assert not _children(proc.pid)
+
+
+def test_children_stop_when_the_main_process_is_killed(exported_model, tmp_path):
+    """SIGKILL of the main process (no clean-up possible there): the haptic process notices its
+    parent is gone, fades the force to zero and exits; so does the physics process."""
+    script = tmp_path / "run.py"
+    script.write_text(
+        "from thermognn.core.config import load_config\n"
+        "from thermognn.serve import serve\n"
+        "if __name__ == '__main__':\n"
+        f"    serve(load_config(['paths.exported={exported_model}', 'out={tmp_path}', 'serve.duration=60',"
+        " 'serve.panel=false']))\n")
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    kids: list[int] = []
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and len(kids) < 3:
+            kids = _children(proc.pid)
+            time.sleep(0.05)
+        time.sleep(1.0)
+        proc.kill()
+        proc.wait(10)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and [k for k in kids if _alive(k)]:
+            time.sleep(0.05)
+        assert not [k for k in kids if _alive(k)]
+    finally:
+        for k in kids:
+            if _alive(k):
+                os.kill(k, signal.SIGKILL)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state not in ("Z", "X")
+
+
+def _children(pid: int) -> list[int]:
+    kids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                kids.append(int(entry.name))
+    return kids
+
+
+def test_serve_user_errors(exported_model, tmp_path):
+    with pytest.raises(DeviceError, match="unknown device plugin 'nope'.*sim"):
+        serve(make_cfg(exported_model, tmp_path, "serve.device=nope"))
+    with pytest.raises(DataError, match="paths.exported"):
+        serve(make_cfg(tmp_path / "missing.pt", tmp_path))
+    with pytest.raises(ConfigError, match="serve.rate"):
+        serve(make_cfg(exported_model, tmp_path, "serve.rate=-5"))
+    with pytest.raises(DeviceError, match="serve.path"):
+        serve(make_cfg(exported_model, tmp_path, "serve.path=zigzag", "serve.duration=1"))
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a model")
+    with pytest.raises(DataError, match="not a TorchScript model"):
+        serve(make_cfg(bad, tmp_path, "serve.duration=1"))
+
+
+# -- pieces --------------------------------------------------------------------------------------
+def test_versioned_buffer_roundtrip_and_torn_reads():
+    block = SharedArrays({"buf": versioned_layout(4)}, create=True)
+    try:
+        other = SharedArrays.attach(block.spec())                    # a second view, as a child would
+        writer, reader = VersionedBuffer(block["buf"], 4), VersionedBuffer(other["buf"], 4)
+        out = np.zeros(4)
+        assert not reader.read(out)                                  # nothing published yet
+        for k in range(5):
+            writer.publish(np.arange(4.0) + k)
+            assert reader.read(out) and np.all(out == np.arange(4.0) + k)
+        s = int(block["buf"][0])
+        writer.seq[s][0] += 1                                        # simulate a writer mid-update
+        assert not reader.read(out, tries=3)
+        writer.seq[s][0] += 1
+        assert reader.read(out)
+        other.close()
+    finally:
+        block.close()
+
+
+def test_contact_flat_surface_force_stiffness_and_loads():
+    # one square (two triangles) at z = 0, outward normal +z; loadable corners
+    X = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0], [0, 0, -1]], dtype=float) * 0.01
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    node_type = np.array([2, 2, 2, 2, 1])
+    contact = SurfaceContact(X, node_type, faces, tool_radius=0.003, stiffness=300.0, load_radius=0.05)
+    res = contact(np.array([0.001, 0.002, 0.002]), X)
+    assert res.in_contact and res.depth == pytest.approx(0.001)
+    assert res.force == pytest.approx([0.0, 0.0, 300.0 * 0.001])
+    assert res.stiffness == pytest.approx(-300.0 * np.diag([0.0, 0.0, 1.0]))
+    assert contact.loads.sum(axis=0) == pytest.approx(-res.force)   # the body feels the reaction
+    assert contact.loads[4] == pytest.approx(np.zeros(3))
+    res = contact(np.array([0.0, 0.0, 0.0035]), X)
+    assert not res.in_contact and np.all(contact.loads == 0)
+    res = contact(np.array([0.0, 0.0, -0.001]), X)                   # centre below the surface
+    assert res.in_contact and res.force[2] == pytest.approx(300.0 * 0.004)
+
+
+def test_contact_without_surface_faces_uses_surface_nodes():
+    X = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.0, -0.01]])
+    contact = SurfaceContact(X, np.array([2, 2, 1]), np.zeros((0, 3), dtype=np.int64), 0.003, 300.0, 0.0)
+    res = contact(np.array([0.0, 0.0, 0.002]), X)
+    assert res.in_contact and res.force == pytest.approx([0.0, 0.0, 0.3])
+    assert contact.loads[0] == pytest.approx([0.0, 0.0, -0.3]) and contact.loads[1:].sum() == 0
+
+
+def test_contact_force_is_continuous_over_a_dimple():
+    """The tool pressing a vertex of a dimpled surface: the force does not flip between faces."""
+    from thermognn.serve.toy import box_mesh
+    X, _, faces, node_type = box_mesh((5, 5, 3), (0.04, 0.04, 0.02))
+    q = X.copy()
+    centre = np.flatnonzero((np.abs(X[:, 0]) < 1e-9) & (np.abs(X[:, 1]) < 1e-9) & (X[:, 2] > 0.019))
+    q[centre, 2] -= 0.001                                            # dimple under the tool
+    contact = SurfaceContact(X, node_type, faces, 0.003, 300.0, 0.006)
+    forces = [contact(np.array([dx, 0.0, 0.0215]), q).force for dx in np.linspace(-1e-4, 1e-4, 21)]
+    forces = np.array(forces)
+    assert np.all(forces[:, 2] > 0)
+    assert np.abs(np.diff(forces, axis=0)).max() < 0.01
+
+
+def test_closest_points_regions():
+    a, b, c = np.array([[0.0, 0, 0]]), np.array([[1.0, 0, 0]]), np.array([[0.0, 1, 0]])
+    for p, expect in [((0.2, 0.2, 1.0), (0.2, 0.2, 0)), ((-1, -1, 0), (0, 0, 0)), ((2, -1, 0), (1, 0, 0)),
+                      ((0.5, -1, 0), (0.5, 0, 0)), ((1, 1, 0), (0.5, 0.5, 0)), ((-1, 0.5, 0), (0, 0.5, 0))]:
+        pts, bary = closest_points_on_triangles(np.array(p, dtype=float), a, b, c)
+        assert pts[0] == pytest.approx(expect) and bary[0].sum() == pytest.approx(1.0)
+
+
+def test_blender_moves_between_models_without_a_step():
+    blender = Blender()
+    payload = np.zeros(P.MODEL_PAYLOAD)
+    payload[P.M_F0] = [0.0, 0.0, 1.0]
+    payload[P.M_K] = (-300.0 * np.diag([0, 0, 1.0])).reshape(-1)
+    x, f = np.zeros(3), np.zeros(3)
+    blender.update(payload, 0, 1e4, x)
+    for tick in range(1, 20):                                        # physics every 5 ticks
+        if tick % 5 == 0:
+            payload[P.M_F0] = [0.0, 0.0, 1.0 + 0.5 * tick / 5]
+            blender.update(payload, tick, 1e4, x)
+        blender.render(x, tick, f)
+    forces = []
+    payload[P.M_F0] = [0.0, 0.0, 3.0]
+    blender.update(payload, 20, 1e4, x)
+    for tick in range(20, 26):
+        blender.render(x, tick, f)
+        forces.append(f[2])
+    assert blender.period_ticks > 2
+    assert np.all(np.diff(forces) >= 0) and forces[-1] == pytest.approx(3.0)
+    assert np.max(np.diff([2.5] + forces)) < 0.5                     # spread over the physics period
+    x[2] = 0.01                                                      # pulled out past release: no pull
+    blender.render(x, 30, f)
+    assert np.all(f == 0)
+
+
+def test_blender_new_model_mid_blend_continues_from_the_rendered_force():
+    blender = Blender()
+    payload = np.zeros(P.MODEL_PAYLOAD)
+    x, f = np.zeros(3), np.zeros(3)
+    blender.period_ticks = 10.0
+    payload[P.M_F0] = [0.0, 0.0, 1.0]
+    blender.update(payload, 0, 1e4, x)
+    blender.last_update_tick = 0
+    blender.update(payload, 10, 1e4, x)                              # steady at 1 N
+    payload[P.M_F0] = [0.0, 0.0, 0.0]                                # contact lost ...
+    blender.update(payload, 20, 1e4, x)
+    rendered = []
+    for tick in range(20, 25):
+        blender.render(x, tick, f)
+        rendered.append(f[2])
+    payload[P.M_F0] = [0.0, 0.0, 0.2]                                # ... and found again mid-blend
+    blender.update(payload, 25, 1e4, x)
+    for tick in range(25, 40):
+        blender.render(x, tick, f)
+        rendered.append(f[2])
+    steps = np.abs(np.diff(rendered))
+    assert steps.max() < 0.15 and rendered[-1] == pytest.approx(0.2)
+
+
+# -- the hardware plugins inside a real session (fake vendor libraries, real ctypes bindings) ----
+def _compile_fake(src: str, out_dir: Path) -> Path:
+    import shutil
+    if shutil.which("gcc") is None:
+        pytest.skip("gcc not available")
+    lib = out_dir / (Path(src).stem + ".so")
+    subprocess.run(["gcc", "-shared", "-fPIC", "-O1", "-o", str(lib), str(Path(__file__).parent / "csrc" / src),
+                    "-lpthread", "-lm"], check=True, capture_output=True)
+    return lib
+
+
+def _report(path: Path) -> dict[str, list[float]]:
+    return {line.split()[0]: [float(v) for v in line.split()[1:]] for line in path.read_text().splitlines()}
+
+
+def test_serve_with_geomagic_plugin_on_fake_libhd(exported_model, tmp_path, monkeypatch):
+    lib = _compile_fake("fake_libhd.c", tmp_path)
+    monkeypatch.setenv("THERMOGNN_LIBHD", str(lib))
+    monkeypatch.setenv("FAKE_HD_Y_MM", "-46")        # stylus low enough to touch the top face
+    monkeypatch.setenv("FAKE_HD_REPORT", str(tmp_path / "hd_report.txt"))
+    summary = serve(make_cfg(exported_model, tmp_path, "serve.device=geomagic", "serve.duration=1.5",
+                             "serve.workspace_scale=0.25"))
+    assert summary["exit_reason"] == "duration" and summary["final_force_N"] == 0.0
+    assert summary["contact_ticks"] > 0 and summary["max_force_N"] > 0.05
+    assert summary["haptic_torch_loaded"] is False
+    report = _report(tmp_path / "hd_report.txt")
+    assert report["last_force"] == [0.0, 0.0, 0.0]                   # the servo loop applied zero last
+    assert 0.05 < report["max_force"][0] <= 3.3
+    assert report["frames"][0] > 100 and report["clamping"] == [1] and report["ramping"] == [1]
+    rows = np.loadtxt(tmp_path / "serve_log.csv", delimiter=",", skiprows=1)
+    assert rows[:, 3].min() < 0.023                                  # mapped into the model frame
+
+
+def test_serve_with_senseglove_plugin_on_fake_sgcore(exported_model, tmp_path, monkeypatch):
+    lib = _compile_fake("fake_sgcore.c", tmp_path)
+    monkeypatch.setenv("THERMOGNN_SGCORE", str(lib))
+    monkeypatch.setenv("FAKE_SG_REPORT", str(tmp_path / "sg_report.txt"))
+    summary = serve(make_cfg(exported_model, tmp_path, "serve.device=senseglove", "serve.duration=0.5"))
+    assert summary["exit_reason"] == "duration" and summary["final_force_N"] == 0.0
+    report = _report(tmp_path / "sg_report.txt")
+    assert report["stops"] == [1] and report["last"] == [0, 0, 0, 0]
+    assert 1 <= report["sends"][0] <= 0.5 * 60 + 3                   # <= 60 Hz, only on change
+
+
+def test_haptic_process_never_loads_torch(sim_session):
+    summary, _ = sim_session
+    assert summary["haptic_torch_loaded"] is False
+
+
+def test_device_error_mid_session_zero_force_and_reason(exported_model, tmp_path, monkeypatch):
+    lib = _compile_fake("fake_sgcore.c", tmp_path)
+    monkeypatch.setenv("THERMOGNN_SGCORE", str(lib))
+    monkeypatch.setenv("FAKE_SG_FAIL_AFTER", "300")                 # unplugged after ~0.3 s
+    monkeypatch.setenv("FAKE_SG_REPORT", str(tmp_path / "sg_report.txt"))
+    summary = serve(make_cfg(exported_model, tmp_path, "serve.device=senseglove", "serve.duration=20"))
+    assert summary["exit_reason"] == "device_error"
+    assert "stopped answering" in summary["exit_detail"]
+    assert summary["final_force_N"] == 0.0
+    assert _report(tmp_path / "sg_report.txt")["stops"] == [1]       # brakes released on the way out
+
+
+def test_session_log_hdf5(tmp_path):
+    h5py = pytest.importorskip("h5py")
+    from thermognn.serve.runner import loop_statistics, write_session_log
+    t = np.arange(100) * 1e-3
+    rows = np.zeros((100, 9))
+    rows[:, 0], rows[:, 6], rows[:, 7], rows[50:80, 8] = t, np.sin(t * 30), np.arange(100) // 3, 1
+    stats = loop_statistics(rows, 1000.0)
+    assert stats["period_p50_ms"] == pytest.approx(1.0) and stats["contact_ticks"] == 30
+    write_session_log(tmp_path / "log.h5", rows, stats)
+    with h5py.File(tmp_path / "log.h5") as h5:
+        assert h5["position"].shape == (100, 3) and h5["force"][:, 2] == pytest.approx(rows[:, 6])
+        assert h5["physics_step"][-1] == 33 and json.loads(h5.attrs["summary"])["contact_ticks"] == 30

@@ -1,0 +1,177 @@
+"""Training on a tiny analytic dataset: loss decreases, stable rollouts, checkpoints, resume, errors."""
+
+import csv
+import math
+
+import pytest
+import torch
+
+from thermognn.core.config import load_config
+from thermognn.core.errors import DataError
+from thermognn.train import train
+from thermognn.train.checkpoint import last_path, load_checkpoint, model_from_checkpoint
+from thermognn.train.data import load_data
+from thermognn.train.rollout import rollout
+from thermognn.train.synthetic import write_oscillator_dataset
+
+SMALL = ["train.threads=1", "model.hidden=24", "model.message_passing=2", "train.batch_size=4", "train.val_every=2", "train.lr=3e-3"]
+
+
+def _cfg(out, *extra):
+    return load_config([f"out={out}", *SMALL, *extra])
+
+
+def _rows(out):
+    with open(out / "metrics.csv") as fh:
+        return list(csv.DictReader(fh))
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    write_oscillator_dataset(out / "dataset.h5", n_trajectories=6, steps=10)
+    cfg = _cfg(out, "train.epochs=12")
+    ckpt = train(cfg)
+    return out, cfg, ckpt
+
+
+def test_training_lowers_loss_and_writes_outputs(trained):
+    out, cfg, ckpt = trained
+    assert ckpt.exists() and last_path(ckpt).exists()
+    rows = _rows(out)
+    assert [int(r["epoch"]) for r in rows] == list(range(1, 13))
+    losses = [float(r["loss"]) for r in rows]
+    assert losses[-1] < 0.5 * losses[0]
+    assert any(r["val_rrmse"] for r in rows)
+
+
+def test_checkpoint_contents_and_round_trip(trained):
+    out, cfg, ckpt_path = trained
+    ckpt = load_checkpoint(ckpt_path)
+    for key in ("hparams", "state_dict", "stats", "state_layout", "dt", "effects", "structure", "config",
+                "versions", "fingerprint", "split"):
+        assert key in ckpt, key
+    assert ckpt["structure"] == "hamiltonian"  # elastic + inertia: reversible
+    assert ckpt["fingerprint"]["n_nodes"] == 27
+    model = model_from_checkpoint(ckpt)
+    sd = model.state_dict()
+    assert all(torch.equal(sd[k], v) for k, v in ckpt["state_dict"].items())
+    assert torch.equal(model.z_std, ckpt["stats"]["z_std"].float())
+    # stats come from the training split only
+    data = load_data(out / "dataset.h5", cfg.train.split, cfg.seed)
+    assert set(ckpt["split"]["train"]).isdisjoint(ckpt["split"]["test"])
+    z = torch.cat([t.z for t in data.of("train")]).reshape(-1, 12).double()
+    assert torch.allclose(ckpt["stats"]["z_mean"], z.mean(0), rtol=1e-5, atol=1e-9)
+
+
+def test_rollout_stays_finite_long_horizon_and_large_loads(trained):
+    out, cfg, ckpt_path = trained
+    model = model_from_checkpoint(load_checkpoint(ckpt_path))
+    data = load_data(out / "dataset.h5", cfg.train.split, cfg.seed)
+    t = data.of("test")[0]
+    steps = 10 * (t.z.shape[0] - 1)
+    pred = rollout(model, data.graph, t.z[0], 10.0 * t.force, data.dt, steps=steps)
+    assert pred.shape[0] == steps + 1
+    assert torch.isfinite(pred).all()
+
+
+def test_resume_after_interruption_matches_uninterrupted(tmp_path, monkeypatch):
+    import thermognn.train.loop as loop
+
+    write_oscillator_dataset(tmp_path / "a" / "dataset.h5", n_trajectories=4, steps=6)
+    write_oscillator_dataset(tmp_path / "b" / "dataset.h5", n_trajectories=4, steps=6)
+    extra = ("train.epochs=4", "train.noise=0.01")
+    ref = train(_cfg(tmp_path / "a", *extra))
+
+    real_write = loop._write_metrics
+    calls = {"n": 0}
+
+    def interrupt_after_two(path, history):
+        real_write(path, history)
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(loop, "_write_metrics", interrupt_after_two)
+    with pytest.raises(KeyboardInterrupt):
+        train(_cfg(tmp_path / "b", *extra))
+    assert load_checkpoint(last_path(tmp_path / "b" / "model.ckpt"))["epoch"] == 2
+    monkeypatch.setattr(loop, "_write_metrics", real_write)
+    resumed = train(_cfg(tmp_path / "b", *extra))
+    assert [int(r["epoch"]) for r in _rows(tmp_path / "b")] == [1, 2, 3, 4]
+    a = load_checkpoint(last_path(ref))["state_dict"]
+    b = load_checkpoint(last_path(resumed))["state_dict"]
+    for k in a:
+        assert torch.allclose(a[k], b[k], rtol=1e-5, atol=1e-7), k
+
+
+def test_generic_structure_trains(tmp_path):
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=4, steps=6, viscous=True)
+    ckpt = train(_cfg(tmp_path, "train.epochs=2"))
+    assert load_checkpoint(ckpt)["structure"] == "generic"
+    rows = _rows(tmp_path)
+    assert all(math.isfinite(float(r["loss"])) for r in rows)
+    assert float(rows[0]["degeneracy_loss"]) > 0.0
+
+
+def test_mismatched_dataset_is_one_line_error(trained, tmp_path):
+    from thermognn.train import evaluate
+
+    out, cfg, ckpt_path = trained
+    write_oscillator_dataset(tmp_path / "other.h5", n_trajectories=3, steps=4, shape=(4, 3, 3))
+    cfg2 = load_config([f"out={tmp_path}", f"paths.checkpoint={ckpt_path}", f"paths.dataset={tmp_path / 'other.h5'}"])
+    with pytest.raises(DataError) as err:
+        evaluate(cfg2)
+    msg = str(err.value)
+    assert "\n" not in msg and str(ckpt_path) in msg and "other.h5" in msg and "n_nodes" in msg
+
+
+def test_missing_and_corrupt_checkpoint(tmp_path):
+    with pytest.raises(DataError, match="not found"):
+        load_checkpoint(tmp_path / "none.ckpt")
+    bad = tmp_path / "bad.ckpt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(DataError) as err:
+        load_checkpoint(bad)
+    assert "\n" not in str(err.value) and "bad.ckpt" in str(err.value)
+
+
+def test_evaluate_writes_figures_tables_and_vtu(trained):
+    from thermognn.train import evaluate
+
+    out, cfg, _ = trained
+    res = evaluate(cfg)
+    assert set(res) == {"q", "v", "sigma", "ms_per_step"}
+    assert all(math.isfinite(v) for v in res.values())
+    ev = out / "eval"
+    for name in ("rrmse_vs_time.csv", "rrmse_vs_time.png", "rrmse_per_trajectory.csv", "rrmse_per_trajectory.png",
+                 "energy_entropy.csv", "energy_entropy.png", "summary.md"):
+        assert (ev / name).stat().st_size > 0, name
+    vtu = list(ev.glob("snapshot_*.vtu"))
+    assert len(vtu) == 1
+    import meshio
+
+    mesh = meshio.read(vtu[0])
+    assert {"u_pred", "u_true", "sigma_pred", "sigma_true"} <= set(mesh.point_data)
+    with open(ev / "rrmse_per_trajectory.csv") as fh:
+        splits = {r["split"] for r in csv.DictReader(fh)}
+    assert splits == {"train", "test"}
+
+
+def test_early_stopping(tmp_path):
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=3, steps=4)
+    # lr = 0: the validation error never improves, so patience 1 stops after the second round
+    train(_cfg(tmp_path, "train.epochs=6", "train.lr=0.0", "train.val_every=1", "train.patience=1"))
+    assert [int(r["epoch"]) for r in _rows(tmp_path)] == [1, 2]
+
+
+def test_resume_refuses_checkpoint_of_another_dataset(trained, tmp_path):
+    import shutil
+
+    out, _, ckpt = trained
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=3, steps=4, shape=(3, 4, 3))
+    shutil.copy(last_path(ckpt), last_path(tmp_path / "model.ckpt"))
+    with pytest.raises(DataError, match="train.resume=false"):
+        train(_cfg(tmp_path, "train.epochs=1"))
+    train(_cfg(tmp_path, "train.epochs=1", "train.resume=false"))
+    assert load_checkpoint(tmp_path / "model.ckpt")["fingerprint"]["n_nodes"] == 36

@@ -1,0 +1,122 @@
+"""Script the trained model with its mesh, check it against the eager model, save atomically."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from thermognn.core.config import project_path
+from thermognn.core.errors import DataError
+from thermognn.core.io import atomic_path
+from thermognn.core.schema import Dataset
+from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype
+from thermognn.train.data import check_fingerprint, load_graph
+
+from .module import ExportedTIGNN
+
+FORMAT = "thermognn-model/1"
+META_FILE = "thermognn.json"
+#: default relative tolerance of the scripted-vs-eager check, per dtype
+DEFAULT_RTOL = {torch.float32: 1e-4, torch.float64: 1e-9}
+
+
+def metadata(ckpt: dict) -> str:
+    """The ``thermognn.json`` extra file (keys as in docs/stages.md)."""
+    return json.dumps({"format": FORMAT, "scene": ckpt.get("scene", ""), "effects": list(ckpt.get("effects", [])),
+                       "state_layout": ckpt["state_layout"], "dt": float(ckpt["dt"]),
+                       "structure": ckpt["structure"], "config": ckpt.get("config", ""),
+                       "versions": ckpt.get("versions", "{}")})
+
+
+def build_exported(ckpt: dict, ds: Dataset) -> ExportedTIGNN:
+    """Eager ExportedTIGNN from a checkpoint and the dataset's mesh (z0: first 'ok' trajectory's
+    initial state, the rest state of the scene)."""
+    dtype = torch_dtype(ckpt["dtype"])
+    core = model_from_checkpoint(ckpt).eval()
+    graph = load_graph(ds, dtype)
+    names = ds.ok_names or ds.names
+    if not names:
+        raise DataError(f"{ds.path}: no trajectories to take the rest state z0 from")
+    z0 = torch.as_tensor(ds.read(names[0]).z[0], dtype=dtype)
+    return ExportedTIGNN(core, graph.ref_pos, z0, graph.edge_index, graph.node_type, graph.surface_faces,
+                         float(ckpt["dt"]))
+
+
+def script(module: ExportedTIGNN) -> torch.jit.ScriptModule:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return torch.jit.script(module)
+
+
+def parity(eager: ExportedTIGNN, scripted, ds: Dataset, steps: int = 3) -> tuple[float, float]:
+    """Largest absolute and relative difference between scripted and eager steps on real data:
+    one-step predictions from ``steps`` ground-truth states of the first trajectory, then a
+    ``steps``-step rollout from its initial state. Relative: per state column, divided by the
+    largest magnitude of that column."""
+    dtype = eager.z0.dtype
+    names = ds.ok_names or ds.names
+    traj = ds.read(names[0])
+    z = torch.as_tensor(traj.z, dtype=dtype)
+    f = torch.as_tensor(traj.force, dtype=dtype)
+    n = min(steps, z.shape[0] - 1)
+    max_abs, max_rel = 0.0, 0.0
+    za = zb = z[0]
+    for s in range(n):
+        pairs = [(eager(z[s], f[s + 1]), scripted(z[s], f[s + 1]))]
+        za, zb = eager(za, f[s + 1]), scripted(zb, f[s + 1])
+        pairs.append((za, zb))
+        for a, b in pairs:
+            diff = (a - b).abs()
+            scale = a.abs().amax(0).clamp(min=torch.finfo(dtype).tiny)  # [D]
+            max_abs = max(max_abs, float(diff.max()))
+            max_rel = max(max_rel, float((diff / scale).max()))
+    return max_abs, max_rel
+
+
+def export(cfg) -> Path:
+    """Load ``cfg.paths.checkpoint``, script it with the dataset's mesh, verify it against the
+    eager model and write ``cfg.paths.exported`` atomically."""
+    torch.set_num_threads(int(OmegaConf.select(cfg, "train.threads", default=2)))
+    ckpt_path = project_path(cfg.paths.checkpoint)
+    ckpt = load_checkpoint(ckpt_path)
+    ds = Dataset(project_path(cfg.paths.dataset))
+    check_fingerprint(ckpt["fingerprint"], ds, ckpt_path)
+    eager = build_exported(ckpt, ds)
+    scripted = script(eager)
+    dtype = eager.z0.dtype
+    rtol = OmegaConf.select(cfg, "train.export_rtol", default=None)
+    rtol = DEFAULT_RTOL[dtype] if rtol is None else float(rtol)
+    max_abs, max_rel = parity(eager, scripted, ds)
+    print(f"export: scripted vs eager on {ds.path.name}: max abs diff {max_abs:.3e}, "
+          f"max rel diff {max_rel:.3e} (tolerance {rtol:.1e})")
+    if not max_rel <= rtol:
+        raise DataError(f"{ckpt_path}: TorchScript export differs from the eager model by {max_rel:.3e} "
+                        f"(relative), above train.export_rtol = {rtol:.1e}")
+    out = project_path(cfg.paths.exported)
+    with atomic_path(out) as tmp:
+        torch.jit.save(scripted, str(tmp), _extra_files={META_FILE: metadata(ckpt)})
+        verify(tmp)
+    print(f"export: wrote {out} ({ckpt['structure']}, {ckpt['dtype']}, {eager.z0.shape[0]} nodes)")
+    return out
+
+
+def verify(path) -> dict:
+    """Load an exported file with plain torch.jit.load and check the contract; returns the metadata."""
+    extra = {META_FILE: ""}
+    try:
+        m = torch.jit.load(str(path), map_location="cpu", _extra_files=extra)
+    except Exception as exc:  # noqa: BLE001
+        raise DataError(f"{path}: not a loadable TorchScript file ({type(exc).__name__})") from None
+    meta = json.loads(extra[META_FILE] or "{}")
+    if meta.get("format") != FORMAT:
+        raise DataError(f"{path}: metadata format {meta.get('format')!r}, expected {FORMAT!r}")
+    for name in ("reference_positions", "z0", "edge_index", "node_type", "surface_faces", "dt"):
+        if not hasattr(m, name):
+            raise DataError(f"{path}: exported module lacks buffer '{name}'")
+    if not hasattr(m, "energy_entropy"):
+        raise DataError(f"{path}: exported module lacks method 'energy_entropy'")
+    return meta

@@ -1,0 +1,232 @@
+"""A scene = mesh + node types + material + loads + time stepping, read from ``cfg.scene``.
+
+Node types (``thermognn.core.schema``): 0 free, 1 clamped (Dirichlet u = 0), 2 loadable surface.
+Face selectors for ``mesh.clamp`` / ``mesh.loadable`` (a string or a list of strings):
+``bottom``/``top`` (= ``zmin``/``zmax``), ``xmin``, ``xmax``, ``ymin``, ``ymax``, ``zmin``, ``zmax``,
+optionally with a band ``zmin:0.1`` (nodes within 10 % of the extent from that side),
+``surface`` (every boundary node) and ``upper`` (boundary nodes whose outward normal points up,
+n_z > 0.5: the top of a curved shell). Clamped wins over loadable.
+
+Loads: per trajectory k a load point is drawn (``numpy.random.default_rng([loads.seed, k])``)
+among the loadable nodes; the loadable nodes within ``loads.radius`` of it share the total force
+``loads.magnitude`` [N] equally, directed along the inward surface normal at the load point;
+the force ramps linearly over ``ramp_steps`` steps and is then held.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from thermognn.core.errors import ConfigError
+from thermognn.core.schema import NODE_CLAMPED, NODE_FREE, NODE_SURFACE, Mesh
+from thermognn.core.state import check_effects
+
+from .materials import Material, material_from_config
+from .solid import SolverOptions
+
+INTEGRATORS = ("newmark", "generalized_alpha", "quasi_static")
+
+
+@dataclass
+class LoadSpec:
+    n_trajectories: int
+    magnitude: float        # [N]
+    radius: float           # [m]
+    ramp_steps: int
+    seed: int
+
+
+@dataclass
+class SceneSpec:
+    """Everything needed to simulate a scene, validated (no dolfinx objects yet)."""
+
+    name: str
+    effects: tuple[str, ...]
+    store_internal: bool
+    material: Material
+    options: SolverOptions
+    points: np.ndarray       # (N0, 3) [m] mesh vertices as read (dolfinx reorders them)
+    tets: np.ndarray         # (T, 4)
+    mesh_cfg: object
+    loads: LoadSpec
+    dt: float                # [s]
+    steps: int
+
+
+def _get(node, key, default=None):
+    return node.get(key, default) if node is not None else default
+
+
+def _positive(value, key: str, kind=float):
+    try:
+        v = kind(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"scene.{key} = {value!r}: expected a positive {kind.__name__}") from None
+    if v <= 0:
+        raise ConfigError(f"scene.{key} = {value!r}: expected a positive {kind.__name__}")
+    return v
+
+
+def scene_from_config(sc) -> SceneSpec:
+    """Validate ``cfg.scene`` and read its mesh; ConfigError/DataError name the bad key."""
+    from .meshing import load_scene_mesh
+
+    if sc is None:
+        raise ConfigError("config: missing group 'scene'")
+    effects = check_effects(_get(sc, "effects", ["elastic"]))
+    mat = material_from_config(_get(sc, "material", {}))
+    if "viscous" in effects and not mat.prony:
+        raise ConfigError("scene.material.prony: the 'viscous' effect needs at least one Prony term")
+    t = _get(sc, "time", {})
+    dt = _positive(_get(t, "dt"), "time.dt")
+    steps = _positive(_get(t, "steps"), "time.steps", int)
+    integrator = str(_get(t, "integrator", "newmark"))
+    if integrator not in INTEGRATORS:
+        raise ConfigError(f"scene.time.integrator = {integrator!r}: expected one of {list(INTEGRATORS)}")
+    if "inertia" in effects and integrator == "quasi_static":
+        raise ConfigError("scene.time.integrator = 'quasi_static' contradicts the 'inertia' effect")
+    if "inertia" not in effects:
+        integrator = "quasi_static"
+    rho_inf = float(_get(t, "rho_inf", 1.0))
+    if not 0.0 <= rho_inf <= 1.0:
+        raise ConfigError(f"scene.time.rho_inf = {rho_inf}: expected in [0, 1] (generalized-alpha)")
+    rayleigh = [float(x) for x in (_get(t, "rayleigh", None) or [0.0, 0.0])]
+    if len(rayleigh) != 2 or min(rayleigh) < 0:
+        raise ConfigError(f"scene.time.rayleigh = {rayleigh}: expected [alpha_M >= 0, beta_K >= 0]")
+    s = _get(sc, "solver", {})
+    options = SolverOptions(
+        degree=1,
+        quadrature_degree=int(_positive(_get(s, "quadrature_degree", 2), "solver.quadrature_degree", int)),
+        integrator=integrator,
+        beta=float(_get(t, "beta", 0.25)), gamma=float(_get(t, "gamma", 0.5)),
+        rho_inf=float(_get(t, "rho_inf", 1.0)),
+        rayleigh=(rayleigh[0], rayleigh[1]),
+        gravity=tuple(float(x) for x in (_get(sc, "gravity", None) or [0.0, 0.0, -9.81])),
+        rtol=float(_get(s, "newton_rtol", 1e-8)), atol=float(_get(s, "newton_atol", 1e-10)),
+        max_iterations=int(_positive(_get(s, "max_iterations", 25), "solver.max_iterations", int)),
+        min_step_fraction=float(_positive(_get(s, "min_step_fraction", 1 / 16), "solver.min_step_fraction")),
+    )
+    ld = _get(sc, "loads", {})
+    loads = LoadSpec(
+        n_trajectories=_positive(_get(ld, "n_trajectories"), "loads.n_trajectories", int),
+        magnitude=float(_get(ld, "magnitude", 1.0)),
+        radius=float(_get(ld, "radius", 0.0)),
+        ramp_steps=max(1, int(_get(ld, "ramp_steps", 1))),
+        seed=int(_get(ld, "seed", 0)),
+    )
+    mesh_cfg = _get(sc, "mesh", None)
+    if mesh_cfg is None:
+        raise ConfigError("scene.mesh: missing (expected 'geometry' or 'file')")
+    points, tets = load_scene_mesh(mesh_cfg)
+    return SceneSpec(str(_get(sc, "name", "scene")), effects, bool(_get(sc, "store_internal", False)), mat,
+                     options, points, tets, mesh_cfg, loads, dt, steps)
+
+
+# -- node types and surface geometry ---------------------------------------------------------
+
+
+def boundary_faces_outward(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Boundary triangles (F, 3), oriented with outward normals."""
+    local = np.array([[1, 2, 3, 0], [0, 3, 2, 1], [0, 1, 3, 2], [0, 2, 1, 3]])  # face + opposite vertex
+    faces = np.concatenate([tets[:, f[:3]] for f in local])
+    opposite = np.concatenate([tets[:, f[3]] for f in local])
+    key = np.sort(faces, axis=1)
+    _, idx, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
+    sel = idx[counts == 1]
+    f, o = faces[sel], opposite[sel]
+    a, b, c = nodes[f[:, 0]], nodes[f[:, 1]], nodes[f[:, 2]]
+    n = np.cross(b - a, c - a)
+    flip = np.einsum("ij,ij->i", n, nodes[o] - a) > 0
+    f[flip] = f[flip][:, [0, 2, 1]]
+    return f
+
+
+def vertex_normals(nodes: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted outward unit normals (N, 3) (zero for interior nodes)."""
+    a, b, c = nodes[faces[:, 0]], nodes[faces[:, 1]], nodes[faces[:, 2]]
+    n = np.cross(b - a, c - a)  # (F, 3), |n| = 2 area
+    out = np.zeros_like(nodes)
+    for k in range(3):
+        np.add.at(out, faces[:, k], n)
+    norm = np.linalg.norm(out, axis=1)
+    out[norm > 0] /= norm[norm > 0, None]
+    return out
+
+
+def select_nodes(selector, nodes: np.ndarray, surface: np.ndarray, key: str,
+                 normals: np.ndarray | None = None) -> np.ndarray:
+    """Boolean mask (N,) of the nodes a face selector names (see module docstring)."""
+    sels = [selector] if isinstance(selector, str) else list(selector or [])
+    lo, hi = nodes.min(0), nodes.max(0)
+    extent = np.maximum(hi - lo, 1e-30)
+    mask = np.zeros(len(nodes), dtype=bool)
+    axes = {"x": 0, "y": 1, "z": 2}
+    for sel in sels:
+        sel = str(sel)
+        name, _, band = sel.partition(":")
+        name = {"bottom": "zmin", "top": "zmax"}.get(name, name)
+        if name == "surface":
+            mask |= surface
+            continue
+        if name == "upper" and normals is not None:
+            mask |= surface & (normals[:, 2] > 0.5)
+            continue
+        if len(name) != 4 or name[0] not in axes or name[1:] not in ("min", "max"):
+            raise ConfigError(f"scene.mesh.{key} = {sel!r}: expected top, bottom, surface, upper, "
+                              "xmin..zmax (optionally ':fraction')")
+        ax = axes[name[0]]
+        try:
+            frac = float(band) if band else 1e-6
+        except ValueError:
+            raise ConfigError(f"scene.mesh.{key} = {sel!r}: band after ':' must be a number") from None
+        if name.endswith("min"):
+            mask |= nodes[:, ax] <= lo[ax] + frac * extent[ax]
+        else:
+            mask |= nodes[:, ax] >= hi[ax] - frac * extent[ax]
+    return mask
+
+
+def node_types(nodes: np.ndarray, tets: np.ndarray, mesh_cfg) -> np.ndarray:
+    """(N,) int8: 0 free, 1 clamped, 2 loadable surface."""
+    faces = boundary_faces_outward(nodes, tets)
+    surface = np.zeros(len(nodes), dtype=bool)
+    surface[faces.ravel()] = True
+    normals = vertex_normals(nodes, faces)
+    clamped = select_nodes(_get(mesh_cfg, "clamp", "bottom"), nodes, surface, "clamp", normals)
+    loadable = select_nodes(_get(mesh_cfg, "loadable", "top"), nodes, surface, "loadable", normals) & surface
+    t = np.full(len(nodes), NODE_FREE, dtype=np.int8)
+    t[loadable] = NODE_SURFACE
+    t[clamped] = NODE_CLAMPED
+    if not clamped.any():
+        raise ConfigError(f"scene.mesh.clamp = {_get(mesh_cfg, 'clamp')!r}: selects no node")
+    if not loadable.any() or (t == NODE_SURFACE).sum() == 0:
+        raise ConfigError(f"scene.mesh.loadable = {_get(mesh_cfg, 'loadable')!r}: selects no free surface node")
+    return t
+
+
+def load_case(k: int, nodes: np.ndarray, node_type: np.ndarray, normals: np.ndarray,
+              loads: LoadSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(load_point (3,) [m], load_nodes (K,), nodal force at full magnitude (N, 3) [N]) of case k."""
+    rng = np.random.default_rng([loads.seed, k])
+    candidates = np.flatnonzero(node_type == NODE_SURFACE)
+    centre = int(rng.choice(candidates))
+    point = nodes[centre].copy()
+    dist = np.linalg.norm(nodes[candidates] - point, axis=1)
+    load_nodes = np.sort(candidates[dist <= loads.radius]) if loads.radius > 0 else np.array([centre])
+    if centre not in load_nodes:
+        load_nodes = np.sort(np.append(load_nodes, centre))
+    direction = -normals[centre]
+    force = np.zeros_like(nodes)
+    force[load_nodes] = loads.magnitude / len(load_nodes) * direction
+    return point, load_nodes.astype(np.int64), force
+
+
+def ramp(t: float, dt: float, ramp_steps: int) -> float:
+    """Load factor in [0, 1]: linear over ramp_steps * dt, then held."""
+    return float(min(1.0, max(0.0, t / (ramp_steps * dt))))
+
+
+def dataset_mesh(nodes: np.ndarray, cells: np.ndarray, node_type: np.ndarray) -> Mesh:
+    return Mesh(nodes=nodes, tets=cells[:, :4], node_type=node_type)

@@ -1,0 +1,356 @@
+"""``serve(cfg)``: the main process. Starts the physics and haptic processes ("spawn"), shows the
+live panel, handles Ctrl-C/SIGTERM, joins, writes the session log and returns the summary.
+
+Imports neither torch nor dolfinx (torch lives in the physics process only).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import multiprocessing as mp
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from thermognn.core.config import project_path
+from thermognn.core.errors import ConfigError, DataError, DeviceError, ThermoGNNError
+from thermognn.core.io import atomic_path
+
+from . import protocol as P
+from .loop import haptic_main
+from .physics import physics_main
+
+#: longest stretch of the session kept in the log [s] (ring buffer in shared memory)
+MAX_LOG_S = 600.0
+
+
+def _serve_params(cfg: DictConfig) -> dict:
+    """Checked plain-Python settings from ``cfg.serve`` (ConfigError names the key)."""
+    s = cfg.serve
+    def num(key: str, positive: bool = True) -> float:
+        value = OmegaConf.select(s, key)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"serve.{key} = {value!r}, expected a number")
+        if positive and value <= 0:
+            raise ConfigError(f"serve.{key} = {value!r}, expected > 0")
+        return float(value)
+    params = {
+        "device": str(s.device),
+        "duration": num("duration", positive=False),
+        "rate": num("rate"),
+        "tool_radius": num("tool_radius"),
+        "contact_stiffness": num("contact_stiffness"),
+        "stale_ms": num("stale_ms"),
+        "load_radius": num("load_radius", positive=False),
+        "fade_ms": num("fade_ms"),
+        "engage_threshold": num("engage_threshold", positive=False),
+        "ramp_s": num("ramp_s", positive=False),
+        "max_damping": num("max_damping", positive=False),
+        "workspace_scale": num("workspace_scale"),
+        "force_scale": num("force_scale"),
+        "spin_us": num("spin_us", positive=False),
+        "threads": int(num("physics_threads")),
+        "realtime": bool(s.realtime_physics),
+        "realtime_priority": bool(s.realtime_priority),
+        "startup_timeout": num("startup_timeout"),
+    }
+    params["max_force_step"] = None if s.max_force_step is None else num("max_force_step")
+    options = OmegaConf.to_container(s.device_options, resolve=True) if s.device_options else {}
+    if params["device"] == "sim":
+        options.setdefault("path", str(s.path))
+    if params["device"] == "replay" and s.replay_file is not None:
+        options.setdefault("file", str(project_path(s.replay_file)))
+    params["device_options"] = options
+    return params
+
+
+def _log_path(cfg: DictConfig) -> Path:
+    if cfg.serve.log is not None:
+        return Path(str(cfg.serve.log))
+    return Path(str(cfg.out)) / "serve_log.csv"
+
+
+def _ordered_log(log: np.ndarray, n: int) -> np.ndarray:
+    """Rows of the ring buffer in time order ([min(n, rows), 9])."""
+    rows = log.shape[0]
+    if n <= rows:
+        return log[:n].copy()
+    k = n % rows
+    return np.concatenate([log[k:], log[:k]])
+
+
+def loop_statistics(rows: np.ndarray, rate: float) -> dict:
+    """Timing and force figures of a session log (rows [T, 9]; the last row is the exit row)."""
+    ticks = rows[:-1] if len(rows) > 1 else rows
+    t = ticks[:, P.L_T]
+    out: dict = {"ticks": int(len(ticks))}
+    if len(t) > 2:
+        period = np.diff(t) * 1e3                                     # [ms]
+        err = np.abs(period - 1e3 / rate) * 1e3                       # [us]
+        out.update(loop_rate_hz=float((len(t) - 1) / (t[-1] - t[0])),
+                   period_p50_ms=float(np.percentile(period, 50)), period_p99_ms=float(np.percentile(period, 99)),
+                   period_p999_ms=float(np.percentile(period, 99.9)), worst_gap_ms=float(period.max()),
+                   period_err_p99_us=float(np.percentile(err, 99)), period_err_p999_us=float(np.percentile(err, 99.9)),
+                   gaps_over_2ms=int((period > 2.0).sum()))
+    else:
+        out.update(loop_rate_hz=0.0, period_p50_ms=float("nan"), period_p99_ms=float("nan"),
+                   period_p999_ms=float("nan"), worst_gap_ms=float("nan"), period_err_p99_us=float("nan"),
+                   period_err_p999_us=float("nan"), gaps_over_2ms=0)
+    force = rows[:, P.L_F]                                            # includes the exit row
+    mag = np.linalg.norm(force, axis=1)
+    out["max_force_N"] = float(mag.max()) if len(mag) else 0.0
+    out["max_force_step_N"] = float(np.linalg.norm(np.diff(force, axis=0), axis=1).max()) if len(force) > 1 else 0.0
+    out["contact_ticks"] = int((ticks[:, P.L_CONTACT] > 0).sum())
+    out["contact_force_ticks"] = int((np.linalg.norm(ticks[:, P.L_F], axis=1) > 1e-9).sum())
+    return out
+
+
+def write_session_log(path: Path, rows: np.ndarray, summary: dict) -> None:
+    """CSV (header t,x,y,z,fx,fy,fz,physics_step,contact) or HDF5 by suffix; atomic."""
+    with atomic_path(path) as tmp:
+        if path.suffix in (".h5", ".hdf5"):
+            import h5py
+            with h5py.File(tmp, "w") as h5:
+                h5["time"] = rows[:, P.L_T]
+                h5["position"] = rows[:, P.L_X]
+                h5["force"] = rows[:, P.L_F]
+                h5["physics_step"] = rows[:, P.L_STEP].astype(np.int64)
+                h5["contact"] = rows[:, P.L_CONTACT].astype(np.int8)
+                h5.attrs["summary"] = json.dumps(summary)
+        else:
+            np.savetxt(tmp, rows, delimiter=",", header=",".join(P.LOG_COLUMNS), comments="",
+                       fmt=["%.6f"] + ["%.9g"] * 6 + ["%d", "%d"])
+
+
+class _Panel:
+    """Live rich panel (loop rate, period percentiles, physics rate, contact, force); quiet off a terminal."""
+
+    def __init__(self, enabled: bool, device: str) -> None:
+        from rich.console import Console
+        self.console = Console()
+        self.enabled = enabled and self.console.is_terminal
+        self.device = device
+        self.live = None
+        self._last: tuple[float, float] | None = None   # (time, physics steps) of the previous update
+
+    def __enter__(self) -> "_Panel":
+        if self.enabled:
+            from rich.live import Live
+            self.live = Live(console=self.console, auto_refresh=False, transient=False)
+            self.live.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.live is not None:
+            self.live.__exit__(*exc)
+
+    def update(self, control: np.ndarray, log: np.ndarray, rate: float) -> None:
+        if self.live is None:
+            return
+        from rich.table import Table
+        n = int(control[P.C_TICKS])
+        k = min(n, 2000, log.shape[0])
+        idx = (np.arange(n - k, n) % log.shape[0]) if k else np.zeros(0, dtype=int)
+        t = log[idx, P.L_T]
+        now, steps = time.perf_counter(), float(control[P.C_STEPS])
+        t_prev, s_prev = self._last or (now, steps)
+        phys = (steps - s_prev) / (now - t_prev) if now > t_prev else float("nan")
+        self._last = (now, steps)
+        table = Table(title=f"thermognn serve — {self.device}", show_header=False)
+        if len(t) > 10:
+            per = np.diff(t) * 1e3
+            table.add_row("loop rate", f"{(len(t) - 1) / max(t[-1] - t[0], 1e-9):8.1f} Hz")
+            table.add_row("period p50/p99/p99.9", "  ".join(f"{np.percentile(per, q):.3f}" for q in (50, 99, 99.9)) + " ms")
+        table.add_row("physics rate", f"{phys:8.1f} Hz (step {int(steps)})")
+        table.add_row("contact", "yes" if control[P.C_CONTACT] else "no")
+        table.add_row("force", f"{control[P.C_FORCE]:.3f} N")
+        table.add_row("elapsed", f"{(t[-1] if len(t) else 0.0):.1f} s")
+        self.live.update(table, refresh=True)
+
+
+@contextlib.contextmanager
+def _signals(control: np.ndarray):
+    """Ctrl-C / SIGTERM request a clean stop (main thread only; elsewhere the caller handles them)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    def handler(signum, _frame):
+        P.request_stop(control, "sigint" if signum == signal.SIGINT else "sigterm")
+    old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def _status(control: np.ndarray, physics_pid: int | None, haptic_pid: int | None) -> dict:
+    """Live status for ``serve(monitor=...)``."""
+    return {"elapsed_s": time.perf_counter() - float(control[P.C_LOOP_T0]), "ticks": int(control[P.C_TICKS]),
+            "physics_steps": int(control[P.C_STEPS]), "force_N": float(control[P.C_FORCE]),
+            "contact": bool(control[P.C_CONTACT]), "physics_pid": physics_pid, "haptic_pid": haptic_pid}
+
+
+def _recv(conn, timeout: float, proc) -> dict | None:
+    """The next message from a child, None if it died or timed out."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if conn.poll(0.05):
+            try:
+                return conn.recv()
+            except (EOFError, OSError):
+                return None
+        if not proc.is_alive() and not conn.poll(0):
+            return None
+    return None
+
+
+def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dict:
+    """Run the haptic session described by ``cfg.serve`` on the model ``cfg.paths.exported``.
+
+    ``monitor`` (optional) is called from the main process about every 0.1 s while the loop runs
+    with a status dict (elapsed_s, ticks, physics_steps, force_N, contact, physics_pid,
+    haptic_pid); tests use it to inject faults at a known moment.
+
+    Returns the summary dict (loop_rate_hz, period_p50/p99/p999_ms, worst_gap_ms,
+    physics_rate_hz, max_force_N, max_force_step_N, contact_ticks, final_force_N, exit_reason, ...).
+    """
+    from thermognn import devices
+
+    params = _serve_params(cfg)
+    devices.load(params["device"])                         # unknown plugin: fail before starting anything
+    model_path = project_path(str(cfg.paths.exported))
+    if not model_path.is_file():
+        raise DataError(f"paths.exported: model file '{model_path}' not found (run `thermognn export` first)")
+    log_path = _log_path(cfg)
+    rate = params["rate"]
+    # session log ring buffer: the whole session, at most its last MAX_LOG_S seconds
+    log_rows = int(min(params["duration"] if params["duration"] > 0 else MAX_LOG_S, MAX_LOG_S) * rate + 2 * rate + 16)
+    shared = P.make_shared(log_rows)
+    control = shared["control"]
+    params.update(shm=shared.spec(), model=str(model_path))
+    ncpu = os.cpu_count() or 1
+    if bool(cfg.serve.pin_cpus) and ncpu > 1:
+        params["cpu"] = ncpu - 1
+    ctx = mp.get_context("spawn")
+    physics_conn, physics_child = ctx.Pipe()
+    haptic_conn, haptic_child = ctx.Pipe()
+    physics = ctx.Process(target=physics_main, args=(params, physics_child), name="thermognn-physics", daemon=True)
+    haptic = None
+    detail = ""
+    physics_summary: dict = {}
+    haptic_summary: dict = {}
+    t_wall = time.perf_counter()
+    control[P.C_FINAL_FORCE] = float("nan")                # the haptic process sets 0 once it has zeroed the device
+    completed = False
+    try:
+        with _signals(control):
+            physics.start()
+            geometry = _recv(physics_conn, params["startup_timeout"], physics)
+            if geometry is None:
+                raise DataError(f"paths.exported: physics process failed to load '{model_path}' "
+                                f"(exit code {physics.exitcode})")
+            if not geometry.get("ok"):
+                raise DataError(geometry["error"])
+            if control[P.C_STOP]:
+                raise KeyboardInterrupt
+            lo, hi = np.array(geometry["lo"]), np.array(geometry["hi"])
+            top = 0.5 * (lo + hi)
+            top[2] = hi[2] + params["tool_radius"] + 0.5 * (hi[2] - lo[2])
+            params.update(lo=lo.tolist(), hi=hi.tolist(), anchor=top.tolist())
+            haptic = ctx.Process(target=haptic_main, args=(params, haptic_child), name="thermognn-haptic", daemon=True)
+            haptic.start()
+            opened = _recv(haptic_conn, 60.0, haptic)
+            if opened is None or not opened.get("ok"):
+                msg = (opened or {}).get("error") or f"haptic process exited with code {haptic.exitcode}"
+                raise DeviceError(f"serve.device: {params['device']}: {msg}")
+            with _Panel(bool(cfg.serve.panel), params["device"]) as panel:
+                last_panel = 0.0
+                while haptic.is_alive():
+                    if not physics.is_alive() and control[P.C_STOP] == 0:
+                        P.request_stop(control, "physics_crash")
+                        detail = f"physics process exited with code {physics.exitcode}"
+                    if monitor is not None and control[P.C_HAPTIC_STATE] == 1:
+                        monitor(_status(control, physics.pid, haptic.pid))
+                    if time.perf_counter() - last_panel >= 0.2:
+                        panel.update(control, shared["log"], rate)
+                        last_panel = time.perf_counter()
+                    haptic.join(timeout=0.1)
+                panel.update(control, shared["log"], rate)
+            if haptic_conn.poll(1.0):
+                haptic_summary = haptic_conn.recv()
+            if haptic.exitcode not in (0, None) and control[P.C_STOP] == 0:
+                P.request_stop(control, "haptic_crash")
+                detail = f"haptic process exited with code {haptic.exitcode}"
+        completed = True
+    except KeyboardInterrupt:
+        P.request_stop(control, "sigint")
+        completed = True
+    finally:
+        P.request_stop(control, "stopped")
+        for proc in (haptic, physics):
+            if proc is not None and proc.pid is not None:
+                proc.join(timeout=10.0)
+                if proc.is_alive():
+                    proc.terminate()
+                    proc.join(timeout=5.0)
+        if physics_conn.poll(0):
+            with contextlib.suppress(EOFError, OSError):
+                msg = physics_conn.recv()
+                physics_summary = msg if "steps" in msg else physics_summary
+        ran = haptic is not None and int(control[P.C_TICKS]) > 0
+        stop_reason = P.REASONS[int(control[P.C_STOP])]
+        if not (ran and completed):
+            shared.close()              # startup failed or an exception propagates
+    if not ran:
+        if haptic_summary.get("error"):
+            raise DeviceError(f"serve.device: {params['device']}: {haptic_summary['error']}")
+        if stop_reason in ("sigint", "sigterm"):
+            raise ThermoGNNError(f"serve: interrupted ({stop_reason}) before the haptic loop started")
+        raise ThermoGNNError(f"serve: the haptic loop did not run (stop reason: {stop_reason})")
+
+    reason = P.REASONS[int(control[P.C_STOP])]
+    detail = detail or haptic_summary.get("error") or physics_summary.get("error") or ""
+    if reason == "physics_nan" and "nan_at_step" in physics_summary:
+        detail = detail or f"model state not finite at step {physics_summary['nan_at_step']}"
+    rows = _ordered_log(shared["log"], int(control[P.C_TICKS]))
+    steps = float(control[P.C_STEPS])
+    phys_span = float(control[P.C_PHYSICS_T] - control[P.C_PHYSICS_T0])
+    summary = {"device": params["device"], "exit_reason": reason, "exit_detail": detail}
+    summary.update(loop_statistics(rows, rate))
+    summary.update(
+        physics_rate_hz=steps / phys_span if phys_span > 0 else 0.0,
+        physics_steps=int(steps),
+        final_force_N=float(control[P.C_FINAL_FORCE]),
+        overruns=int(haptic_summary.get("overruns", 0)),
+        tick_work_mean_us=float(haptic_summary.get("tick_work_mean_us", float("nan"))),
+        tick_work_max_us=float(haptic_summary.get("tick_work_max_us", float("nan"))),
+        blend_period_ticks=float(haptic_summary.get("blend_period_ticks", float("nan"))),
+        passivity_dissipated_J=float(haptic_summary.get("passivity_dissipated_J", 0.0)),
+        max_damping_Ns_per_m=float(haptic_summary.get("max_damping_Ns_per_m", 0.0)),
+        n_nodes=int(geometry["n_nodes"]),
+        haptic_scheduler=str(haptic_summary.get("scheduler", "")),
+        haptic_torch_loaded=bool(haptic_summary.get("torch_loaded", False)),
+        wall_s=time.perf_counter() - t_wall,
+        log=str(log_path),
+    )
+    shared.close()
+    write_session_log(log_path, rows, summary)
+    _print_summary(summary)
+    return summary
+
+
+def _print_summary(summary: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+    table = Table(title="serve summary", show_header=False)
+    for key, value in summary.items():
+        table.add_row(key, f"{value:.4g}" if isinstance(value, float) else str(value))
+    Console().print(table)

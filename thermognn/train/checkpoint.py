@@ -1,0 +1,73 @@
+"""Checkpoints: everything needed to rebuild, evaluate, export or resume a trained model.
+
+A checkpoint is a ``torch.save``d dict of plain types and tensors (loadable with
+``weights_only=True``)::
+
+    format        "thermognn-checkpoint/1"
+    hparams       TIGNN constructor arguments (see ``model.hyperparameters``)
+    dtype         "float32" | "float64"
+    state_dict    model weights and normalisation buffers
+    stats         normalisation statistics {name: tensor} (training split only)
+    state_layout  JSON string, dt [s], effects (list), structure ("generic" | "hamiltonian"), scene
+    config        resolved config YAML, versions JSON, dataset (path), fingerprint (dict), split (dict)
+    epoch, val_rrmse
+    (the ``last`` checkpoint adds optimizer, scheduler, rng, history, best_val, stale_rounds)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from thermognn.core.errors import DataError
+from thermognn.core.io import atomic_path
+
+FORMAT = "thermognn-checkpoint/1"
+REQUIRED = ("hparams", "dtype", "state_dict", "stats", "state_layout", "dt", "structure", "fingerprint")
+
+
+def last_path(best: str | Path) -> Path:
+    """The resumable checkpoint beside the best one: model.ckpt -> model.last.ckpt."""
+    best = Path(best)
+    return best.with_name(best.stem + ".last" + best.suffix)
+
+
+def save_checkpoint(ckpt: dict, path: str | Path) -> Path:
+    """Write atomically (a crash never leaves a half-written checkpoint)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        torch.save(ckpt, tmp)
+    return path
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """Load and validate; DataError (one line) when missing, unreadable or incomplete."""
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"{path}: checkpoint not found (run `thermognn train` first)")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure means a corrupt file
+        raise DataError(f"{path}: not a readable thermognn checkpoint ({type(exc).__name__})") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+        raise DataError(f"{path}: not a thermognn checkpoint (expected format '{FORMAT}')")
+    missing = [k for k in REQUIRED if k not in ckpt]
+    if missing:
+        raise DataError(f"{path}: checkpoint lacks {missing}")
+    return ckpt
+
+
+def torch_dtype(name: str) -> torch.dtype:
+    if name not in ("float32", "float64"):
+        raise DataError(f"model.dtype = {name!r}, expected float32 or float64")
+    return torch.float32 if name == "float32" else torch.float64
+
+
+def model_from_checkpoint(ckpt: dict):
+    """Rebuild the eager TIGNN (weights and normalisation loaded)."""
+    from .model import build_model
+
+    model = build_model(dict(ckpt["hparams"]), torch_dtype(ckpt["dtype"]))
+    model.load_state_dict(ckpt["state_dict"])
+    return model

@@ -1,0 +1,240 @@
+"""Evaluate a trained model: rollouts of the test (and some training) trajectories from their
+initial states, relative errors per variable group, figures and tables in ``cfg.paths.eval_dir``.
+
+Files written (all atomically)::
+
+    rrmse_vs_time.csv / .png        mean RRMSE over the test trajectories per step and group (paper Fig. 8)
+    rrmse_per_trajectory.csv / .png box plots of per-trajectory RRMSE, train vs test, per group
+    energy_entropy.csv / .png       learned E, S and the degeneracy residual along each test rollout
+    snapshot_<traj>_<step>.vtu      predicted vs ground truth point data (datasets with tets only)
+    summary.md                      the numbers above in one page
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+
+from thermognn.core.config import project_path
+from thermognn.core.io import atomic_path
+from thermognn.core.schema import Dataset
+
+from .checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype
+from .data import Graph, LoadedData, TrajectoryTensors, check_fingerprint, load_data
+from .loop import print_rrmse_table
+from .model import parameter_count
+from .rollout import rollout, rrmse_per_step, trajectory_rrmse
+
+
+def _write_csv(path: Path, header: list[str], rows: list[list]) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(header)
+            w.writerows(rows)
+
+
+def _save_fig(fig, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120, bbox_inches="tight")
+    plt.close(fig)
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.3e}" if math.isfinite(x) else "nan"
+
+
+def energy_entropy_along(model, graph: Graph, pred: torch.Tensor, forces: torch.Tensor) -> np.ndarray:
+    """[S, 3]: learned E, S and the degeneracy residual ||L dS/dz||^2 + ||M dE/dz||^2 (mean over
+    nodes, normalised units) at every state of a rollout pred [S, N, D]."""
+    rows = []
+    with torch.enable_grad():
+        for s in range(pred.shape[0]):
+            f = forces[min(s, forces.shape[0] - 1)]
+            e, s_ = model.energy_entropy(pred[s], graph.edge_index, graph.node_type, graph.ref_pos, f)
+            deg = model.rates(pred[s], f, graph.edge_index, graph.node_type, graph.ref_pos, False)[5]
+            rows.append([float(e), float(s_), float(deg)])
+    return np.asarray(rows)
+
+
+def write_vtu(path: Path, ds: Dataset, traj: TrajectoryTensors, pred: torch.Tensor, step: int) -> None:
+    """Predicted vs ground-truth point data at one snapshot on the reference mesh (ParaView:
+    'Warp By Vector' with u_pred or u_true shows the deformed shapes)."""
+    import meshio
+
+    layout = ds.layout
+    X = ds.mesh.nodes
+    point_data = {"node_type": np.asarray(ds.mesh.node_type, np.int32)}
+    for label, z in (("pred", pred[step].double().numpy()), ("true", traj.z[step].double().numpy())):
+        point_data[f"u_{label}"] = z[:, 0:3] - X
+        for name in layout.names[1:]:
+            point_data[f"{name}_{label}"] = z[:, layout.slice(name)]
+    for name in layout.names:
+        sl = layout.slice(name)
+        point_data[f"{name}_error"] = np.linalg.norm(pred[step].double().numpy()[:, sl] - traj.z[step].double().numpy()[:, sl],
+                                                     axis=1)
+    mesh = meshio.Mesh(X, [("tetra", np.asarray(ds.mesh.tets, np.int64))], point_data=point_data)
+    with atomic_path(path) as tmp:
+        meshio.write(tmp, mesh, file_format="vtu")
+
+
+def _rollouts(model, data: LoadedData, trajs: list[TrajectoryTensors]):
+    """Roll out each trajectory; returns predictions, per-step and per-trajectory RRMSE and the
+    mean wall time per step [ms]."""
+    preds, per_step, per_traj = [], [], []
+    elapsed, steps = 0.0, 0
+    for t in trajs:
+        t0 = time.perf_counter()
+        pred = rollout(model, data.graph, t.z[0], t.force, data.dt)
+        elapsed += time.perf_counter() - t0
+        steps += pred.shape[0] - 1
+        ps = rrmse_per_step(pred, t.z, data.layout)
+        preds.append(pred)
+        per_step.append(ps)
+        per_traj.append(trajectory_rrmse(ps))
+    return preds, per_step, per_traj, 1e3 * elapsed / max(steps, 1)
+
+
+def _mean_groups(per_traj: list[dict[str, float]], groups: list[str]) -> dict[str, float]:
+    out = {}
+    for g in groups:
+        vals = [r[g] for r in per_traj if math.isfinite(r[g])]
+        out[g] = float(np.mean(vals)) if vals else float("nan")
+    return out
+
+
+def evaluate(cfg) -> dict:
+    """Roll out the test trajectories with the checkpoint's model; print and write the errors.
+
+    Returns {group: mean test RRMSE, ..., "ms_per_step": wall time of one step [ms]}."""
+    torch.set_num_threads(int(OmegaConf.select(cfg, "train.threads", default=2)))
+    ckpt_path = project_path(cfg.paths.checkpoint)
+    ckpt = load_checkpoint(ckpt_path)
+    ds_path = project_path(cfg.paths.dataset)
+    check_fingerprint(ckpt["fingerprint"], Dataset(ds_path), ckpt_path)
+    dtype = torch_dtype(ckpt["dtype"])
+    data = load_data(ds_path, cfg.train.split, int(cfg.seed), dtype, parts=())
+    stored = ckpt.get("split") or {}
+    if stored and all(n in data.dataset.names for p in ("train", "test") for n in stored.get(p, [])):
+        data.split = {k: list(stored.get(k, [])) for k in ("train", "val", "test")}
+    max_train = int(OmegaConf.select(cfg, "train.eval_max_train", default=10))
+    names = data.split["test"] + data.split["train"][:max_train]
+    for n in names:
+        if n not in data.trajectories:
+            t = data.dataset.read(n)
+            data.trajectories[n] = TrajectoryTensors(n, torch.as_tensor(t.z, dtype=dtype),
+                                                     torch.as_tensor(t.force, dtype=dtype),
+                                                     torch.as_tensor(t.time, dtype=torch.float64))
+    model = model_from_checkpoint(ckpt).eval()
+    groups = data.layout.names
+    test = data.of("test")
+    train_trajs = [data.trajectories[n] for n in data.split["train"][:max_train]]
+    preds, per_step, per_traj, ms = _rollouts(model, data, test)
+    _, _, per_traj_train, _ = _rollouts(model, data, train_trajs)
+    mean_test, mean_train = _mean_groups(per_traj, groups), _mean_groups(per_traj_train, groups)
+
+    out = project_path(cfg.paths.eval_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    plt = _pyplot()
+    files = []
+
+    # RRMSE vs time (mean over test trajectories), paper Fig. 8
+    n_steps = max(p.shape[0] for p in preds)
+    curve = {g: np.full(n_steps, np.nan) for g in groups}
+    for g in groups:
+        for s in range(n_steps):
+            vals = [ps[g][s] for ps in per_step if s < len(ps[g]) and math.isfinite(ps[g][s])]
+            curve[g][s] = np.mean(vals) if vals else np.nan
+    times = np.arange(n_steps) * data.dt
+    _write_csv(out / "rrmse_vs_time.csv", ["step", "time_s", *groups],
+               [[s, times[s], *[curve[g][s] for g in groups]] for s in range(n_steps)])
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for g in groups:
+        ax.semilogy(times[1:], curve[g][1:], marker=".", label=g)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("RRMSE (mean over test trajectories)")
+    ax.set_title("rollout error vs time")
+    ax.legend()
+    _save_fig(fig, out / "rrmse_vs_time.png")
+    files += ["rrmse_vs_time.csv", "rrmse_vs_time.png"]
+
+    # per-trajectory errors, train vs test
+    rows = [["train", t.name, *[r[g] for g in groups]] for t, r in zip(train_trajs, per_traj_train)]
+    rows += [["test", t.name, *[r[g] for g in groups]] for t, r in zip(test, per_traj)]
+    _write_csv(out / "rrmse_per_trajectory.csv", ["split", "trajectory", *groups], rows)
+    fig, axes = plt.subplots(1, len(groups), figsize=(3.2 * len(groups), 3.5), squeeze=False)
+    for ax, g in zip(axes[0], groups):
+        series = [[r[g] for r in per_traj_train if math.isfinite(r[g])],
+                  [r[g] for r in per_traj if math.isfinite(r[g])]]
+        ax.boxplot([s if s else [np.nan] for s in series])
+        ax.set_xticks([1, 2], ["train", "test"])
+        ax.set_yscale("log")
+        ax.set_title(f"RRMSE {g}")
+    _save_fig(fig, out / "rrmse_per_trajectory.png")
+    files += ["rrmse_per_trajectory.csv", "rrmse_per_trajectory.png"]
+
+    # energy, entropy and degeneracy along each test rollout
+    rows = []
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.5))
+    for t, pred in zip(test, preds):
+        ees = energy_entropy_along(model, data.graph, pred, t.force)
+        tt = np.arange(pred.shape[0]) * data.dt
+        rows += [[t.name, s, tt[s], *ees[s]] for s in range(pred.shape[0])]
+        for k, ax in enumerate(axes):
+            ax.plot(tt, ees[:, k], label=t.name)
+    for ax, title in zip(axes, ("learned energy E", "learned entropy S", "degeneracy residual")):
+        ax.set_title(title)
+        ax.set_xlabel("time [s]")
+    if len(test) <= 10:
+        axes[0].legend(fontsize=7)
+    _write_csv(out / "energy_entropy.csv", ["trajectory", "step", "time_s", "energy", "entropy", "degeneracy"], rows)
+    _save_fig(fig, out / "energy_entropy.png")
+    files += ["energy_entropy.csv", "energy_entropy.png"]
+
+    # predicted vs ground truth at one snapshot (VTU for ParaView; needs tets)
+    if len(data.dataset.mesh.tets) and test:
+        snap = int(OmegaConf.select(cfg, "train.eval_snapshot", default=-1))
+        step = snap % preds[0].shape[0]
+        name = f"snapshot_{test[0].name}_{step}.vtu"
+        write_vtu(out / name, data.dataset, test[0], preds[0], step)
+        files.append(name)
+
+    mean_test["ms_per_step"] = ms
+    print_rrmse_table(f"rollout RRMSE ({len(test)} test, {len(train_trajs)} train trajectories)",
+                      {"test": {g: mean_test[g] for g in groups}, "train": mean_train})
+    print(f"evaluate: {ms:.2f} ms per step ({data.graph.n_nodes} nodes, {torch.get_num_threads()} threads); "
+          f"wrote {out}")
+
+    lines = [f"# Evaluation of `{ckpt_path}`", "",
+             f"- dataset: `{ds_path}` (scene `{data.dataset.scene}`, {data.graph.n_nodes} nodes, "
+             f"D = {data.layout.dim}, dt = {data.dt} s)",
+             f"- model: {ckpt['structure']}, {ckpt['dtype']}, {parameter_count(model)} parameters, "
+             f"trained {ckpt.get('epoch', '?')} epochs (validation RRMSE {ckpt.get('val_rrmse', float('nan')):.3e})",
+             f"- trajectories: {len(test)} test, {len(train_trajs)} train (of {len(data.split['train'])})",
+             f"- speed: {ms:.2f} ms per step (forward + autograd, {torch.get_num_threads()} threads, CPU)", "",
+             "Relative L2 error per snapshot ||z_pred - z_gt|| / ||z_gt|| over all nodes of a group, "
+             "averaged over the rollout steps (clamped nodes imposed) and trajectories.", "",
+             "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
+             "| test | " + " | ".join(_fmt(mean_test[g]) for g in groups) + " |",
+             "| train | " + " | ".join(_fmt(mean_train[g]) for g in groups) + " |", "",
+             "Files: " + ", ".join(f"`{f}`" for f in files), ""]
+    with atomic_path(out / "summary.md") as tmp:
+        tmp.write_text("\n".join(lines))
+    return mean_test

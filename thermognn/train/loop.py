@@ -1,0 +1,254 @@
+"""Training loop: Adam + exponential decay, noise injection, best checkpoint by validation rollout
+error, early stopping, resume from ``model.last.ckpt``, optional data parallelism (torchrun)."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from thermognn.core.config import project_path, to_yaml
+from thermognn.core.errors import ConfigError, DataError
+from thermognn.core.io import atomic_path, versions_json
+from thermognn.core.state import is_reversible
+
+from .checkpoint import (FORMAT, last_path, load_checkpoint, model_from_checkpoint, save_checkpoint,
+                         torch_dtype)
+from .data import (LoadedData, check_fingerprint, compute_stats, fingerprint, load_data, make_batch,
+                   samples, velocity_columns)
+from .model import TIGNN, build_model, hyperparameters, parameter_count
+from .rollout import rollout_errors, scalar_error
+
+METRIC_FIELDS = ["epoch", "lr", "loss", "data_loss", "degeneracy_loss", "val_rrmse", "seconds"]
+
+
+def _sel(cfg, key: str, default):
+    return OmegaConf.select(cfg, key, default=default)
+
+
+def resolve_structure(structure: str, effects) -> str:
+    """'auto' -> hamiltonian for reversible scenes (no viscous effect), else generic."""
+    structure = str(structure)
+    if structure == "auto":
+        return "hamiltonian" if is_reversible(effects) else "generic"
+    if structure not in ("generic", "hamiltonian"):
+        raise ConfigError(f"model.structure = {structure!r}, expected auto, generic or hamiltonian")
+    return structure
+
+
+class _Dist:
+    """Data parallelism without DDP's wrapper (it does not support autograd.grad inside forward):
+    each rank takes a shard of every epoch's batches, gradients are averaged with all_reduce."""
+
+    def __init__(self) -> None:
+        self.world = int(os.environ.get("WORLD_SIZE", "1"))
+        self.rank = int(os.environ.get("RANK", "0"))
+        if self.world > 1:
+            import torch.distributed as dist
+
+            if not dist.is_initialized():
+                dist.init_process_group("gloo")
+            self.dist = dist
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+    def average_gradients(self, model: torch.nn.Module) -> None:
+        if self.world == 1:
+            return
+        for p in model.parameters():
+            if p.grad is not None:
+                self.dist.all_reduce(p.grad, op=self.dist.ReduceOp.SUM)
+                p.grad /= self.world
+
+    def barrier(self) -> None:
+        if self.world > 1:
+            self.dist.barrier()
+
+
+def step_loss(model: TIGNN, batch, dt: float, noise: float, generator: torch.Generator,
+              lambda_data: float, lambda_degeneracy: float) -> tuple[torch.Tensor, float, float]:
+    """Loss of one batch: lambda_data MSE(dz/dt, normalised) + lambda_degeneracy degeneracy.
+
+    Training noise (std ``noise`` in normalised units) perturbs the input state of the free
+    entries; the target rate is taken from the perturbed input to the true next state."""
+    z, z_next = batch.z, batch.z_next                                   # [B*N, D]
+    imposed = (batch.node_type == 1).unsqueeze(1) & model.imposed_columns.unsqueeze(0)  # [B*N, D]
+    free = (~imposed).to(z.dtype)
+    if noise > 0:
+        eps = torch.randn(z.shape, generator=generator, dtype=z.dtype) * noise * model.z_std
+        z = z + eps * free
+    dzdt_n, _, _, _, _, deg = model.rates(z, batch.f, batch.edge_index, batch.node_type, batch.pos, True)
+    target = (z_next - z) / dt / model.dzdt_std
+    data_loss = ((dzdt_n - target).pow(2) * free).sum() / free.sum().clamp(min=1.0)
+    loss = lambda_data * data_loss + lambda_degeneracy * deg
+    return loss, float(data_loss.detach()), float(deg.detach())
+
+
+def _base_checkpoint(cfg, data: LoadedData, hparams: dict, dtype_name: str, structure: str,
+                     stats: dict) -> dict:
+    ds = data.dataset
+    return {"format": FORMAT, "hparams": hparams, "dtype": dtype_name,
+            "stats": {k: v.clone() for k, v in stats.items()},
+            "state_layout": ds.layout.to_json(), "dt": float(ds.dt), "effects": list(ds.effects),
+            "structure": structure, "scene": ds.scene, "config": to_yaml(cfg), "versions": versions_json(),
+            "dataset": str(data.path), "fingerprint": fingerprint(ds), "split": data.split}
+
+
+def _write_metrics(path: Path, history: list[dict]) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=METRIC_FIELDS)
+            w.writeheader()
+            for row in history:
+                w.writerow({k: row.get(k, "") for k in METRIC_FIELDS})
+
+
+def _progress(disable: bool = False):
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    return Progress(TextColumn("[bold]train"), BarColumn(), MofNCompleteColumn(),
+                    TextColumn("{task.fields[info]}"), TimeRemainingColumn(), disable=disable)
+
+
+def print_rrmse_table(title: str, rows: dict[str, dict[str, float]]) -> None:
+    """rows: {label: {group: rrmse}} as a rich table."""
+    from rich.console import Console
+    from rich.table import Table
+
+    groups = list(next(iter(rows.values())))
+    table = Table(title=title)
+    table.add_column("")
+    for g in groups:
+        table.add_column(f"RRMSE {g}", justify="right")
+    for label, r in rows.items():
+        table.add_row(label, *[f"{r.get(g, float('nan')):.3e}" for g in groups])
+    Console().print(table)
+
+
+def train(cfg) -> Path:
+    """Train on ``cfg.paths.dataset``; write the best checkpoint ``cfg.paths.checkpoint`` and
+    ``<out>/metrics.csv``; resume from ``model.last.ckpt`` when present and compatible."""
+    tc = cfg.train
+    torch.set_num_threads(int(_sel(tc, "threads", 2)))
+    dist = _Dist()
+    dtype_name = str(_sel(cfg, "model.dtype", "float32"))
+    dtype = torch_dtype(dtype_name)
+    seed = int(_sel(cfg, "seed", 0))
+    epochs = int(tc.epochs)
+    if epochs < 1:
+        raise ConfigError(f"train.epochs = {epochs}, expected >= 1")
+    ckpt_path = project_path(cfg.paths.checkpoint)
+    out_dir = project_path(cfg.out)
+    data = load_data(project_path(cfg.paths.dataset), tc.split, seed, dtype)
+    ds = data.dataset
+    structure = resolve_structure(_sel(cfg, "model.structure", "auto"), ds.effects)
+    hparams = hyperparameters(cfg.model, ds.layout.dim, velocity_columns(ds.layout), structure == "hamiltonian")
+    train_trajs, val_trajs = data.of("train"), data.of("val")
+    stats = compute_stats(train_trajs, data.graph, ds.dt, hparams["reference_edges"])
+
+    torch.manual_seed(seed)
+    model = build_model(hparams, dtype)
+    model.set_stats(stats)
+    base = _base_checkpoint(cfg, data, hparams, dtype_name, structure, stats)
+    lr = float(tc.lr)
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    gamma = float(_sel(tc, "lr_decay", 1.0)) ** (1.0 / epochs)
+    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=gamma)
+    gen = torch.Generator().manual_seed(seed)
+    start_epoch, history, best_val, stale = 0, [], math.inf, 0
+
+    last = last_path(ckpt_path)
+    if bool(_sel(tc, "resume", True)) and last.exists():
+        state = load_checkpoint(last)
+        check_fingerprint(state["fingerprint"], ds, last,
+                          hint="delete it or pass train.resume=false to train from scratch")
+        if state["hparams"] != hparams or state["dtype"] != dtype_name:
+            print(f"{last}: model hyperparameters changed; training from scratch")
+        else:
+            model.load_state_dict(state["state_dict"])
+            opt.load_state_dict(state["optimizer"])
+            sched.load_state_dict(state["scheduler"])
+            gen.set_state(state["rng"]["generator"])
+            torch.set_rng_state(state["rng"]["torch"])
+            start_epoch, history = int(state["epoch"]), list(state["history"])
+            best_val, stale = float(state["best_val"]), int(state["stale_rounds"])
+            if dist.main:
+                print(f"resuming from {last} at epoch {start_epoch}")
+
+    pairs = samples(train_trajs)
+    batch_size = max(1, int(tc.batch_size))
+    noise = float(_sel(tc, "noise", 0.0))
+    lam_d, lam_g = float(_sel(tc, "lambda_data", 1.0)), float(_sel(tc, "lambda_degeneracy", 1.0))
+    val_every = max(1, int(_sel(tc, "val_every", 1)))
+    patience = int(_sel(tc, "patience", 0))
+    if dist.main:
+        print(f"train: {len(train_trajs)} train / {len(val_trajs)} val / {len(data.split['test'])} test "
+              f"trajectories, {len(pairs)} steps, structure {structure}, {parameter_count(model)} parameters")
+
+    stopped = start_epoch >= epochs or (patience > 0 and stale >= patience)
+    with _progress(disable=not dist.main) as progress:
+        task = progress.add_task("train", total=epochs, completed=start_epoch, info="")
+        epoch = start_epoch
+        while not stopped and epoch < epochs:
+            t0 = time.perf_counter()
+            model.train()
+            perm = torch.randperm(len(pairs), generator=gen).tolist()
+            n_use = len(perm) // dist.world * dist.world if dist.world > 1 else len(perm)
+            mine = perm[dist.rank:n_use:dist.world]
+            tot = dat = dgn = 0.0
+            n_batches = 0
+            for b in range(0, len(mine), batch_size):
+                batch = make_batch(train_trajs, [pairs[i] for i in mine[b:b + batch_size]], data.graph)
+                loss, dl, dg = step_loss(model, batch, ds.dt, noise, gen, lam_d, lam_g)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                dist.average_gradients(model)
+                opt.step()
+                tot, dat, dgn, n_batches = tot + float(loss.detach()), dat + dl, dgn + dg, n_batches + 1
+            if not math.isfinite(tot):
+                raise DataError(f"{data.path}: training diverged (non-finite loss at epoch {epoch + 1}); "
+                                f"lower train.lr or check the dataset")
+            row = {"epoch": epoch + 1, "lr": opt.param_groups[0]["lr"], "loss": tot / max(n_batches, 1),
+                   "data_loss": dat / max(n_batches, 1), "degeneracy_loss": dgn / max(n_batches, 1)}
+            sched.step()
+            epoch += 1
+            if epoch % val_every == 0 or epoch == epochs:
+                model.eval()
+                val = scalar_error(rollout_errors(model, data.graph, val_trajs, ds.layout, ds.dt)[0])
+                row["val_rrmse"] = val
+                if val < best_val or not ckpt_path.exists():
+                    best_val, stale = min(val, best_val), 0
+                    if dist.main:
+                        save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": epoch,
+                                         "val_rrmse": val}, ckpt_path)
+                else:
+                    stale += 1
+                stopped = patience > 0 and stale >= patience
+            row["seconds"] = time.perf_counter() - t0
+            history.append(row)
+            if dist.main:
+                save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": epoch,
+                                 "val_rrmse": row.get("val_rrmse", math.nan), "optimizer": opt.state_dict(),
+                                 "scheduler": sched.state_dict(),
+                                 "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
+                                 "history": history, "best_val": best_val, "stale_rounds": stale}, last)
+                _write_metrics(out_dir / "metrics.csv", history)
+            progress.update(task, completed=epoch,
+                            info=f"loss {row['loss']:.3e} val {row.get('val_rrmse', float('nan')):.3e}")
+            if stopped and dist.main:
+                print(f"early stopping at epoch {epoch} (no improvement in {patience} validation rounds)")
+    dist.barrier()
+    if dist.main:
+        if not ckpt_path.exists():  # e.g. resumed a finished run whose best file was deleted
+            raise DataError(f"{ckpt_path}: no best checkpoint written (delete {last} and retrain)")
+        best = model_from_checkpoint(load_checkpoint(ckpt_path))
+        mean = rollout_errors(best, data.graph, data.of("test"), ds.layout, ds.dt)[0]
+        print_rrmse_table(f"test rollout RRMSE ({len(data.split['test'])} trajectories)", {"test": mean})
+    return ckpt_path
