@@ -51,6 +51,10 @@ def case_costs(quick: bool) -> list[str]:
                 f"limit load {p.force[:11].max():.3f} N at w = {p.displacement[np.argmax(p.force[:11])] * 1e3:.1f} mm, "
                 f"valley {p.force[np.argmax(p.force[:11]):].min():.3f} N")
     t = time.perf_counter()
+    q = cases.snap_through_arc_length()
+    rows.append(f"snap-through (P2 arch, Riks arc-length, {len(q.force) - 1} increments): "
+                f"{time.perf_counter() - t:.2f} s, limit load {q.force[q.displacement < 0.02].max():.4f} N")
+    t = time.perf_counter()
     r = cases.uniaxial(Material("ogden", {"mu": [2e3], "alpha": [16.19], "D": [1e-4]}), 0.7, n_steps=6)
     rows.append(f"Ogden 30 % compression (P1 cube, 6 steps): {time.perf_counter() - t:.2f} s, "
                 f"rel. error {r.rel_error:.1e}")

@@ -103,3 +103,13 @@ def test_learned_stages_never_import_dolfinx():
             "assert not bad, bad\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr[-2000:]
+
+
+def test_export_graph_only_dataset_has_empty_surface(tmp_path):
+    """Imported datasets (e.g. the TIGNN beam) have graph edges but no tets: no surface faces."""
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=3, steps=3, with_tets=False)
+    cfg = load_config([f"out={tmp_path}", *SMALL, "train.epochs=1"])
+    train(cfg)
+    m = torch.jit.load(str(export(cfg)))
+    assert m.surface_faces.shape == (0, 3) and m.surface_faces.dtype == torch.int64
+    assert m.edge_index.shape[1] > 0

@@ -56,3 +56,21 @@ def test_shallow_arch_snaps_through():
     assert np.all(np.diff(f[: peak]) > 0)                 # rises to the limit point
     assert np.all(np.diff(f[peak + 1: valley + 1]) < 0)   # falls past it (unstable branch)
     assert f[-1] > f[valley]                               # stiffens again after snapping
+
+
+def test_arc_length_traces_the_same_snap_through_under_load_control():
+    """Riks/Crisfield arc-length on the same arch under a crown line load: the load factor rises,
+    passes its maximum and falls while the deflection keeps growing (through the limit point), and
+    the limit load agrees with the displacement-controlled path within 3 %."""
+    riks = cases.snap_through_arc_length()
+    assert riks.ok, riks.reason
+    lam, w = riks.force, riks.displacement
+    assert np.all(np.isfinite(lam)) and np.all(np.diff(w) > 0)
+    before = w < 0.02                                   # the limit point lies at w ≈ 8 mm
+    peak = int(np.argmax(np.where(before, lam, -np.inf)))
+    assert 0 < peak and before[peak + 2] and lam[peak + 2] < lam[peak]
+    valley = peak + int(np.argmin(np.where(w[peak:] < 0.03, lam[peak:], np.inf)))
+    assert lam[valley] < 0.7 * lam[peak] and lam[-1] > lam[valley]
+    disp = cases.snap_through(n_steps=20)
+    limit_disp = disp.force[disp.displacement < 0.02].max()
+    assert abs(lam[peak] - limit_disp) < 0.03 * lam[peak]

@@ -85,3 +85,16 @@ def test_gravity_effect_column_under_self_weight():
     exact = -1000.0 * 9.81 * L**2 / (2 * 2 * mu)
     assert abs(sag[("elastic", "gravity")] - exact) < 0.01 * abs(exact)
     assert sag[("elastic",)] == 0.0
+
+
+def test_static_equilibrium_reactions_balance_the_load():
+    """Quasi-static pressed block: the reactions at the clamped nodes balance the applied nodal
+    force (global equilibrium, 1e-8 relative), i.e. the f_ext sign and units are consistent."""
+    mat = Material("neo_hookean", {"C10": 1.0e4, "D1": 1.0e-5})
+    s, reports = _pressed_block(mat, _top_centre, force_n=1.0, steps=6, effects=("elastic",))
+    assert all(r.ok for r in reports)
+    clamped = cases.nodes_where(s, lambda x: x[:, 2] < 1e-10)
+    support = s.internal_force()[clamped].sum(axis=0)   # force of the clamp on the body [N]
+    applied = s.f_ext.x.array.reshape(-1, 3).sum(axis=0)
+    assert np.allclose(applied, [0, 0, -1.0])
+    assert np.allclose(support + applied, 0.0, atol=1e-8)

@@ -47,7 +47,7 @@ def test_generate_tiny_block_writes_valid_dataset(tmp_path):
         assert np.allclose(t.z[0, :, :3], d.mesh.nodes) and np.allclose(t.z[0, :, 3:], 0.0)
         clamped = d.mesh.node_type == NODE_CLAMPED
         assert np.allclose(t.z[:, clamped, :3], d.mesh.nodes[clamped]) and np.allclose(t.z[:, clamped, 3:6], 0)
-        total = t.force.sum(axis=1)  # (S, 3): ramp 0, 0.5, 1, 1, 1 of 1 N pressing down
+        total = t.force.sum(axis=1)  # (S, 3): smooth ramp 0, 0.5, 1, 1, 1 of 1 N pressing down
         assert np.allclose(total[:, 2], [0.0, -0.5, -1.0, -1.0, -1.0]) and np.allclose(total[:, :2], 0)
         assert set(np.flatnonzero(np.abs(t.force[-1]).sum(1))) == set(t.load_nodes.tolist())
         assert np.all(d.mesh.node_type[t.load_nodes] == NODE_SURFACE)
@@ -117,6 +117,7 @@ def test_generate_failed_trajectory_is_recorded_without_nan(tmp_path):
     ("scene.effects=[elastic,plastic]", "plastic"),
     ("scene.time.dt=-1", "scene.time.dt"),
     ("scene.mesh.clamp=left", "scene.mesh.clamp"),
+    ("scene.loads.ramp_shape=step", "scene.loads.ramp_shape"),
 ])
 def test_bad_scene_config_gives_one_line_error(tmp_path, override, needle):
     pytest.importorskip("dolfinx")

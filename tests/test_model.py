@@ -105,3 +105,15 @@ def test_galilean_invariance():
     model.z_mean[:3] += shift
     d2 = model.rates(z2, f, ei, nt, ref + shift, False)[0]
     assert torch.allclose(d1, d2, atol=1e-10)
+
+
+def test_quasi_static_layout_without_velocity():
+    """z = (q, sigma), D = 9: only q is imposed on clamped nodes."""
+    z, f, ei, nt, ref = _graph(seed=5)
+    z = torch.cat([z[:, :3], z[:, 6:]], 1)
+    torch.manual_seed(0)
+    model = TIGNN(9, [], hidden=8, mlp_layers=1, message_passing=1).double()
+    out = torch.jit.script(model).step(z, f, ei, nt, ref, torch.tensor(0.01, dtype=torch.float64))
+    clamped = nt == 1
+    assert out.shape == (20, 9) and torch.equal(out[clamped, :3], ref[clamped])
+    assert not torch.equal(out[clamped, 3:], z[clamped, 3:])  # stress still evolves on clamped nodes

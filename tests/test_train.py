@@ -175,3 +175,65 @@ def test_resume_refuses_checkpoint_of_another_dataset(trained, tmp_path):
         train(_cfg(tmp_path, "train.epochs=1"))
     train(_cfg(tmp_path, "train.epochs=1", "train.resume=false"))
     assert load_checkpoint(tmp_path / "model.ckpt")["fingerprint"]["n_nodes"] == 36
+
+
+def test_make_batch_matches_pyg_batching(trained):
+    from torch_geometric.data import Batch, Data
+
+    from thermognn.train.data import make_batch
+
+    out, cfg, _ = trained
+    data = load_data(out / "dataset.h5", cfg.train.split, cfg.seed)
+    trajs, g = data.of("train"), data.graph
+    items = [(0, 1), (2, 5), (1, 0)]
+    got = make_batch(trajs, items, g)
+    ref = Batch.from_data_list([Data(z=trajs[i].z[s], z_next=trajs[i].z[s + 1], f=trajs[i].force[s + 1], pos=g.ref_pos,
+                                     node_type=g.node_type, edge_index=g.edge_index, num_nodes=g.n_nodes)
+                                for i, s in items])
+    for key in ("z", "z_next", "f", "pos", "node_type", "edge_index", "batch"):
+        assert torch.equal(getattr(got, key), getattr(ref, key)), key
+
+
+def test_data_parallel_with_torchrun(tmp_path):
+    """Two processes (gloo, gradients averaged by all_reduce) train and write one checkpoint."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=3, steps=4)
+    script = tmp_path / "run.py"
+    script.write_text("import sys\nfrom thermognn.core.config import load_config\nfrom thermognn.train import train\n"
+                      f"train(load_config(['out={tmp_path}', 'train.epochs=2', 'train.val_every=1', "
+                      f"'model.hidden=8', 'model.message_passing=1', 'train.threads=1']))\n")
+    torchrun = Path(sys.executable).with_name("torchrun")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node=2", str(script)], capture_output=True,
+                       text=True, timeout=120, env=env)
+    assert r.returncode == 0, r.stdout[-1500:] + r.stderr[-1500:]
+    assert load_checkpoint(tmp_path / "model.ckpt")["epoch"] in (1, 2)
+    assert [int(row["epoch"]) for row in _rows(tmp_path)] == [1, 2]
+
+
+def test_changed_configuration_trains_from_scratch(tmp_path, capsys):
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=3, steps=4)
+    train(_cfg(tmp_path, "train.epochs=2"))
+    train(_cfg(tmp_path, "train.epochs=3"))  # more epochs: resumes
+    assert "resuming from" in capsys.readouterr().out
+    assert [int(r["epoch"]) for r in _rows(tmp_path)] == [1, 2, 3]
+    train(_cfg(tmp_path, "train.epochs=2", "train.lr=1e-4"))  # another learning rate: from scratch
+    assert "configuration changed (lr)" in capsys.readouterr().out
+    assert [int(r["epoch"]) for r in _rows(tmp_path)] == [1, 2]
+
+
+def test_structure_auto_follows_effects_and_damping():
+    from thermognn.train.loop import resolve_structure
+
+    undamped = "scene:\n  time:\n    integrator: newmark\n    rayleigh: [0.0, 0.0]\n"
+    damped = "scene:\n  time:\n    integrator: newmark\n    rayleigh: [0.5, 0.0]\n"
+    assert resolve_structure("auto", ["elastic", "inertia"], undamped) == "hamiltonian"
+    assert resolve_structure("auto", ["elastic", "inertia"], damped) == "generic"
+    assert resolve_structure("auto", ["elastic", "inertia"], undamped.replace("newmark", "quasi_static")) == "generic"
+    assert resolve_structure("auto", ["elastic", "viscous", "inertia"], undamped) == "generic"
+    assert resolve_structure("auto", ["elastic"]) == "generic"  # quasi-static scene: no inertia
+    assert resolve_structure("hamiltonian", ["elastic", "viscous", "inertia"]) == "hamiltonian"

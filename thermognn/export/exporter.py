@@ -55,8 +55,9 @@ def script(module: ExportedTIGNN) -> torch.jit.ScriptModule:
 def parity(eager: ExportedTIGNN, scripted, ds: Dataset, steps: int = 3) -> tuple[float, float]:
     """Largest absolute and relative difference between scripted and eager steps on real data:
     one-step predictions from ``steps`` ground-truth states of the first trajectory, then a
-    ``steps``-step rollout from its initial state. Relative: per state column, divided by the
-    largest magnitude of that column."""
+    ``steps``-step rollout from its initial state, with the TorchScript graph executor's
+    optimisation on and off (``torch.jit.optimized_execution``). Relative: per state column,
+    divided by the largest magnitude of that column."""
     dtype = eager.z0.dtype
     names = ds.ok_names or ds.names
     traj = ds.read(names[0])
@@ -64,16 +65,18 @@ def parity(eager: ExportedTIGNN, scripted, ds: Dataset, steps: int = 3) -> tuple
     f = torch.as_tensor(traj.force, dtype=dtype)
     n = min(steps, z.shape[0] - 1)
     max_abs, max_rel = 0.0, 0.0
-    za = zb = z[0]
-    for s in range(n):
-        pairs = [(eager(z[s], f[s + 1]), scripted(z[s], f[s + 1]))]
-        za, zb = eager(za, f[s + 1]), scripted(zb, f[s + 1])
-        pairs.append((za, zb))
-        for a, b in pairs:
-            diff = (a - b).abs()
-            scale = a.abs().amax(0).clamp(min=torch.finfo(dtype).tiny)  # [D]
-            max_abs = max(max_abs, float(diff.max()))
-            max_rel = max(max_rel, float((diff / scale).max()))
+    for optimize in (True, False):
+        with torch.jit.optimized_execution(optimize):
+            za = zb = z[0]
+            for s in range(n):
+                pairs = [(eager(z[s], f[s + 1]), scripted(z[s], f[s + 1]))]
+                za, zb = eager(za, f[s + 1]), scripted(zb, f[s + 1])
+                pairs.append((za, zb))
+                for a, b in pairs:
+                    diff = (a - b).abs()
+                    scale = a.abs().amax(0).clamp(min=torch.finfo(dtype).tiny)  # [D]
+                    max_abs = max(max_abs, float(diff.max()))
+                    max_rel = max(max_rel, float((diff / scale).max()))
     return max_abs, max_rel
 
 

@@ -42,6 +42,8 @@ class UniaxialResult:
     sigma11_exact: float
     max_lateral_stress: float          # max |σ22|, |σ33|, |shear| over cells [Pa]
     sigma_spread: float                # max deviation of σ11 between cells [Pa]
+    S11_fe: float = 0.0                # 2nd Piola–Kirchhoff S11 (cell mean) [Pa]
+    S11_exact: float = 0.0             # J σ11 / λ² [Pa]
 
     @property
     def rel_error(self) -> float:
@@ -87,8 +89,28 @@ def uniaxial(mat: Material, stretch: float, n_steps: int = 5, cells=(2, 2, 2),
     lt_fe = 1.0 + u[corner, 1]
     lt = lateral_stretch_exact(mat, stretch)
     exact = principal_cauchy_closed_form(mat, [stretch, lt, lt])[0]
+    S = s.pk2_stress_cells()
+    J = stretch * lt**2
     return UniaxialResult(stretch, lt_fe, lt, float(sig[:, 0].mean()), float(exact),
-                          float(np.abs(sig[:, 1:]).max()), float(np.ptp(sig[:, 0])))
+                          float(np.abs(sig[:, 1:]).max()), float(np.ptp(sig[:, 0])),
+                          float(S[:, 0].mean()), float(J * exact / stretch**2))
+
+
+def homogeneous_stress(mat: Material, stretches, n_steps: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Cauchy stress (T, 6) [Pa] of a unit cube with u = (F − I) X prescribed on its whole boundary,
+    F = diag(stretches), next to the closed-form principal stresses (3,)."""
+    s = Solid(box_mesh(cells=(1, 1, 1)), mat, ("elastic",),
+              SolverOptions(integrator="quasi_static", rtol=1e-12, atol=1e-9))
+    bnd = nodes_where(s, lambda x: np.any((np.abs(x) < 1e-10) | (np.abs(x - 1) < 1e-10), axis=1))
+    g = s.prescribe_field(bnd)
+    gx = g.x.array.reshape(-1, 3)                   # view: (N, 3)
+    lam = np.asarray(stretches, dtype=float)
+    for k in range(1, n_steps + 1):
+        gx[bnd] = (k / n_steps) * (lam - 1.0) * s.nodes[bnd]
+        r = s.step(1.0)
+        if not r.ok:
+            raise RuntimeError(r.reason)
+    return s.cauchy_stress_cells(), principal_cauchy_closed_form(mat, lam)
 
 
 # -- Prony relaxation ------------------------------------------------------------------------
@@ -217,16 +239,8 @@ def shallow_arch_mesh(span: float = 0.2, width: float = 0.01, rise: float = 0.02
                               dict(L=span, W=width, H=rise, t=thickness, h=cell_size))
 
 
-def snap_through(n_steps: int = 30, max_deflection_factor: float = 2.2, degree: int = 2,
-                 span: float = 0.2, width: float = 0.01, rise: float = 0.02, thickness: float = 0.005,
-                 cell_size: float = 0.006, mu: float = 1.0e6, nu: float = 0.3) -> SnapThroughPath:
-    """Clamped shallow arch (both end faces fixed) pushed down at its crown by displacement control.
-
-    The crown line (nodes within cell_size/2 of x = 0 on the top surface, across the width) gets a
-    prescribed vertical displacement −w, w = 0 … factor · rise in n_steps; the reaction there is
-    the load. Displacement control passes the limit point (the load drops while w grows), which
-    load control (or Riks) would need to jump or turn around. P2 tetrahedra (bending without locking).
-    """
+def _arch_solid(degree, span, width, rise, thickness, cell_size, mu, nu):
+    """Quasi-static solid on the shallow arch with both end faces clamped; returns (solid, crown nodes)."""
     from .meshing import to_dolfinx
 
     points, tets = shallow_arch_mesh(span, width, rise, thickness, cell_size)
@@ -236,11 +250,25 @@ def snap_through(n_steps: int = 30, max_deflection_factor: float = 2.2, degree: 
               SolverOptions(degree=degree, quadrature_degree=2 * degree, integrator="quasi_static",
                             rtol=1e-9, atol=1e-9, min_step_fraction=1 / 64))
     s.clamp(nodes_where(s, lambda x: np.abs(np.abs(x[:, 0]) - span / 2) < 1e-8))
-    z_top = lambda x: np.sqrt(np.maximum(((span**2 / 4 + rise**2) / (2 * rise) + thickness / 2) ** 2 - x**2, 0)) \
-        + rise - (span**2 / 4 + rise**2) / (2 * rise)
+    R = (span**2 / 4 + rise**2) / (2 * rise)
+    z_top = lambda x: np.sqrt(np.maximum((R + thickness / 2) ** 2 - x**2, 0)) + rise - R
     crown = nodes_where(s, lambda x: (np.abs(x[:, 0]) <= cell_size / 2) & (np.abs(x[:, 2] - z_top(x[:, 0])) < 1e-6))
     if len(crown) == 0:
         raise RuntimeError("no crown nodes found")
+    return s, crown
+
+
+def snap_through(n_steps: int = 30, max_deflection_factor: float = 2.2, degree: int = 2,
+                 span: float = 0.2, width: float = 0.01, rise: float = 0.02, thickness: float = 0.005,
+                 cell_size: float = 0.006, mu: float = 1.0e6, nu: float = 0.3) -> SnapThroughPath:
+    """Clamped shallow arch (both end faces fixed) pushed down at its crown by displacement control.
+
+    The crown line (nodes within cell_size/2 of x = 0 on the top surface, across the width) gets a
+    prescribed vertical displacement −w, w = 0 … factor · rise in n_steps; the reaction there is
+    the load. Displacement control passes the limit point (the load drops while w grows), which
+    load control would have to jump. P2 tetrahedra (bending without locking).
+    """
+    s, crown = _arch_solid(degree, span, width, rise, thickness, cell_size, mu, nu)
     w_bc = s.prescribe(crown, 2, 0.0)
     path = SnapThroughPath()
     ws, fs = [0.0], [0.0]
@@ -257,3 +285,19 @@ def snap_through(n_steps: int = 30, max_deflection_factor: float = 2.2, degree: 
         fs.append(reaction)
     path.displacement, path.force = np.asarray(ws), np.asarray(fs)
     return path
+
+
+def snap_through_arc_length(n_increments: int = 40, ds: float = 0.004, max_deflection_factor: float = 2.0,
+                            degree: int = 2, span: float = 0.2, width: float = 0.01, rise: float = 0.02,
+                            thickness: float = 0.005, cell_size: float = 0.006, mu: float = 1.0e6,
+                            nu: float = 0.3) -> SnapThroughPath:
+    """The same arch under a crown line load (load control) traced by arc-length continuation:
+    force = λ × 1 N shared equally by the crown nodes, displacement = mean crown deflection [m]."""
+    from .continuation import arc_length
+
+    s, crown = _arch_solid(degree, span, width, rise, thickness, cell_size, mu, nu)
+    f_hat = np.zeros_like(s.nodes)
+    f_hat[crown, 2] = -1.0 / len(crown)
+    path = arc_length(s, f_hat, lambda u: -float(u[crown, 2].mean()), ds=ds, n_increments=n_increments,
+                      max_displacement=max_deflection_factor * rise)
+    return SnapThroughPath(np.asarray(path.displacement), np.asarray(path.load_factor), path.ok, path.reason)

@@ -12,7 +12,7 @@ import numpy as np
 from thermognn.core.config import to_yaml
 from thermognn.core.errors import ConfigError
 from thermognn.core.io import versions_json
-from thermognn.core.schema import DatasetWriter, Trajectory
+from thermognn.core.schema import NODE_CLAMPED, NODE_SURFACE, DatasetWriter, Trajectory
 from thermognn.core.state import StateLayout, state_layout
 
 from .scene import SceneSpec, dataset_mesh, load_case, node_types, ramp, scene_from_config, \
@@ -36,11 +36,11 @@ def build_solid(spec: SceneSpec):
     solid = Solid(domain, spec.material, spec.effects, spec.options)
     cells = solid.cells[:, :4]
     ntype = node_types(solid.nodes, cells, spec.mesh_cfg)
-    solid.clamp(np.flatnonzero(ntype == 1))
+    solid.clamp(np.flatnonzero(ntype == NODE_CLAMPED))
     faces = boundary_faces_outward(solid.nodes, cells)
     # load direction: normals of the loadable surface itself (a top-face edge node points along
     # the top face's normal, not along the bisector with the side face); others: all faces
-    loadable_faces = faces[np.all(ntype[faces] == 2, axis=1)]
+    loadable_faces = faces[np.all(ntype[faces] == NODE_SURFACE, axis=1)]
     normals = vertex_normals(solid.nodes, loadable_faces)
     missing = np.linalg.norm(normals, axis=1) == 0
     normals[missing] = vertex_normals(solid.nodes, faces)[missing]
@@ -72,14 +72,14 @@ def simulate(solid, spec: SceneSpec, layout: StateLayout, k: int, ntype: np.ndar
     t0 = time.perf_counter()
     point, load_nodes, full_force = load_case(k, solid.nodes, ntype, normals, spec.loads)
     solid.reset()
-    dt, ramp_steps = spec.dt, spec.loads.ramp_steps
+    dt, ramp_steps, shape = spec.dt, spec.loads.ramp_steps, spec.loads.ramp_shape
 
     def set_loads(t: float) -> None:
-        solid.set_nodal_force(ramp(t, dt, ramp_steps) * full_force)
+        solid.set_nodal_force(ramp(t, dt, ramp_steps, shape) * full_force)
 
     set_loads(0.0)
     solid.initial_acceleration()
-    times, zs, forces = [0.0], [node_state(solid, layout)], [ramp(0.0, dt, ramp_steps) * full_force]
+    times, zs, forces = [0.0], [node_state(solid, layout)], [ramp(0.0, dt, ramp_steps, shape) * full_force]
     status, reason, iterations, cuts = "ok", "", 0, 0
     for s in range(1, spec.steps + 1):
         report = solid.step(dt, set_loads)
@@ -94,10 +94,25 @@ def simulate(solid, spec: SceneSpec, layout: StateLayout, k: int, ntype: np.ndar
             break
         times.append(s * dt)
         zs.append(z)
-        forces.append(ramp(s * dt, dt, ramp_steps) * full_force)
+        forces.append(ramp(s * dt, dt, ramp_steps, shape) * full_force)
     traj = Trajectory(name=f"traj_{k}", time=np.asarray(times), z=np.stack(zs), force=np.stack(forces),
                       load_nodes=load_nodes, load_point=point, status=status, reason=reason)
     return traj, TrajectoryCost(time.perf_counter() - t0, len(times) - 1, iterations, cuts)
+
+
+def _stale_partial_mesh(out: Path, nodes: np.ndarray) -> bool:
+    """True when a partial file to resume from holds other mesh nodes than ``nodes`` (N, 3)."""
+    import h5py
+
+    partial = out.with_name(out.name + ".partial")
+    if not partial.exists():
+        return False
+    try:
+        with h5py.File(partial, "r") as f:
+            old = f["mesh/nodes"][()]
+    except (OSError, KeyError):
+        return False  # unreadable: DatasetWriter discards it itself
+    return old.shape != nodes.shape or not np.allclose(old, nodes, rtol=0, atol=1e-12)
 
 
 def generate(cfg) -> Path:
@@ -123,6 +138,9 @@ def generate(cfg) -> Path:
     costs: list[TrajectoryCost] = []
     failed = 0
     names = [f"traj_{k}" for k in range(spec.loads.n_trajectories)]
+    if _stale_partial_mesh(out, mesh.nodes):
+        console.print("partial dataset has a different mesh (gmsh version?): starting afresh")
+        out.with_name(out.name + ".partial").unlink()
     with DatasetWriter(out, mesh, layout, spec.dt, to_yaml(cfg), versions_json(), spec.name, spec.effects) as w:
         todo = [k for k, n in enumerate(names) if not w.has(n)]
         if len(todo) < len(names):
@@ -145,5 +163,5 @@ def generate(cfg) -> Path:
             f"FE cost ({spec.name}): {len(solid.nodes)} nodes, {len(solid.cells)} tets, "
             f"{secs / max(total_steps, 1):.4f} s/step, {secs / len(costs):.3f} s/trajectory, "
             f"{sum(c.newton_iterations for c in costs) / max(total_steps, 1):.2f} Newton it/step, "
-            f"{sum(c.cuts for c in costs)} step cuts, {failed} failed of {len(costs)}")
+            f"{sum(c.cuts for c in costs)} step cuts, {failed} failed of {len(costs)}", soft_wrap=True)
     return out

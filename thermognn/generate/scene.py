@@ -10,7 +10,10 @@ n_z > 0.5: the top of a curved shell). Clamped wins over loadable.
 Loads: per trajectory k a load point is drawn (``numpy.random.default_rng([loads.seed, k])``)
 among the loadable nodes; the loadable nodes within ``loads.radius`` of it share the total force
 ``loads.magnitude`` [N] equally, directed along the inward surface normal at the load point;
-the force ramps linearly over ``ramp_steps`` steps and is then held.
+the force ramps over ``ramp_steps`` steps and is then held. ``ramp_shape``: ``linear`` or
+``smooth`` (cubic smoothstep 3s² − 2s³: zero load rate at start and end, so the dynamic response
+is not kicked by a jump in load rate, which the undamped trapezoidal rule would keep ringing in
+the modes faster than the time step).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from .materials import Material, material_from_config
 from .solid import SolverOptions
 
 INTEGRATORS = ("newmark", "generalized_alpha", "quasi_static")
+RAMP_SHAPES = ("linear", "smooth")
 
 
 @dataclass
@@ -35,6 +39,7 @@ class LoadSpec:
     magnitude: float        # [N]
     radius: float           # [m]
     ramp_steps: int
+    ramp_shape: str         # linear | smooth
     seed: int
 
 
@@ -114,8 +119,11 @@ def scene_from_config(sc) -> SceneSpec:
         magnitude=float(_get(ld, "magnitude", 1.0)),
         radius=float(_get(ld, "radius", 0.0)),
         ramp_steps=max(1, int(_get(ld, "ramp_steps", 1))),
+        ramp_shape=str(_get(ld, "ramp_shape", "linear")),
         seed=int(_get(ld, "seed", 0)),
     )
+    if loads.ramp_shape not in RAMP_SHAPES:
+        raise ConfigError(f"scene.loads.ramp_shape = {loads.ramp_shape!r}: expected one of {list(RAMP_SHAPES)}")
     mesh_cfg = _get(sc, "mesh", None)
     if mesh_cfg is None:
         raise ConfigError("scene.mesh: missing (expected 'geometry' or 'file')")
@@ -223,9 +231,10 @@ def load_case(k: int, nodes: np.ndarray, node_type: np.ndarray, normals: np.ndar
     return point, load_nodes.astype(np.int64), force
 
 
-def ramp(t: float, dt: float, ramp_steps: int) -> float:
-    """Load factor in [0, 1]: linear over ramp_steps * dt, then held."""
-    return float(min(1.0, max(0.0, t / (ramp_steps * dt))))
+def ramp(t: float, dt: float, ramp_steps: int, shape: str = "linear") -> float:
+    """Load factor in [0, 1] over ramp_steps * dt, then held: linear, or smooth (3s² − 2s³)."""
+    s = float(min(1.0, max(0.0, t / (ramp_steps * dt))))
+    return s * s * (3.0 - 2.0 * s) if shape == "smooth" else s
 
 
 def dataset_mesh(nodes: np.ndarray, cells: np.ndarray, node_type: np.ndarray) -> Mesh:

@@ -156,6 +156,7 @@ class Solid:
         # outputs: Cauchy stress at the centroid of every cell
         centroid = np.array([[0.25, 0.25, 0.25]])
         self._sigma_expr = fem.Expression(voigt(cauchy_from_pk2(F, S_committed)), centroid)
+        self._pk2_expr = fem.Expression(voigt(S_committed), centroid)
         self._energy_form = fem.form(strain_energy(self.mat_ufl, self.u) * self.dx)
         self._kinetic_form = fem.form(0.5 * self.rho * ufl.inner(self.v_n, self.v_n) * self.dx)
         self._setup_topology()
@@ -184,8 +185,8 @@ class Solid:
         """Total S of a committed state from its elastic parts and the committed h_i [Pa]."""
         if not self.viscous:
             return S_iso + S_vol
-        g_inf = 1.0 - sum(t.g for t in self.mat.prony)
-        return S_vol + g_inf * S_iso + sum(t.g * h for t, h in zip(self.mat.prony, self.h_n))
+        g_inf = 1.0 - sum(self._g)
+        return S_vol + g_inf * S_iso + sum(g * h for g, h in zip(self._g, self.h_n))
 
     def _viscous_stress(self, S_iso, S_vol):
         """(S used in the residual for the current step, S of the committed state)."""
@@ -197,9 +198,10 @@ class Solid:
         self.Siso_n = fem.Function(W)                               # S⁰_iso at t_n [Pa]
         self._decay = [fem.Constant(self.domain, PETSc.ScalarType(1.0)) for _ in self.mat.prony]
         self._coef = [fem.Constant(self.domain, PETSc.ScalarType(1.0)) for _ in self.mat.prony]
-        g_inf = 1.0 - sum(t.g for t in self.mat.prony)
+        self._g = [fem.Constant(self.domain, PETSc.ScalarType(t.g)) for t in self.mat.prony]   # ḡi
+        g_inf = 1.0 - sum(self._g)
         h_trial = [d * h + c * (S_iso - self.Siso_n) for d, c, h in zip(self._decay, self._coef, self.h_n)]
-        S_trial = S_vol + g_inf * S_iso + sum(t.g * h for t, h in zip(self.mat.prony, h_trial))
+        S_trial = S_vol + g_inf * S_iso + sum(g * h for g, h in zip(self._g, h_trial))
         S_committed = self._committed_stress(S_iso, S_vol)
         X = W.element.interpolation_points()
         self._h_trial_expr = [fem.Expression(h, X) for h in h_trial]
@@ -208,8 +210,8 @@ class Solid:
         F = self._F
         centroid = np.array([[0.25, 0.25, 0.25]])
         # viscous overstress Q_i = ḡi (S⁰_iso − h_i), pushed forward to Cauchy form [Pa]
-        self._xi_expr = [fem.Expression(voigt(cauchy_from_pk2(F, t.g * (S_iso - h))), centroid)
-                         for t, h in zip(self.mat.prony, self.h_n)]
+        self._xi_expr = [fem.Expression(voigt(cauchy_from_pk2(F, g * (S_iso - h))), centroid)
+                         for g, h in zip(self._g, self.h_n)]
         return S_trial, S_committed
 
     def _force_terms(self, v, stiffness_damping: bool = True):
@@ -413,21 +415,23 @@ class Solid:
         self.f_n.x.array[:] = self.f_ext.x.array
         if not self.inertia:
             return
-        w, du = ufl.TestFunction(self.V), ufl.TrialFunction(self.V)
-        M = fem_petsc.assemble_matrix(fem.form(self.rho * ufl.inner(du, w) * self.dx), bcs=self.bcs)
-        M.assemble()
+        if not hasattr(self, "_mass_ksp"):  # built once: mass matrix (LU) and the force form
+            w, du = ufl.TestFunction(self.V), ufl.TrialFunction(self.V)
+            M = fem_petsc.assemble_matrix(fem.form(self.rho * ufl.inner(du, w) * self.dx), bcs=self.bcs)
+            M.assemble()
+            self._mass_ksp = direct_solver(self.domain.comm, M)
+            self._force_form = fem.form(self._force_terms(self.v_n, stiffness_damping=False))
         # forces at the current state (u = u_n, v = v_n)
         self.u.x.array[:] = self.u_n.x.array
         self._set_dt(1.0)
-        b = fem_petsc.assemble_vector(fem.form(self._force_terms(self.v_n, stiffness_damping=False)))
+        b = fem_petsc.assemble_vector(self._force_form)
         b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         b.axpy(-1.0, self.f_ext.vector)
         b.scale(-1.0)
         fem_petsc.set_bc(b, self.bcs, scale=0.0)
-        ksp = direct_solver(self.domain.comm, M)
-        ksp.solve(b, self.a_n.vector)
+        self._mass_ksp.solve(b, self.a_n.vector)
         self.a_n.x.scatter_forward()
-        self.u.x.array[:] = self.u_n.x.array
+        b.destroy()
 
     def reset(self) -> None:
         """Back to the undeformed state at rest, t = 0 (boundary conditions kept)."""
@@ -446,6 +450,14 @@ class Solid:
     def cauchy_stress_cells(self) -> np.ndarray:
         """Cauchy stress at each cell centroid (T, 6) [Pa]."""
         return self._sigma_expr.eval(self._cell_ids)
+
+    def pk2_stress_nodes(self) -> np.ndarray:
+        """2nd Piola–Kirchhoff stress per node (N, 6) [Pa], Voigt 11 22 33 12 13 23, volume-averaged."""
+        return self.node_average(self._pk2_expr.eval(self._cell_ids))
+
+    def pk2_stress_cells(self) -> np.ndarray:
+        """2nd Piola–Kirchhoff stress at each cell centroid (T, 6) [Pa]."""
+        return self._pk2_expr.eval(self._cell_ids)
 
     def viscous_overstress_nodes(self) -> list[np.ndarray]:
         """Per Prony term, the Cauchy push-forward of Q_i = ḡi (S⁰_iso − h_i) per node (N, 6) [Pa]."""

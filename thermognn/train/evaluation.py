@@ -70,7 +70,7 @@ def energy_entropy_along(model, graph: Graph, pred: torch.Tensor, forces: torch.
             f = forces[min(s, forces.shape[0] - 1)]
             e, s_ = model.energy_entropy(pred[s], graph.edge_index, graph.node_type, graph.ref_pos, f)
             deg = model.rates(pred[s], f, graph.edge_index, graph.node_type, graph.ref_pos, False)[5]
-            rows.append([float(e), float(s_), float(deg)])
+            rows.append([float(e.detach()), float(s_.detach()), float(deg.detach())])
     return np.asarray(rows)
 
 

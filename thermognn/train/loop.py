@@ -31,11 +31,25 @@ def _sel(cfg, key: str, default):
     return OmegaConf.select(cfg, key, default=default)
 
 
-def resolve_structure(structure: str, effects) -> str:
-    """'auto' -> hamiltonian for reversible scenes (no viscous effect), else generic."""
+def resolve_structure(structure: str, effects, dataset_config: str = "") -> str:
+    """'auto' -> hamiltonian for reversible scenes, else generic.
+
+    Reversible: no viscous effect (``is_reversible``), and, when the dataset's generating config
+    says so, inertia present, no Rayleigh damping and a non-dissipative integrator (Newmark
+    trapezoidal); quasi-static or damped data need the dissipative (GENERIC) part."""
     structure = str(structure)
     if structure == "auto":
-        return "hamiltonian" if is_reversible(effects) else "generic"
+        reversible = is_reversible(effects) and "inertia" in tuple(effects)
+        if reversible and dataset_config:
+            try:
+                scene_time = OmegaConf.select(OmegaConf.create(dataset_config), "scene.time", default=None)
+            except Exception:  # noqa: BLE001 - an unparsable config says nothing about damping
+                scene_time = None
+            if scene_time is not None:
+                damping = [float(x) for x in (OmegaConf.select(scene_time, "rayleigh", default=None) or [])]
+                integrator = str(OmegaConf.select(scene_time, "integrator", default="newmark"))
+                reversible = not any(damping) and integrator == "newmark"
+        return "hamiltonian" if reversible else "generic"
     if structure not in ("generic", "hamiltonian"):
         raise ConfigError(f"model.structure = {structure!r}, expected auto, generic or hamiltonian")
     return structure
@@ -71,6 +85,10 @@ class _Dist:
         if self.world > 1:
             self.dist.barrier()
 
+    def close(self) -> None:
+        if self.world > 1 and self.dist.is_initialized():
+            self.dist.destroy_process_group()
+
 
 def step_loss(model: TIGNN, batch, dt: float, noise: float, generator: torch.Generator,
               lambda_data: float, lambda_degeneracy: float) -> tuple[torch.Tensor, float, float]:
@@ -89,6 +107,17 @@ def step_loss(model: TIGNN, batch, dt: float, noise: float, generator: torch.Gen
     data_loss = ((dzdt_n - target).pow(2) * free).sum() / free.sum().clamp(min=1.0)
     loss = lambda_data * data_loss + lambda_degeneracy * deg
     return loss, float(data_loss.detach()), float(deg.detach())
+
+
+#: train settings a resumed run must share with the interrupted one (besides model and dataset)
+RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy", "noise", "split")
+
+
+def training_identity(cfg, hparams: dict, dtype_name: str) -> dict:
+    """What must not change for ``model.last.ckpt`` to be resumed (epochs, patience, threads may)."""
+    return {"hparams": hparams, "dtype": dtype_name, "seed": int(_sel(cfg, "seed", 0)),
+            **{k: OmegaConf.to_container(v) if OmegaConf.is_config(v) else v
+               for k in RESUME_KEYS for v in [_sel(cfg.train, k, None)]}}
 
 
 def _base_checkpoint(cfg, data: LoadedData, hparams: dict, dtype_name: str, structure: str,
@@ -148,7 +177,7 @@ def train(cfg) -> Path:
     out_dir = project_path(cfg.out)
     data = load_data(project_path(cfg.paths.dataset), tc.split, seed, dtype)
     ds = data.dataset
-    structure = resolve_structure(_sel(cfg, "model.structure", "auto"), ds.effects)
+    structure = resolve_structure(_sel(cfg, "model.structure", "auto"), ds.effects, ds.config_yaml)
     hparams = hyperparameters(cfg.model, ds.layout.dim, velocity_columns(ds.layout), structure == "hamiltonian")
     train_trajs, val_trajs = data.of("train"), data.of("val")
     stats = compute_stats(train_trajs, data.graph, ds.dt, hparams["reference_edges"])
@@ -169,8 +198,10 @@ def train(cfg) -> Path:
         state = load_checkpoint(last)
         check_fingerprint(state["fingerprint"], ds, last,
                           hint="delete it or pass train.resume=false to train from scratch")
-        if state["hparams"] != hparams or state["dtype"] != dtype_name:
-            print(f"{last}: model hyperparameters changed; training from scratch")
+        identity = training_identity(cfg, hparams, dtype_name)
+        if state.get("identity") != identity:
+            changed = sorted(k for k in identity if (state.get("identity") or {}).get(k) != identity[k])
+            print(f"{last}: configuration changed ({', '.join(changed)}); training from scratch")
         else:
             model.load_state_dict(state["state_dict"])
             opt.load_state_dict(state["optimizer"])
@@ -223,7 +254,7 @@ def train(cfg) -> Path:
                 model.eval()
                 val = scalar_error(rollout_errors(model, data.graph, val_trajs, ds.layout, ds.dt)[0])
                 row["val_rrmse"] = val
-                if val < best_val or not ckpt_path.exists():
+                if val < best_val or best_val == math.inf:  # the first round always saves
                     best_val, stale = min(val, best_val), 0
                     if dist.main:
                         save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": epoch,
@@ -238,13 +269,15 @@ def train(cfg) -> Path:
                                  "val_rrmse": row.get("val_rrmse", math.nan), "optimizer": opt.state_dict(),
                                  "scheduler": sched.state_dict(),
                                  "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
-                                 "history": history, "best_val": best_val, "stale_rounds": stale}, last)
+                                 "history": history, "best_val": best_val, "stale_rounds": stale,
+                                 "identity": training_identity(cfg, hparams, dtype_name)}, last)
                 _write_metrics(out_dir / "metrics.csv", history)
             progress.update(task, completed=epoch,
                             info=f"loss {row['loss']:.3e} val {row.get('val_rrmse', float('nan')):.3e}")
             if stopped and dist.main:
                 print(f"early stopping at epoch {epoch} (no improvement in {patience} validation rounds)")
     dist.barrier()
+    dist.close()
     if dist.main:
         if not ckpt_path.exists():  # e.g. resumed a finished run whose best file was deleted
             raise DataError(f"{ckpt_path}: no best checkpoint written (delete {last} and retrain)")

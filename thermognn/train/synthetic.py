@@ -64,9 +64,12 @@ def _oscillate(F: float, w: float, zeta: float, m: float, t: np.ndarray) -> tupl
 
 def write_oscillator_dataset(path, n_trajectories: int = 6, steps: int = 10, dt: float = 0.01,
                              shape=(3, 3, 3), viscous: bool = False, seed: int = 0,
-                             force_scale: float = 1.0) -> Path:
-    """Write the analytic box dataset (schema v1). effects: elastic, inertia (+ viscous: damped)."""
+                             force_scale: float = 1.0, with_tets: bool = True) -> Path:
+    """Write the analytic box dataset (schema v1). effects: elastic, inertia (+ viscous: damped).
+    ``with_tets=False`` stores graph edges and no tetrahedra (like imported datasets)."""
     mesh = box_mesh(*shape)
+    if not with_tets:
+        mesh = Mesh(mesh.nodes, np.zeros((0, 4), np.int64), mesh.node_type, graph_edges=mesh.edges())
     H = float(mesh.nodes[:, 2].max())
     effects = ["elastic", "viscous", "inertia"] if viscous else ["elastic", "inertia"]
     layout = state_layout(effects)
