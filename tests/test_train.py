@@ -237,3 +237,15 @@ def test_structure_auto_follows_effects_and_damping():
     assert resolve_structure("auto", ["elastic", "viscous", "inertia"], undamped) == "generic"
     assert resolve_structure("auto", ["elastic"]) == "generic"  # quasi-static scene: no inertia
     assert resolve_structure("hamiltonian", ["elastic", "viscous", "inertia"]) == "hamiltonian"
+
+
+def test_checkpoint_with_foreign_weights_is_one_line_error(trained, tmp_path):
+    from thermognn.train.checkpoint import save_checkpoint
+
+    out, cfg, ckpt_path = trained
+    ckpt = load_checkpoint(ckpt_path)
+    ckpt["state_dict"] = {k: v for k, v in ckpt["state_dict"].items() if "decoder" not in k}
+    save_checkpoint(ckpt, tmp_path / "foreign.ckpt")
+    with pytest.raises(DataError) as err:
+        model_from_checkpoint(load_checkpoint(tmp_path / "foreign.ckpt"))
+    assert "\n" not in str(err.value) and "foreign.ckpt" in str(err.value)

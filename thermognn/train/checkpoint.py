@@ -55,6 +55,7 @@ def load_checkpoint(path: str | Path) -> dict:
     missing = [k for k in REQUIRED if k not in ckpt]
     if missing:
         raise DataError(f"{path}: checkpoint lacks {missing}")
+    ckpt["_path"] = str(path)  # for error messages; not saved
     return ckpt
 
 
@@ -69,5 +70,10 @@ def model_from_checkpoint(ckpt: dict):
     from .model import build_model
 
     model = build_model(dict(ckpt["hparams"]), torch_dtype(ckpt["dtype"]))
-    model.load_state_dict(ckpt["state_dict"])
+    try:
+        model.load_state_dict(ckpt["state_dict"])
+    except (RuntimeError, KeyError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DataError(f"{ckpt.get('_path', 'checkpoint')}: weights do not fit the model they describe "
+                        f"(written by another thermognn version?): {first}") from None
     return model

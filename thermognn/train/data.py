@@ -7,7 +7,6 @@ the force f[s+1] that drives the step; a batch concatenates B snapshots into one
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,8 +15,10 @@ import torch
 from torch import Tensor
 
 from thermognn.core.errors import DataError
-from thermognn.core.schema import NODE_CLAMPED, Dataset
+from thermognn.core.schema import Dataset
 from thermognn.core.state import StateLayout
+
+from .model import raw_edge_features
 
 
 @dataclass
@@ -148,11 +149,31 @@ def _safe_std(x: Tensor) -> Tensor:
     return torch.where(s > 1e-12 * (1.0 + x.abs().mean(0)), s, torch.ones_like(s))
 
 
+def _edge_stats(z: Tensor, graph: Graph, reference_edges: bool, chunk: int = 64) -> tuple[Tensor, Tensor]:
+    """Mean and std [4|12] of the raw edge features over all snapshots z [S, N, D] (two passes
+    over chunks of snapshots: exact, and memory bounded for large datasets)."""
+    src, dst = graph.edge_index[0], graph.edge_index[1]
+    X = graph.ref_pos.double()
+    dx = X[dst] - X[src]                                                      # [E, 3]
+
+    def feats(zc: Tensor) -> Tensor:                                          # [c * E, 4|12]
+        dq = (zc[:, dst, :3] - zc[:, src, :3]).reshape(-1, 3)
+        return raw_edge_features(dq, dx.repeat(zc.shape[0], 1), reference_edges)
+
+    chunks = [z[i:i + chunk] for i in range(0, z.shape[0], chunk)]
+    count = z.shape[0] * dx.shape[0]
+    mean = sum(feats(c).sum(0) for c in chunks) / count
+    var = sum((feats(c) - mean).pow(2).sum(0) for c in chunks) / count
+    std = var.sqrt()
+    return mean, torch.where(std > 1e-12 * (1.0 + mean.abs()), std, torch.ones_like(std))
+
+
 def compute_stats(train: list[TrajectoryTensors], graph: Graph, dt: float,
                   reference_edges: bool) -> dict[str, Tensor]:
     """Per-column normalisation from the TRAINING trajectories only (float64, SI units).
 
-    z_mean/z_std [D] over all snapshots and nodes; edge_mean/edge_std [4|8] over edge features;
+    z_mean/z_std [D] over all snapshots and nodes; edge_mean/edge_std [4|12] over edge features
+    (``model.raw_edge_features``);
     f_mean/f_std [3] over the driving forces; dzdt_std [D] root mean square of (z[s+1]-z[s])/dt
     (scale only, no shift, so that a zero rate stays zero)."""
     z = torch.cat([t.z for t in train]).double()                    # [sum S, N, D]
@@ -160,19 +181,10 @@ def compute_stats(train: list[TrajectoryTensors], graph: Graph, dt: float,
     dzdt = torch.cat([(t.z[1:] - t.z[:-1]).double() / dt for t in train])  # [sum (S-1), N, D]
     D = z.shape[-1]
     zf = z.reshape(-1, D)
-    src, dst = graph.edge_index[0], graph.edge_index[1]
-    dq = (z[:, dst, :3] - z[:, src, :3]).reshape(-1, 3)                      # [sum S * E, 3]
-    dq_feats = torch.cat([dq, dq.norm(dim=1, keepdim=True)], 1)              # [sum S * E, 4]
-    edge_mean, edge_std = [dq_feats.mean(0)], [_safe_std(dq_feats)]
-    if reference_edges:  # the reference geometry is the same in every snapshot: one copy suffices
-        X = graph.ref_pos.double()
-        dx = X[dst] - X[src]
-        dx_feats = torch.cat([dx, dx.norm(dim=1, keepdim=True)], 1)           # [E, 4]
-        edge_mean.append(dx_feats.mean(0))
-        edge_std.append(_safe_std(dx_feats))
+    edge_mean, edge_std = _edge_stats(z, graph, reference_edges)
     rms = dzdt.reshape(-1, D).pow(2).mean(0).sqrt()
     return {"z_mean": zf.mean(0), "z_std": _safe_std(zf),
-            "edge_mean": torch.cat(edge_mean), "edge_std": torch.cat(edge_std),
+            "edge_mean": edge_mean, "edge_std": edge_std,
             "f_mean": torch.zeros(3, dtype=torch.float64),
             "f_std": _safe_std(torch.cat([f.reshape(-1, 3), -f.reshape(-1, 3)])),
             "dzdt_std": torch.where(rms > 1e-30, rms, torch.ones_like(rms))}
@@ -199,11 +211,3 @@ def make_batch(trajs: list[TrajectoryTensors], items: list[tuple[int, int]], gra
     edge_index = (graph.edge_index.unsqueeze(0) + offsets).permute(1, 0, 2).reshape(2, -1)  # [2, B*E]
     return Data(z=z, z_next=z_next, f=f, pos=graph.ref_pos.repeat(B, 1), node_type=graph.node_type.repeat(B),
                 edge_index=edge_index, batch=torch.arange(B).repeat_interleave(N), num_nodes=B * N)
-
-
-def clamped_mask(node_type: Tensor) -> Tensor:
-    return node_type == NODE_CLAMPED
-
-
-def layout_json(layout: StateLayout) -> str:
-    return json.dumps([list(g) for g in layout.groups])

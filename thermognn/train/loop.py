@@ -120,6 +120,11 @@ def training_identity(cfg, hparams: dict, dtype_name: str) -> dict:
                for k in RESUME_KEYS for v in [_sel(cfg.train, k, None)]}}
 
 
+def _fits(model: torch.nn.Module, state_dict: dict) -> bool:
+    own = model.state_dict()
+    return set(own) == set(state_dict) and all(own[k].shape == state_dict[k].shape for k in own)
+
+
 def _base_checkpoint(cfg, data: LoadedData, hparams: dict, dtype_name: str, structure: str,
                      stats: dict) -> dict:
     ds = data.dataset
@@ -202,6 +207,8 @@ def train(cfg) -> Path:
         if state.get("identity") != identity:
             changed = sorted(k for k in identity if (state.get("identity") or {}).get(k) != identity[k])
             print(f"{last}: configuration changed ({', '.join(changed)}); training from scratch")
+        elif not _fits(model, state["state_dict"]):
+            print(f"{last}: weights from another model version; training from scratch")
         else:
             model.load_state_dict(state["state_dict"])
             opt.load_state_dict(state["optimizer"])

@@ -83,6 +83,20 @@ class ProcessorBlock(nn.Module):
         return h, e
 
 
+def raw_edge_features(dq: Tensor, dx: Tensor, reference_edges: bool) -> Tensor:
+    """Edge features before normalisation, from q_i - q_j and X_i - X_j (both [E, 3], metres):
+    [dq, |dq|] (4), with ``reference_edges`` also [dX, |dX|, dq - dX, |dq| - |dX|] (12 in all).
+
+    The relative displacement dq - dX = u_i - u_j and the stretch |dq| - |dX| carry the strain,
+    which for small deformations is a tiny perturbation of dq: normalised on their own (training
+    statistics) they reach the network at full scale."""
+    len_q = torch.sqrt(dq.pow(2).sum(1, keepdim=True) + 1e-30)  # [E, 1]
+    if not reference_edges:
+        return torch.cat([dq, len_q], 1)
+    len_x = torch.sqrt(dx.pow(2).sum(1, keepdim=True))
+    return torch.cat([dq, len_q, dx, len_x, dq - dx, len_q - len_x], 1)  # [E, 12]
+
+
 def skew(l: Tensor) -> Tensor:
     """L = l - l^T for a batch of matrices [N, D, D]."""
     return l - l.transpose(1, 2)
@@ -113,7 +127,7 @@ class TIGNN(nn.Module):
         self.hamiltonian = hamiltonian
         self.use_port = port
         self.reference_edges = reference_edges
-        n_edge = 8 if reference_edges else 4
+        n_edge = 12 if reference_edges else 4
         n_node = (dim - 3) + NODE_TYPES + 3
         self.node_encoder = MLP(n_node, hidden, hidden, mlp_layers, True)
         self.edge_encoder = MLP(n_edge, hidden, hidden, mlp_layers, True)
@@ -147,15 +161,11 @@ class TIGNN(nn.Module):
 
     # --- features -------------------------------------------------------------------------
     def edge_features(self, q: Tensor, ref_pos: Tensor, edge_index: Tensor) -> Tensor:
-        """Normalised edge features [E, 4|8] from positions q [N, 3] and reference X [N, 3]."""
+        """Normalised edge features [E, 4|12] from positions q [N, 3] and reference X [N, 3]."""
         src, dst = edge_index[0], edge_index[1]
         dq = q.index_select(0, dst) - q.index_select(0, src)  # [E, 3], q_i - q_j
-        feats = [dq, torch.sqrt(dq.pow(2).sum(1, keepdim=True) + 1e-30)]
-        if self.reference_edges:
-            dx = ref_pos.index_select(0, dst) - ref_pos.index_select(0, src)
-            feats.append(dx)
-            feats.append(torch.sqrt(dx.pow(2).sum(1, keepdim=True)))
-        return (torch.cat(feats, 1) - self.edge_mean) / self.edge_std
+        dx = ref_pos.index_select(0, dst) - ref_pos.index_select(0, src)
+        return (raw_edge_features(dq, dx, self.reference_edges) - self.edge_mean) / self.edge_std
 
     def inv_degree(self, n: int, edge_index: Tensor, like: Tensor) -> Tensor:
         deg = torch.zeros(n, 1, dtype=like.dtype, device=like.device)

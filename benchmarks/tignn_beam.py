@@ -1,0 +1,98 @@
+"""TIGNN beam benchmark (issue: training that beats published accuracy).
+
+Imports the public dataset (../shared/datasets/tignn_beam) if needed, trains on the reference
+split's 41 training trajectories (or only evaluates an existing checkpoint with --eval-only),
+and prints, for the 6 reference test trajectories, the reference metric (relative L2 error per
+snapshot per variable group, averaged over rollout steps and trajectories, clamped nodes imposed
+from ground truth at every step), next to the step time (ms, 2 CPU threads) and parameter count.
+
+    .venv/bin/python benchmarks/tignn_beam.py train.epochs=20 model.hidden=64
+    .venv/bin/python benchmarks/tignn_beam.py --eval-only
+
+The published pretrained model, re-run on this machine: q 4.1e-3, v 1.7e-2, sigma 9.5e-2,
+268k parameters, 84 ms per step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+REFERENCE = {"q": 4.1e-3, "v": 1.7e-2, "sigma": 9.5e-2, "params": 268_000, "ms_per_step": 84.0}
+
+
+def rollout_gt_clamped(model, graph, truth: torch.Tensor, forces: torch.Tensor, dt: float) -> torch.Tensor:
+    """Roll out from truth[0]; at every step the clamped nodes' whole state is taken from truth."""
+    clamped = graph.node_type == 1
+    dt_t = torch.tensor(dt, dtype=truth.dtype)
+    z = truth[0].clone()
+    out = [z]
+    with torch.enable_grad():
+        for s in range(1, truth.shape[0]):
+            z = model.step(z, forces[s], graph.edge_index, graph.node_type, graph.ref_pos, dt_t).detach()
+            z[clamped] = truth[s][clamped]
+            out.append(z)
+    return torch.stack(out)
+
+
+def main(argv: list[str]) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--eval-only", action="store_true")
+    parser.add_argument("--out", default="runs/tignn_beam")
+    args, overrides = parser.parse_known_args(argv)
+
+    from thermognn.core.config import load_config
+    from thermognn.train import train
+    from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint
+    from thermognn.train.data import load_data
+    from thermognn.train.model import parameter_count
+    from thermognn.train.rollout import rrmse_per_step, trajectory_rrmse
+    from thermognn.train.tignn_import import import_tignn
+
+    cfg = load_config(["scene=tignn_beam", f"out={args.out}", *overrides])
+    dataset = Path(cfg.paths.dataset)
+    if not dataset.exists():
+        import_tignn(ROOT.parent / "shared" / "datasets" / "tignn_beam", dataset)
+    t0 = time.perf_counter()
+    if not args.eval_only:
+        train(cfg)
+    train_s = time.perf_counter() - t0
+
+    torch.set_num_threads(2)
+    ckpt = load_checkpoint(cfg.paths.checkpoint)
+    model = model_from_checkpoint(ckpt).eval()
+    data = load_data(dataset, cfg.train.split, int(cfg.seed), next(model.parameters()).dtype, parts=("test",))
+    errs = []
+    for t in data.of("test"):
+        pred = rollout_gt_clamped(model, data.graph, t.z, t.force, data.dt)
+        errs.append(trajectory_rrmse(rrmse_per_step(pred, t.z, data.layout)))
+    mean = {k: float(np.mean([e[k] for e in errs])) for k in data.layout.names}
+
+    t = data.of("test")[0]
+    z, f, dt_t = t.z[0], t.force[1], torch.tensor(data.dt, dtype=t.z.dtype)
+    g = data.graph
+    for _ in range(3):
+        model.step(z, f, g.edge_index, g.node_type, g.ref_pos, dt_t)
+    n, t1 = 20, time.perf_counter()
+    for _ in range(n):
+        model.step(z, f, g.edge_index, g.node_type, g.ref_pos, dt_t)
+    ms = (time.perf_counter() - t1) / n * 1e3
+
+    params = parameter_count(model)
+    print(f"\nTIGNN beam, reference test split {data.split['test']}, clamped nodes imposed from ground truth")
+    print(f"{'':12s} {'q':>9s} {'v':>9s} {'sigma':>9s} {'params':>9s} {'ms/step':>8s}")
+    print(f"{'published':12s} {REFERENCE['q']:9.2e} {REFERENCE['v']:9.2e} {REFERENCE['sigma']:9.2e} "
+          f"{REFERENCE['params']:9d} {REFERENCE['ms_per_step']:8.1f}")
+    print(f"{'thermognn':12s} {mean['q']:9.2e} {mean['v']:9.2e} {mean['sigma']:9.2e} {params:9d} {ms:8.1f}")
+    print(f"epochs {ckpt.get('epoch')}, training wall time {train_s / 60:.1f} min (this run), "
+          f"{torch.get_num_threads()} threads")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
