@@ -37,8 +37,12 @@ test: setup
 test-fast: setup
 	$(PY) -m pytest -q -m "not slow"
 
+# Speed-and-accuracy figures (printed, never asserted). Each script's docstring says what it measures.
 bench: setup
-	$(PY) benchmarks/run_all.py
+	$(PY) benchmarks/fe_cost.py
+	$(PY) benchmarks/fe_convergence.py
+	$(PY) benchmarks/train_step_speed.py
+	$(PY) benchmarks/serve_bench.py --seconds 60
 
 clean:
 	rm -rf runs outputs .pytest_cache
