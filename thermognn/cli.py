@@ -45,6 +45,16 @@ def _user_errors(fn: Callable) -> Callable:
     return wrapper
 
 
+def _write_json(path: Path, data: dict) -> None:
+    """Write a stage's figures as JSON (atomically), for scripts and `thermognn demo`."""
+    import json
+
+    from thermognn.core.io import atomic_path
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=1, default=str))
+
+
 def _config(overrides: Optional[List[str]], extra: Optional[List[str]] = None):
     from thermognn.core.config import load_config
 
@@ -88,7 +98,7 @@ def evaluate(overrides: Optional[List[str]] = typer.Argument(None, help=OVERRIDE
     cfg = _config(overrides)
     from thermognn.train import evaluate as run
 
-    run(cfg)
+    _write_json(Path(cfg.paths.eval_dir) / "rrmse.json", run(cfg))
 
 
 @app.command()
@@ -118,7 +128,7 @@ def serve(
     cfg = _config(overrides, extra)
     from thermognn.serve import serve as run
 
-    run(cfg)
+    _write_json(Path(cfg.out) / "serve_summary.json", run(cfg))
 
 
 @app.command()
@@ -154,38 +164,39 @@ def demo(
     duration: float = typer.Option(5.0, "--duration", help="seconds of haptic serving"),
     overrides: Optional[List[str]] = typer.Argument(None, help=OVERRIDES_HELP),
 ) -> None:
-    """The whole pipeline on the default scene: generate -> train -> evaluate -> export -> serve --device sim."""
+    """The whole pipeline on the default scene: generate -> train -> evaluate -> export -> serve --device sim.
+
+    Each stage runs as its own `thermognn` process, exactly as a user would type it, so the stages'
+    dependencies stay apart (dolfinx and torch are never loaded into one process).
+    """
+    import json
+    import subprocess
     import time
 
     from thermognn.core.config import load_config
+    from thermognn.core.errors import ThermoGNNError
 
-    cfg_overrides = [f"out={out}"] + list(overrides or [])
-    cfg = load_config(cfg_overrides)
+    common = [f"out={out}"] + list(overrides or [])
+    load_config(common)  # bad overrides fail here, before any work
+    stages = [("generate", []), ("train", []), ("evaluate", []), ("export", []),
+              ("serve", ["--device", "sim", "--duration", str(duration)])]
     timings = {}
-
-    def stage(name, fn):
+    for name, extra in stages:
         typer.secho(f"\n== {name} ==", bold=True)
         t0 = time.perf_counter()
-        result = fn(cfg)
+        proc = subprocess.run([sys.executable, "-m", "thermognn.cli", name, *extra, *common])
         timings[name] = time.perf_counter() - t0
-        return result
-
-    from thermognn.generate import generate as run_generate
-    from thermognn.train import train as run_train, evaluate as run_evaluate
-    from thermognn.export import export as run_export
-    from thermognn.serve import serve as run_serve
-
-    stage("generate", run_generate)
-    stage("train", run_train)
-    errors = stage("evaluate", run_evaluate)
-    stage("export", run_export)
-    cfg = load_config(cfg_overrides + ["serve.device=sim", f"serve.duration={duration}"])
-    summary = stage("serve", run_serve)
+        if proc.returncode != 0:
+            raise ThermoGNNError(f"demo: stage '{name}' failed (exit code {proc.returncode}); see its output above")
 
     typer.secho("\n== demo summary ==", bold=True)
     for name, seconds in timings.items():
         typer.echo(f"{name:9s} {seconds:8.1f} s")
-    typer.echo("test RRMSE: " + ", ".join(f"{k} {v:.3g}" for k, v in errors.items()))
+    cfg = load_config(common)
+    errors = json.loads((Path(cfg.paths.eval_dir) / "rrmse.json").read_text())
+    typer.echo("test RRMSE: " + ", ".join(f"{k} {v:.3g}" for k, v in errors.items() if k != "ms_per_step")
+               + f" (network step {errors.get('ms_per_step', float('nan')):.1f} ms)")
+    summary = json.loads((Path(cfg.out) / "serve_summary.json").read_text())
     keys = ("loop_rate_hz", "period_p50_ms", "period_p99_ms", "period_p999_ms", "worst_gap_ms",
             "physics_rate_hz", "max_force_N", "final_force_N")
     typer.echo("haptic loop: " + ", ".join(f"{k} {summary[k]:.4g}" for k in keys if k in summary))
