@@ -66,11 +66,6 @@ def _config(overrides: Optional[List[str]], extra: Optional[List[str]] = None):
 def generate(overrides: Optional[List[str]] = typer.Argument(None, help=OVERRIDES_HELP)) -> None:
     """Stage 1: solve the scene's load cases with FEniCSx and write the HDF5 dataset (paths.dataset)."""
     cfg = _config(overrides)
-    if cfg.scene.get("imported", False):
-        from thermognn.core.errors import ConfigError
-
-        raise ConfigError(f"scene '{cfg.scene.name}' is imported, not generated: run `thermognn import "
-                          f"{cfg.scene.name.split('_')[0]}`")
     from thermognn.generate import generate as run
 
     path = run(cfg)
@@ -177,7 +172,7 @@ def demo(
     from thermognn.core.errors import ThermoGNNError
 
     common = [f"out={out}"] + list(overrides or [])
-    load_config(common)  # bad overrides fail here, before any work
+    cfg = load_config(common)  # bad overrides fail here, before any work
     stages = [("generate", []), ("train", []), ("evaluate", []), ("export", []),
               ("serve", ["--device", "sim", "--duration", str(duration)])]
     timings = {}
@@ -192,7 +187,6 @@ def demo(
     typer.secho("\n== demo summary ==", bold=True)
     for name, seconds in timings.items():
         typer.echo(f"{name:9s} {seconds:8.1f} s")
-    cfg = load_config(common)
     errors = json.loads((Path(cfg.paths.eval_dir) / "rrmse.json").read_text())
     typer.echo("test RRMSE: " + ", ".join(f"{k} {v:.3g}" for k, v in errors.items() if k != "ms_per_step")
                + f" (network step {errors.get('ms_per_step', float('nan')):.1f} ms)")

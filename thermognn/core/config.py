@@ -84,14 +84,3 @@ def project_path(p: str | os.PathLike) -> Path:
     if p.is_absolute() or p.exists():
         return p
     return PROJECT_ROOT / p
-
-
-def require(cfg: DictConfig, key: str, kind: type | tuple[type, ...], where: str = "config"):
-    """Read ``key`` (dotted) from ``cfg`` and check its type; ConfigError names the key otherwise."""
-    value = OmegaConf.select(cfg, key, default=None)
-    if value is None:
-        raise ConfigError(f"{where}: missing key '{key}'")
-    if not isinstance(value, kind):
-        names = kind.__name__ if isinstance(kind, type) else " or ".join(k.__name__ for k in kind)
-        raise ConfigError(f"{where}: key '{key}' = {value!r}, expected {names}")
-    return value

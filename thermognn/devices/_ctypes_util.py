@@ -31,3 +31,17 @@ def load_vendor_library(env_var: str, names: tuple[str, ...], explicit: str | No
             errors.append(f"{path}: {exc}")
     raise DeviceError(f"{what}: vendor library not found ({'; '.join(errors) or 'no candidates'}); {install}, "
                       f"or set {env_var}=/path/to/library")
+
+
+def bind_signatures(lib: ctypes.CDLL, signatures: dict, what: str, install: str) -> ctypes.CDLL:
+    """Set ``restype``/``argtypes`` of each vendor function ``{name: (restype, [argtypes])}``.
+
+    DeviceError (one line) names the first function the library lacks and what to install.
+    """
+    for name, (restype, argtypes) in signatures.items():
+        try:
+            fn = getattr(lib, name)
+        except AttributeError:
+            raise DeviceError(f"{what}: library {lib._name} lacks {name}; {install}") from None
+        fn.restype, fn.argtypes = restype, argtypes
+    return lib

@@ -23,7 +23,7 @@ import numpy as np
 
 from thermognn.core.errors import DeviceError
 
-from ._ctypes_util import load_vendor_library
+from ._ctypes_util import bind_signatures, load_vendor_library
 from .base import Device, DeviceReading, DeviceSpecs
 
 # hdDefines.h (OpenHaptics 3.x)
@@ -80,13 +80,7 @@ def bind_libhd(lib: ctypes.CDLL) -> ctypes.CDLL:
         "hdScheduleAsynchronous": (ctypes.c_ulong, [HDSchedulerCallback, v, ctypes.c_ushort]),
         "hdUnschedule": (None, [ctypes.c_ulong]),
     }
-    for name, (restype, argtypes) in sig.items():
-        try:
-            fn = getattr(lib, name)
-        except AttributeError:
-            raise DeviceError(f"geomagic: library {lib._name} lacks {name}; {INSTALL}") from None
-        fn.restype, fn.argtypes = restype, argtypes
-    return lib
+    return bind_signatures(lib, sig, "geomagic", INSTALL)
 
 
 class GeomagicTouch(Device):

@@ -32,7 +32,7 @@ import numpy as np
 
 from thermognn.core.errors import DeviceError
 
-from ._ctypes_util import load_vendor_library
+from ._ctypes_util import bind_signatures, load_vendor_library
 from .base import Device, DeviceReading, DeviceSpecs, finite_difference_velocity
 
 N_FFB = 4          # thumb, index, middle, ring
@@ -47,13 +47,7 @@ def bind_sgcore(lib: ctypes.CDLL) -> ctypes.CDLL:
         "SGCore_GetFlexions": (i, [i, fp, i]), "SGCore_GetWristPosition": (i, [i, fp]),
         "SGCore_SendHaptics": (i, [i, ip, i, i]), "SGCore_StopHaptics": (i, [i]), "SGCore_Dispose": (None, []),
     }
-    for name, (restype, argtypes) in sig.items():
-        try:
-            fn = getattr(lib, name)
-        except AttributeError:
-            raise DeviceError(f"senseglove: library {lib._name} lacks {name}; {INSTALL}") from None
-        fn.restype, fn.argtypes = restype, argtypes
-    return lib
+    return bind_signatures(lib, sig, "senseglove", INSTALL)
 
 
 class SenseGloveNova(Device):

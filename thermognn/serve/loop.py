@@ -186,10 +186,7 @@ def haptic_main(params: dict, conn) -> None:
         control[P.C_FINAL_FORCE] = 0.0 if (zeroed or device is None) else float("nan")
         control[P.C_FORCE] = 0.0
         control[P.C_HAPTIC_STATE] = 2
-        try:
-            conn.send(summary)
-        except (BrokenPipeError, OSError):
-            pass
+        P.send_summary(conn, summary)
         gc.enable()
         shared.close()
 

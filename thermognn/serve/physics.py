@@ -94,10 +94,7 @@ def physics_main(params: dict, conn) -> None:
         summary["error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
     finally:
         control[P.C_PHYSICS_STATE] = 2
-        try:
-            conn.send(summary)
-        except (BrokenPipeError, OSError):
-            pass
+        P.send_summary(conn, summary)
         shared.close()
 
 

@@ -61,3 +61,11 @@ def request_stop(control, reason: str) -> None:
     """Set the stop reason unless one is already set (first reason wins)."""
     if control[C_STOP] == 0:
         control[C_STOP] = REASON_CODE[reason]
+
+
+def send_summary(conn, summary: dict) -> None:
+    """Hand a child process's summary to the main process; a main process already gone is no error."""
+    try:
+        conn.send(summary)
+    except (BrokenPipeError, OSError):
+        pass
