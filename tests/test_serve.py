@@ -437,3 +437,18 @@ def test_session_log_hdf5(tmp_path):
     with h5py.File(tmp_path / "log.h5") as h5:
         assert h5["position"].shape == (100, 3) and h5["force"][:, 2] == pytest.approx(rows[:, 6])
         assert h5["physics_step"][-1] == 33 and json.loads(h5.attrs["summary"])["contact_ticks"] == 30
+
+
+def test_period_statistics_and_bare_loop():
+    from thermognn.serve.loop import bare_loop, period_statistics
+    t = np.arange(101) * 1e-3
+    t[60:] += 4e-3                                                 # one 5 ms gap
+    stats = period_statistics(t, 1000.0)
+    assert stats["worst_gap_ms"] == pytest.approx(5.0) and stats["gaps_over_2ms"] == 1
+    assert stats["period_p50_ms"] == pytest.approx(1.0)
+    assert np.isnan(period_statistics(t[:2], 1000.0)["worst_gap_ms"])
+    # the pacing alone, in this process without realtime priority (values not checked: timing)
+    floor = bare_loop(0.2, realtime=False)
+    assert set(stats) <= set(floor) and floor["scheduler"] == "other"
+    assert floor["ticks"] >= 3 and floor["loop_rate_hz"] > 0 and floor["gaps_over_2ms"] >= 0
+    assert floor["worst_gap_ms"] >= floor["period_p50_ms"] > 0

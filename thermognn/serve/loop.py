@@ -13,6 +13,8 @@ Each tick (period 1/``rate``; sleep until ``spin_us`` before the deadline, then 
 
 No allocation, model work or I/O in the loop (preallocated numpy arrays, in-place maths). On
 any exit (duration, stop request, SIGTERM, device error, NaN) the device gets zero force.
+
+``bare_loop`` runs the same pacing (``wait_until``) with no work: the machine's timing floor.
 """
 
 from __future__ import annotations
@@ -116,6 +118,78 @@ class Blender:
             self.previous.render(x, fp)
             for i in range(3):
                 out[i] = (1.0 - w) * fp[i] + w * out[i]
+
+
+def wait_until(deadline_ns: int, spin_ns: int, _perf=time.perf_counter_ns, _sleep=time.sleep) -> int:
+    """Pace one tick: sleep until ``spin_ns`` before ``deadline_ns`` (``time.perf_counter_ns``
+    clock), then spin to it; returns the wake time [ns]. The haptic loop's only timing code."""
+    remaining = deadline_ns - _perf()
+    if remaining > spin_ns:
+        _sleep((remaining - spin_ns) * 1e-9)
+    while _perf() < deadline_ns:
+        pass
+    return _perf()
+
+
+def period_statistics(t: np.ndarray, rate: float) -> dict:
+    """Period figures of tick times ``t`` [s] against the nominal ``rate`` [Hz]: rate, period
+    p50/p99/p99.9 [ms], worst gap [ms], period error |period - 1/rate| p99/p99.9 [us], gaps over
+    2 ms (NaN figures, rate 0 and no gaps with fewer than 3 ticks). Shared by the session log
+    statistics (``thermognn.serve.runner.loop_statistics``) and :func:`bare_loop`."""
+    t = np.asarray(t, dtype=float)
+    if len(t) <= 2:
+        nan = float("nan")
+        return dict(loop_rate_hz=0.0, period_p50_ms=nan, period_p99_ms=nan, period_p999_ms=nan,
+                    worst_gap_ms=nan, period_err_p99_us=nan, period_err_p999_us=nan, gaps_over_2ms=0)
+    period = np.diff(t) * 1e3                                     # [ms]
+    err = np.abs(period - 1e3 / rate) * 1e3                       # [us]
+    p50, p99, p999 = np.percentile(period, (50, 99, 99.9))
+    e99, e999 = np.percentile(err, (99, 99.9))
+    return dict(loop_rate_hz=float((len(t) - 1) / (t[-1] - t[0])), period_p50_ms=float(p50),
+                period_p99_ms=float(p99), period_p999_ms=float(p999), worst_gap_ms=float(period.max()),
+                period_err_p99_us=float(e99), period_err_p999_us=float(e999),
+                gaps_over_2ms=int((period > 2.0).sum()))
+
+
+def bare_loop(seconds: float, rate: float = 1000.0, spin_us: float = 400.0, realtime: bool = True,
+              cpu: int | None = None) -> dict:
+    """The haptic loop's pacing (:func:`wait_until`, same overrun rebase) with no work per tick,
+    for ``seconds``: the timing floor of the machine. Pins, locks memory and asks for SCHED_FIFO
+    like the haptic process (:func:`_pin_and_prioritise`; this changes the calling process, so
+    run it in a process of its own), gc disabled in the loop, wake times in a preallocated array.
+    Returns :func:`period_statistics` plus "ticks", "overruns", "seconds" and "scheduler"."""
+    period_ns = int(round(1e9 / rate))
+    spin_ns = int(spin_us * 1000)
+    duration_ns = int(seconds * 1e9)
+    wake = np.empty(int(seconds * rate) + 2, dtype=np.int64)      # more than enough ticks
+    wake.fill(0)                                                  # touched now: no page faults later
+    capacity = len(wake)
+    scheduler = _pin_and_prioritise(cpu, realtime)
+    wait = wait_until
+    overruns = 0
+    n = 0
+    gc_was_enabled = gc.isenabled()
+    gc.collect()
+    gc.disable()
+    try:
+        t_start = time.perf_counter_ns()
+        t_next = t_start
+        while n < capacity:
+            t_wake = wait(t_next, spin_ns)
+            wake[n] = t_wake
+            n += 1
+            if t_wake - t_start >= duration_ns:
+                break
+            if t_wake - t_next > period_ns:       # overran a whole period: rebase, as run_loop
+                overruns += 1
+                t_next = t_wake
+            t_next += period_ns
+    finally:
+        if gc_was_enabled:
+            gc.enable()
+    out = {"ticks": n, "overruns": overruns, "seconds": float(seconds), "scheduler": scheduler}
+    out.update(period_statistics((wake[:n] - wake[0]) * 1e-9 if n else wake[:0], rate))
+    return out
 
 
 def _pin_and_prioritise(cpu: int | None, realtime: bool) -> str:
@@ -247,7 +321,7 @@ def run_loop(params: dict, device, shared: SharedArrays, term: list) -> dict:
     gc.collect()
     gc.disable()                                  # no collector pauses inside the loop
     perf_ns = time.perf_counter_ns
-    sleep = time.sleep
+    wait = wait_until
     t_start = perf_ns()
     t_next = t_start
     control[P.C_LOOP_T0] = t_start / 1e9
@@ -255,12 +329,7 @@ def run_loop(params: dict, device, shared: SharedArrays, term: list) -> dict:
     tick = 0
     while True:
         # -- timing: sleep, then spin to the deadline ------------------------------------------
-        remaining = t_next - perf_ns()
-        if remaining > spin_ns:
-            sleep((remaining - spin_ns) * 1e-9)
-        while perf_ns() < t_next:
-            pass
-        t_wake = perf_ns()
+        t_wake = wait(t_next, spin_ns)
         if t_wake - t_next > period_ns:       # overran a whole period: rebase, no catch-up burst
             overruns += 1
             t_next = t_wake

@@ -24,7 +24,7 @@ from thermognn.core.errors import ConfigError, DataError, DeviceError, ThermoGNN
 from thermognn.core.io import atomic_path
 
 from . import protocol as P
-from .loop import haptic_main
+from .loop import haptic_main, period_statistics
 from .physics import physics_main
 
 #: longest stretch of the session kept in the log [s] (ring buffer in shared memory)
@@ -89,20 +89,8 @@ def _ordered_log(log: np.ndarray, n: int) -> np.ndarray:
 def loop_statistics(rows: np.ndarray, rate: float) -> dict:
     """Timing and force figures of a session log (rows [T, 9]; the last row is the exit row)."""
     ticks = rows[:-1] if len(rows) > 1 else rows
-    t = ticks[:, P.L_T]
     out: dict = {"ticks": int(len(ticks))}
-    if len(t) > 2:
-        period = np.diff(t) * 1e3                                     # [ms]
-        err = np.abs(period - 1e3 / rate) * 1e3                       # [us]
-        out.update(loop_rate_hz=float((len(t) - 1) / (t[-1] - t[0])),
-                   period_p50_ms=float(np.percentile(period, 50)), period_p99_ms=float(np.percentile(period, 99)),
-                   period_p999_ms=float(np.percentile(period, 99.9)), worst_gap_ms=float(period.max()),
-                   period_err_p99_us=float(np.percentile(err, 99)), period_err_p999_us=float(np.percentile(err, 99.9)),
-                   gaps_over_2ms=int((period > 2.0).sum()))
-    else:
-        out.update(loop_rate_hz=0.0, period_p50_ms=float("nan"), period_p99_ms=float("nan"),
-                   period_p999_ms=float("nan"), worst_gap_ms=float("nan"), period_err_p99_us=float("nan"),
-                   period_err_p999_us=float("nan"), gaps_over_2ms=0)
+    out.update(period_statistics(ticks[:, P.L_T], rate))
     force = rows[:, P.L_F]                                            # includes the exit row
     mag = np.linalg.norm(force, axis=1)
     out["max_force_N"] = float(mag.max()) if len(mag) else 0.0
