@@ -19,7 +19,8 @@ import pytest
 from thermognn.core.config import load_config
 from thermognn.core.errors import ConfigError, DataError, DeviceError
 from thermognn.serve import serve
-from thermognn.serve.contact import SurfaceContact, closest_points_on_triangles
+from thermognn.serve.contact import (SurfaceContact, closest_points_on_triangles, normal_compliance,
+                                    series_stiffness)
 from thermognn.serve.loop import Blender
 from thermognn.serve import protocol as P
 from thermognn.serve.shm import SharedArrays, VersionedBuffer, versioned_layout
@@ -74,6 +75,10 @@ def test_serve_sim_press_produces_contact_and_ends_at_zero_force(sim_session):
     strongest = np.argmax(np.linalg.norm(rows[:, 4:7], axis=1))
     assert rows[strongest, 6] > 0.9 * np.linalg.norm(rows[strongest, 4:7])   # pressing down: pushed up
     assert rows[in_contact, 6].mean() > 0     # (passivity damping may pull a little while retracting)
+    # body stiffness in series with the contact (default: every 4 contact steps), step time reported
+    assert summary["body_fd_evaluations"] > 0 and summary["body_stiffness_mean_N_per_m"] > 0
+    assert 0 < summary["contact_K_scale_mean"] <= 1.0
+    assert summary["physics_step_ms"] > 0 and isinstance(summary["physics_warning"], str)
 
 
 def test_serve_replay_of_a_session_log(sim_session, exported_model, tmp_path):
@@ -237,6 +242,8 @@ def test_serve_user_errors(exported_model, tmp_path):
         serve(make_cfg(tmp_path / "missing.pt", tmp_path))
     with pytest.raises(ConfigError, match="serve.rate"):
         serve(make_cfg(exported_model, tmp_path, "serve.rate=-5"))
+    with pytest.raises(ConfigError, match="serve.body_stiffness_every"):
+        serve(make_cfg(exported_model, tmp_path, "serve.body_stiffness_every=-1"))
     with pytest.raises(DeviceError, match="serve.path"):
         serve(make_cfg(exported_model, tmp_path, "serve.path=zigzag", "serve.duration=1"))
     bad = tmp_path / "bad.pt"
@@ -304,6 +311,111 @@ def test_contact_force_is_continuous_over_a_dimple():
     forces = np.array(forces)
     assert np.all(forces[:, 2] > 0)
     assert np.abs(np.diff(forces, axis=0)).max() < 0.01
+
+
+def test_series_stiffness():
+    assert series_stiffness(300.0, 300.0) == pytest.approx(150.0)
+    assert series_stiffness(300.0, float("inf")) == 300.0                # rigid body: the contact alone
+    assert series_stiffness(300.0, 0.0) == 0.0                           # no support
+    assert series_stiffness(300.0, float("nan")) == 300.0                # unknown: as rigid
+    assert 0.0 < series_stiffness(300.0, 1e-9) < series_stiffness(300.0, 1e9) <= 300.0
+
+
+def test_normal_compliance_is_the_load_weighted_inward_displacement():
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(6, 3))
+    n = np.array([1.0, 2.0, 2.0]) / 3.0                                  # outward unit normal
+    loads = np.zeros((6, 3))
+    loads[[1, 4]] = -np.outer([1.0, 3.0], n)                             # 1 N and 3 N inward
+    q_pert = q.copy()
+    q_pert[1] -= 2e-4 * n                                                # in by 0.2 mm ...
+    q_pert[4] -= 6e-4 * n + 1e-3 * np.array([2.0, -1.0, 0.0]) / np.sqrt(5)   # 0.6 mm, and sideways
+    q_pert[[0, 2]] += 0.5                                                # unloaded nodes: ignored
+    assert normal_compliance(q, q_pert, loads, n) == pytest.approx((1 * 2e-4 + 3 * 6e-4) / 4)
+    assert np.isnan(normal_compliance(q, q_pert, np.zeros((6, 3)), n))
+
+
+class _Recorder:
+    """The exported module with a hand on the session (in this process): records every force
+    model published before a step and requests a stop after ``steps`` physics steps."""
+
+    def __init__(self, module, shared, steps: int) -> None:
+        self.module, self.z0, self.dt = module, module.z0, module.dt
+        self.control = shared["control"]
+        self.buf = VersionedBuffer(shared["model"], P.MODEL_PAYLOAD)
+        self.payload = np.zeros(P.MODEL_PAYLOAD)
+        self.published: list[np.ndarray] = []
+        self.steps = steps
+
+    def __call__(self, z, f):
+        if self.buf.read(self.payload) and (not self.published
+                                            or self.payload[P.M_VERSION] != self.published[-1][P.M_VERSION]):
+            self.published.append(self.payload.copy())
+        if len(self.published) >= self.steps:                            # this is the last step
+            P.request_stop(self.control, "duration")
+        return self.module(z, f)
+
+
+def _run_physics(model: Path, steps: int, tool_x, **params):
+    """run_physics on the exported model in this process, the tool held at ``tool_x``: (summary, payloads)."""
+    from thermognn.core.state import StateLayout
+    from thermognn.serve.physics import load_exported, run_physics
+    module, meta, buffers = load_exported(model)
+    contact = SurfaceContact(buffers["reference_positions"], buffers["node_type"], buffers["surface_faces"],
+                             0.003, 300.0, 0.006)
+    shared = P.make_shared(16)
+    try:
+        tool = np.zeros(P.TOOL_PAYLOAD)
+        tool[P.T_X] = tool_x
+        VersionedBuffer(shared["tool"], P.TOOL_PAYLOAD).publish(tool)
+        recorder = _Recorder(module, shared, steps)
+        params = {"stale_ms": 50.0, "model": str(model), **params}
+        summary = run_physics(params, recorder, StateLayout.from_json(meta["state_layout"]).slice("q"), contact,
+                              shared)
+    finally:
+        shared.close()
+    return summary, np.array(recorder.published)
+
+
+def test_physics_publishes_contact_in_series_with_the_body(exported_model):
+    """Tool pressed 2 mm into the top face: with body_stiffness_every=1 the published normal
+    stiffness -tr K lies in (0, k_c] and drops below k_c once the body is measured (after the
+    step-time check at step 10, from the second step of each contact on); the FD step is
+    discarded (same forces as without it)."""
+    press = [0.0, 0.0, 0.02 + 0.003 - 0.002]
+    summary, pub = _run_physics(exported_model, 40, press, body_stiffness_every=1)
+    contact = pub[:, P.M_CONTACT] > 0
+    k_normal = -np.trace(pub[:, P.M_K].reshape(-1, 3, 3), axis1=1, axis2=2)    # K = -k_eff n n^T
+    assert summary["steps"] == 40 and contact.sum() > 20
+    assert np.all(k_normal[contact] > 0) and np.all(k_normal[contact] <= 300.0 + 1e-9)
+    held = contact[1:] & contact[:-1]                                    # (the body bounces off and back)
+    after = np.arange(len(pub)) >= 10                                   # FD only after the step-time check
+    assert np.all(k_normal[contact & ~after] == pytest.approx(300.0))
+    held = held & after[:-1]                                           # measured at step 10, published from 11
+    assert held.sum() > 5 and np.all(k_normal[1:][held] < 300.0)         # softened by the body's yield
+    assert summary["fd_evaluations"] == (contact & after).sum() and summary["body_stiffness_mean_N_per_m"] > 0
+    assert summary["fd_disabled"] == ""
+    assert 0 < summary["k_scale_mean"] < 1.0
+    plain, pub0 = _run_physics(exported_model, 40, press, body_stiffness_every=0)
+    assert plain["fd_evaluations"] == 0 and plain["k_scale_mean"] == 1.0
+    k0 = -np.trace(pub0[:, P.M_K].reshape(-1, 3, 3), axis1=1, axis2=2)
+    assert k0[pub0[:, P.M_CONTACT] > 0] == pytest.approx(300.0)           # contact stiffness only
+    assert pub[:, P.M_F0] == pytest.approx(pub0[:, P.M_F0], rel=1e-12, abs=1e-15)   # FD steps discarded
+
+
+def test_physics_warns_when_steps_come_near_stale_ms(exported_model, capsys):
+    """The step-time check after steps 3..10 (thresholds chosen far from any real step time)."""
+    far = [0.0, 0.0, 1.0]
+    summary, _ = _run_physics(exported_model, 12, far, body_stiffness_every=4, stale_ms=1e-6)
+    warning = summary["warning"]
+    assert str(exported_model) in warning and "serve.stale_ms" in warning and "model.hidden=32" in warning
+    assert "serve.physics_threads" in warning
+    assert "finite-difference" in summary["fd_disabled"]      # two steps cannot fit either: FD off
+    err = capsys.readouterr().err
+    assert err.count("thermognn serve: warning:") == 1 and warning in err
+    summary, _ = _run_physics(exported_model, 12, far, body_stiffness_every=4, stale_ms=1e9)
+    assert summary["warning"] == "" and summary["step_ms"] > 0
+    assert "warning" not in capsys.readouterr().err
 
 
 def test_closest_points_regions():

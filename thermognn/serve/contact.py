@@ -17,6 +17,22 @@ The body receives the reaction -f_user as the external nodal load, shared by the
 surface nodes (node_type 2) within ``load_radius`` of p with hat weights (1 - d/R), or by the
 closest triangle's vertices (barycentric) when none is that close. Without ``surface_faces``
 the surface nodes act as points (closest node, no inside test).
+
+K above holds the surface still. The body yields too, in series with the penalty spring, so
+the physics process publishes the series stiffness instead (``series_stiffness``):
+
+    k_eff    = k_c k_b / (k_c + k_b),   0 <= k_eff <= k_c                         [N/m]
+    K        = -k_eff n n^T = (k_b / (k_c + k_b)) * (-k_c n n^T)                  [N/m]
+
+with k_c = ``k`` and k_b the body's local normal stiffness at the contact over one physics
+step, measured by finite differences on the model itself: one extra step from the same state
+with the nodal loads scaled by (1 + eps), i.e. an extra load eps |f| [N] along the inward
+normal, distributed like the contact load; then (``normal_compliance``)
+
+    du       = -n . sum_i w_i (q_i^pert - q_i) / sum_i w_i,   w_i = |load_i|        [m]
+    k_b      = eps |f| / du                                                      [N/m]
+
+(du <= 0 or not finite: the body counts as rigid, k_b = inf, k_eff = k_c).
 """
 
 from __future__ import annotations
@@ -79,6 +95,41 @@ def orient_outward(faces: np.ndarray, X: np.ndarray) -> np.ndarray:
     outward = np.einsum("ij,ij->i", n, (a + b + c) / 3.0 - X.mean(axis=0)) >= 0
     faces[~outward] = faces[~outward][:, [0, 2, 1]]
     return faces
+
+
+def series_stiffness(k_contact: float, k_body: float) -> float:
+    """Stiffness [N/m] of the contact spring ``k_contact`` in series with the body ``k_body`` [N/m].
+
+    k_eff = k_c k_b / (k_c + k_b), clamped to [0, k_c]: k_b = inf (rigid body) or not a number
+    (unknown) gives k_c, k_b <= 0 gives 0.
+    """
+    k_c, k_b = float(k_contact), float(k_body)
+    if not k_c > 0.0:
+        return 0.0
+    if np.isnan(k_b) or k_b == np.inf:
+        return k_c
+    if k_b <= 0.0:
+        return 0.0
+    return min(max(k_c / (1.0 + k_c / k_b), 0.0), k_c)
+
+
+def normal_compliance(q: np.ndarray, q_pert: np.ndarray, loads: np.ndarray, n: np.ndarray) -> float:
+    """Inward normal displacement [m] of the loaded nodes caused by a perturbation of their loads.
+
+    ``q``, ``q_pert`` [N, 3] m: positions after one step with the loads and with the perturbed
+    loads; ``loads`` [N, 3] N: the (unperturbed) nodal loads, whose magnitudes weight the nodes;
+    ``n`` [3]: outward unit normal. Returns du = -n . sum_i w_i (q_pert_i - q_i) / sum_i w_i with
+    w_i = |loads_i| (positive when the extra inward load pushed the surface in); NaN without loads.
+    The body's stiffness is then k_b = |extra load| / du [N/m].
+    """
+    w = np.linalg.norm(np.asarray(loads, dtype=float), axis=1)
+    total = float(w.sum())
+    if not total > 0.0:
+        return float("nan")
+    idx = np.flatnonzero(w)
+    dq = np.asarray(q_pert, dtype=float)[idx] - np.asarray(q, dtype=float)[idx]
+    mean = (w[idx, None] * dq).sum(axis=0) / total
+    return float(-np.dot(np.asarray(n, dtype=float), mean))
 
 
 class SurfaceContact:

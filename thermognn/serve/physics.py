@@ -4,7 +4,9 @@ Every step: read the tool state (seqlock buffer), compute the contact with the c
 (``thermognn.serve.contact``, numpy), publish the local force model (f0 at x0, K = df/dx) for
 the haptic loop, then advance the state ``z = model(z, f)`` with the nodal contact load f
 [N, 3] (not under no_grad: the model uses autograd). NaN/Inf in z stops the session
-("physics_nan"). torch is imported here only, inside the process.
+("physics_nan"). K is the contact spring in series with the body's own stiffness, measured
+by finite differences on the model (see ``run_physics``). torch is imported here only, inside
+the process.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import sys
 import time
 from pathlib import Path
 
@@ -21,10 +24,14 @@ from thermognn.core.errors import DataError
 from thermognn.core.state import StateLayout
 
 from . import protocol as P
-from .contact import SurfaceContact
+from .contact import SurfaceContact, normal_compliance, series_stiffness
 from .shm import SharedArrays, VersionedBuffer
 
 FORMAT = "thermognn-model/1"
+FD_EPS = 0.1                 # relative load perturbation of the body-stiffness finite difference
+TIMING_WINDOW = 4096         # step times kept for the medians (the latest ones)
+WARMUP_STEPS = (3, 10)       # steps (1-based) whose median step time the glitch check uses
+STALE_MARGIN = 0.8           # warn when a publish gap exceeds this fraction of serve.stale_ms
 BUFFERS = ("reference_positions", "z0", "edge_index", "node_type", "surface_faces", "dt")
 
 
@@ -99,7 +106,25 @@ def physics_main(params: dict, conn) -> None:
 
 
 def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, shared: SharedArrays) -> dict:
-    """Step the model until a stop is requested; returns step statistics."""
+    """Step the model until a stop is requested; returns step statistics.
+
+    Published stiffness: the contact spring k_c = ``contact_stiffness`` [N/m] in series with the
+    body, K = -k_eff n n^T, k_eff = k_c k_b / (k_c + k_b) (``contact.series_stiffness``). The
+    body's local stiffness k_b [N/m] over one physics step comes from finite differences on the
+    model: every ``body_stiffness_every`` contact steps (0: off, K = contact stiffness only; the
+    first contact step always), one extra step from the same z with the nodal loads scaled by
+    (1 + FD_EPS); k_b = FD_EPS |f| / du with du the load-weighted inward normal displacement
+    difference of the loaded nodes (``contact.normal_compliance``, du <= 0 or not finite:
+    rigid). The perturbed step is discarded; its k_b applies from the next publish on and is
+    kept until the next evaluation or the loss of contact.
+
+    Glitch check, after steps 3..10 (the first ones include warm-up; no FD step before it): an
+    FD step delays the next published force model by one more model step, so FD stays off for
+    the session when two model steps would exceed 0.8 * ``stale_ms`` (the watchdog would fade
+    the force): the stiffness is never bought with a glitch (``fd_disabled`` in the summary
+    says why). If one step alone exceeds it, a one-line warning goes to stderr (prefix
+    'thermognn serve: warning:') and into the summary.
+    """
     import torch
 
     control = shared["control"]
@@ -109,6 +134,8 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     dtype = z.dtype
     dt = float(module.dt)
     realtime = bool(params.get("realtime", False))
+    every = int(params.get("body_stiffness_every", 0))
+    k_c = float(contact.k)
     tool = np.zeros(P.TOOL_PAYLOAD)
     far = contact.hi + 10.0                              # no tool yet: far above the body
     tool[P.T_X] = far
@@ -118,7 +145,26 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     control[P.C_PHYSICS_T0] = t0
     control[P.C_PHYSICS_STATE] = 1
     step_time = 0.0
+    times = np.zeros(TIMING_WINDOW)                      # latest unperturbed model step times [s]
+    fd_times = np.zeros(TIMING_WINDOW)                   # latest FD step times [s]
+    n_fd = 0                                             # FD evaluations
+    k_body: float | None = None                          # latest body stiffness [N/m] (None: not measured)
+    since_fd = 0                                         # contact steps since the latest FD evaluation
+    k_body_sum, n_k_body, n_rigid = 0.0, 0, 0
+    scale_sum, n_scale = 0.0, 0
+    warning = ""
+    fd_disabled = ""                                     # why FD was switched off ("" while allowed)
     parent = os.getppid()
+
+    def stats() -> dict:
+        n_t, n_f = min(step, TIMING_WINDOW), min(n_fd, TIMING_WINDOW)
+        return {"step_ms": float(np.median(times[:n_t]) * 1e3) if n_t else float("nan"),
+                "fd_ms": float(np.median(fd_times[:n_f]) * 1e3) if n_f else float("nan"),
+                "fd_evaluations": n_fd, "fd_rigid": n_rigid,
+                "body_stiffness_mean_N_per_m": k_body_sum / n_k_body if n_k_body else float("nan"),
+                "k_scale_mean": scale_sum / n_scale if n_scale else float("nan"), "warning": warning,
+                "fd_disabled": fd_disabled}
+
     while control[P.C_STOP] == 0:
         if step % 100 == 0 and os.getppid() != parent:     # main process killed: stop on our own
             P.request_stop(control, "main_gone")
@@ -127,29 +173,80 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
         x = tool[P.T_X]
         q = z[:, q_slice].detach().numpy()               # [N, 3] current positions
         res = contact(x, q)
+        f_mag = float(np.linalg.norm(res.force))
+        pressing = res.in_contact and f_mag > 0.0
+        if not pressing:
+            k_body, since_fd = None, 0                   # contact lost: measure afresh next time
+        scale = 1.0 if k_body is None else series_stiffness(k_c, k_body) / k_c   # k_b / (k_c + k_b)
+        if pressing:
+            scale_sum += scale
+            n_scale += 1
         payload[P.M_VERSION] = step + 1
         payload[P.M_STEP] = step
         payload[P.M_TIME] = time.perf_counter()
         payload[P.M_F0] = res.force
         payload[P.M_X0] = x
-        payload[P.M_K] = res.stiffness.reshape(-1)
+        payload[P.M_K] = (scale * res.stiffness).reshape(-1)
         payload[P.M_CONTACT] = 1.0 if res.in_contact else 0.0
         payload[P.M_DEPTH] = res.depth
         model_buf.publish(payload)
 
         f = torch.from_numpy(contact.loads).to(dtype)    # [N, 3] nodal load on the body
+        z_prev = z
         ts = time.perf_counter()
-        z = module(z, f).detach()
-        step_time += time.perf_counter() - ts
+        z = module(z_prev, f).detach()
+        elapsed = time.perf_counter() - ts
+        step_time += elapsed
+        times[step % TIMING_WINDOW] = elapsed
         if not bool(torch.isfinite(z).all()):
             P.request_stop(control, "physics_nan")
             return {"steps": step, "nan_at_step": step + 1, "elapsed_s": time.perf_counter() - t0,
-                    "model_time_s": step_time}
+                    "model_time_s": step_time, **stats()}
         step += 1
         control[P.C_STEPS] = step
         control[P.C_PHYSICS_T] = time.perf_counter()
+
+        if pressing and every > 0 and step > WARMUP_STEPS[1] and not fd_disabled:
+            since_fd += 1
+            if k_body is None or since_fd >= every:      # body stiffness by finite differences
+                ts = time.perf_counter()
+                z_pert = module(z_prev, f * (1.0 + FD_EPS)).detach()
+                fd_times[n_fd % TIMING_WINDOW] = time.perf_counter() - ts
+                n_fd += 1
+                since_fd = 0
+                du = normal_compliance(z[:, q_slice].numpy(), z_pert[:, q_slice].numpy(), contact.loads,
+                                       res.normal)
+                if np.isfinite(du) and du > 0.0:
+                    k_body = FD_EPS * f_mag / du
+                    k_body_sum += k_body
+                    n_k_body += 1
+                else:
+                    k_body = float("inf")                # no measurable yield: rigid
+                    n_rigid += 1
+
+        if step == WARMUP_STEPS[1]:
+            step_ms = float(np.median(times[WARMUP_STEPS[0] - 1:WARMUP_STEPS[1]])) * 1e3
+            limit_ms = STALE_MARGIN * float(params["stale_ms"])
+            if every > 0 and 2.0 * step_ms > limit_ms:
+                fd_disabled = (f"a model step takes {step_ms:.1f} ms: with a finite-difference step the gap "
+                               f"between force models would pass {limit_ms:.0f} ms (0.8 serve.stale_ms)")
+            warning = _step_time_warning(params, step_ms)
+            if warning:
+                print(f"thermognn serve: warning: {warning}", file=sys.stderr, flush=True)
         if realtime:                                     # pace to the model's dt (else: flat out)
             wait = t0 + step * dt - time.perf_counter()
             if wait > 0:
                 time.sleep(wait)
-    return {"steps": step, "elapsed_s": time.perf_counter() - t0, "model_time_s": step_time}
+    return {"steps": step, "elapsed_s": time.perf_counter() - t0, "model_time_s": step_time, **stats()}
+
+
+def _step_time_warning(params: dict, step_ms: float) -> str:
+    """One line when a model step [ms] (the gap between published force models) comes near
+    serve.stale_ms, where the watchdog fades the force; "" otherwise."""
+    stale_ms = float(params["stale_ms"])
+    if not step_ms > STALE_MARGIN * stale_ms:
+        return ""
+    return (f"model '{params.get('model', '?')}' steps in {step_ms:.1f} ms with {int(params.get('threads', 1))} "
+            f"thread(s), near serve.stale_ms = {stale_ms:g} ms where the watchdog fades the force: it may fade "
+            f"repeatedly; remedies: a smaller model (e.g. model.hidden=32, then re-train and export), more "
+            f"serve.physics_threads, or a larger serve.stale_ms")

@@ -57,10 +57,13 @@ def _serve_params(cfg: DictConfig) -> dict:
         "force_scale": num("force_scale"),
         "spin_us": num("spin_us", positive=False),
         "threads": int(num("physics_threads")),
+        "body_stiffness_every": int(num("body_stiffness_every", positive=False)),
         "realtime": bool(s.realtime_physics),
         "realtime_priority": bool(s.realtime_priority),
         "startup_timeout": num("startup_timeout"),
     }
+    if params["body_stiffness_every"] < 0 or params["body_stiffness_every"] != s.body_stiffness_every:
+        raise ConfigError(f"serve.body_stiffness_every = {s.body_stiffness_every!r}, expected an integer >= 0")
     params["max_force_step"] = None if s.max_force_step is None else num("max_force_step")
     options = OmegaConf.to_container(s.device_options, resolve=True) if s.device_options else {}
     if params["device"] == "sim":
@@ -208,7 +211,10 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
     haptic_pid); tests use it to inject faults at a known moment.
 
     Returns the summary dict (loop_rate_hz, period_p50/p99/p999_ms, worst_gap_ms,
-    physics_rate_hz, max_force_N, max_force_step_N, contact_ticks, final_force_N, exit_reason, ...).
+    physics_rate_hz, max_force_N, max_force_step_N, contact_ticks, final_force_N, exit_reason,
+    physics_step_ms (median model step), body_fd_evaluations, contact_K_scale_mean (published K
+    over contact stiffness), body_fd_disabled ("" or why the body-stiffness FD was off),
+    physics_warning ("" or the step-time warning), ...).
     """
     from thermognn import devices
 
@@ -323,6 +329,13 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
         blend_period_ticks=float(haptic_summary.get("blend_period_ticks", float("nan"))),
         passivity_dissipated_J=float(haptic_summary.get("passivity_dissipated_J", 0.0)),
         max_damping_Ns_per_m=float(haptic_summary.get("max_damping_Ns_per_m", 0.0)),
+        physics_step_ms=float(physics_summary.get("step_ms", float("nan"))),
+        physics_fd_ms=float(physics_summary.get("fd_ms", float("nan"))),
+        body_fd_evaluations=int(physics_summary.get("fd_evaluations", 0)),
+        body_stiffness_mean_N_per_m=float(physics_summary.get("body_stiffness_mean_N_per_m", float("nan"))),
+        contact_K_scale_mean=float(physics_summary.get("k_scale_mean", float("nan"))),
+        physics_warning=str(physics_summary.get("warning", "")),
+        body_fd_disabled=str(physics_summary.get("fd_disabled", "")),
         n_nodes=int(geometry["n_nodes"]),
         haptic_scheduler=str(haptic_summary.get("scheduler", "")),
         haptic_torch_loaded=bool(haptic_summary.get("torch_loaded", False)),
