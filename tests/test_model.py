@@ -49,30 +49,106 @@ def test_degeneracy_zero_for_constructed_case():
     assert float(degeneracy_loss(L, M, a, grad_e)) > 1e-3  # swapped: not degenerate
 
 
-def test_hamiltonian_conserves_energy():
+def _with_stats(model, seed=1):
+    """Non-uniform normalisation statistics (as after training): the columns' state and rate
+    scales differ, which is where a GENERIC structure applied in the wrong coordinates breaks."""
+    g = torch.Generator().manual_seed(seed)
+    d = model.dim
+    model.set_stats({"z_mean": 0.1 * torch.randn(d, generator=g, dtype=torch.float64),
+                     "z_std": torch.logspace(-3, 1, d, dtype=torch.float64),
+                     "dzdt_std": torch.logspace(0, -2, d, dtype=torch.float64)})
+    return model
+
+
+def _physical_rates(model, z, f, ei, nt, ref):
+    """dz/dt [N, D] in SI units, dE/dz and dS/dz [N, D] by autograd through the normalisation."""
+    r = model.rates(z, f, ei, nt, ref, False)[0].detach()
+    zz = z.clone().requires_grad_(True)
+    e, s_ = model.energy_entropy(zz, ei, nt, ref, f)
+    g_e = torch.autograd.grad(e, zz, retain_graph=True)[0]
+    g_s = torch.autograd.grad(s_, zz)[0] if s_.requires_grad else torch.zeros_like(g_e)
+    return r * model.dzdt_std, g_e, g_s
+
+
+def test_hamiltonian_conserves_energy_in_physical_units():
+    # dE/dt = dE/dz . dz/dt = 0 to round-off (no port term), with non-uniform statistics
     z, f, ei, nt, ref = _graph()
-    model = _model(hamiltonian=True)
-    dzdt, L, M, g_e, g_s, deg = model.rates(z, f, ei, nt, ref, False)
-    # dE/dt = sum_i dE/dz_i . L_i dE/dz_i = 0 to round-off (no port term)
-    power = (g_e * dzdt).sum()
-    assert abs(float(power)) < 1e-10 * float(g_e.pow(2).sum() * L.abs().max() + 1e-30)
+    model = _with_stats(_model(hamiltonian=True, balanced=True))
+    dzdt, g_e, _ = _physical_rates(model, z, f, ei, nt, ref)
+    terms = g_e * dzdt
+    assert abs(float(terms.sum())) < 1e-12 * float(terms.abs().sum())
+    energy, de_dt, power = model.energy_power(z, f, ei, nt, ref)
+    assert abs(float(de_dt)) < 1e-12 * float(terms.abs().sum()) and float(power) == 0.0
+    _, L, M, _, _, deg = model.rates(z, f, ei, nt, ref, False)
     assert float(M.abs().max()) == 0.0 and float(deg) == 0.0
+    # the same operator applied to dE/dzn and rescaled per column (balanced=False) is not conservative
+    legacy = _with_stats(_model(hamiltonian=True, balanced=False))
+    dzdt, g_e, _ = _physical_rates(legacy, z, f, ei, nt, ref)
+    assert abs(float((g_e * dzdt).sum())) > 1e-3 * float((g_e * dzdt).abs().sum())
+
+
+def test_port_power_is_the_only_energy_input():
+    z, f, ei, nt, ref = _graph(seed=4)
+    model = _with_stats(_model(hamiltonian=True, port=True, balanced=True))
+    _, de_dt, power = model.energy_power(z, f, ei, nt, ref)
+    assert abs(float(power)) > 0.0
+    assert abs(float(de_dt - power)) < 1e-10 * abs(float(power))
 
 
 def test_generic_entropy_production_non_negative():
     z, f, ei, nt, ref = _graph(seed=3)
-    model = _model()
+    model = _with_stats(_model(balanced=True))
     _, _, M, _, g_s, deg = model.rates(z, f, ei, nt, ref, False)
     production = torch.einsum("ni,nij,nj->n", g_s, M, g_s)
     assert float(production.min()) >= -1e-12 * float(production.abs().max())
     assert float(deg) > 0.0  # an untrained model is not degenerate: the loss has something to do
+    # in physical units: the M part of dz/dt produces dS/dt = sum_i g_s . M g_s >= 0
+    _, _, dS_dz = _physical_rates(model, z, f, ei, nt, ref)
+    m_part = torch.bmm(M, g_s.unsqueeze(-1)).squeeze(-1) * model.free_entries(nt, z) / model.balance() * model.dzdt_std
+    assert torch.allclose((dS_dz * m_part).sum(), production.sum(), rtol=1e-9)
+
+
+def _energy_error(model, z, f, ei, nt, ref, steps=20, dt=0.02):
+    """Sum over a rollout (load held) of |E_{n+1} - E_n - dt P((z_n + z_{n+1}) / 2)|: the energy
+    change the port's power P does not account for."""
+    dt_t = torch.tensor(dt, dtype=z.dtype)
+    err = 0.0
+    for _ in range(steps):
+        z1 = model.step(z, f, ei, nt, ref, dt_t).detach()
+        e0, e1 = model.energy_power(z, f, ei, nt, ref)[0], model.energy_power(z1, f, ei, nt, ref)[0]
+        power = model.energy_power(0.5 * (z + z1), f, ei, nt, ref)[2]
+        err += abs(float(e1 - e0 - dt * power))
+        z = z1
+    return err
+
+
+def test_midpoint_integrator_conserves_energy_far_better_than_euler():
+    z, f, ei, _, ref = _graph(seed=5)
+    nt = torch.zeros(z.shape[0], dtype=torch.int64)          # no clamped nodes: no imposed jumps
+    errors = {}
+    for integrator in ("euler", "midpoint"):
+        # free motion (no port): the continuous dynamics conserve E exactly, the integrators do not
+        model = _with_stats(_model(hamiltonian=True, port=False, balanced=True, integrator=integrator,
+                                   implicit_iterations=8))
+        errors[integrator] = _energy_error(model, z, f, ei, nt, ref)
+    assert errors["midpoint"] < 1e-3 * errors["euler"], errors
+
+
+def test_midpoint_training_evaluates_the_rate_between_snapshots():
+    model = _model(integrator="midpoint")
+    z, z_next = torch.zeros(3, 12, dtype=torch.float64), torch.ones(3, 12, dtype=torch.float64)
+    assert torch.equal(model.rate_state(z, z_next), 0.5 * z_next)
+    assert torch.equal(_model().rate_state(z, z_next), z)
+    with pytest.raises(ValueError, match="integrator 'rk4'"):
+        _model(integrator="rk4")
 
 
 @pytest.mark.parametrize("hamiltonian", [False, True])
 @pytest.mark.parametrize("shared,aggregation", [(False, "sum"), (True, "mean")])
 def test_scripted_matches_eager(hamiltonian, shared, aggregation):
     z, f, ei, nt, ref = _graph(seed=1)
-    model = _model(hamiltonian=hamiltonian, port=True, shared_weights=shared, aggregation=aggregation)
+    model = _with_stats(_model(hamiltonian=hamiltonian, port=True, shared_weights=shared, aggregation=aggregation,
+                               balanced=True, integrator="midpoint" if shared else "euler"))
     scripted = torch.jit.script(model)
     dt = torch.tensor(0.01, dtype=torch.float64)
     a = model.step(z, f, ei, nt, ref, dt)

@@ -188,8 +188,10 @@ def demo(
     for name, seconds in timings.items():
         typer.echo(f"{name:9s} {seconds:8.1f} s")
     errors = json.loads((Path(cfg.paths.eval_dir) / "rrmse.json").read_text())
-    typer.echo("test RRMSE: " + ", ".join(f"{k} {v:.3g}" for k, v in errors.items() if k != "ms_per_step")
-               + f" (network step {errors.get('ms_per_step', float('nan')):.1f} ms)")
+    extra = ("ms_per_step", "energy_balance")
+    typer.echo("test RRMSE: " + ", ".join(f"{k} {v:.3g}" for k, v in errors.items() if k not in extra)
+               + f" (network step {errors.get('ms_per_step', float('nan')):.1f} ms, energy balance "
+               + f"{errors.get('energy_balance', float('nan')):.2g})")
     summary = json.loads((Path(cfg.out) / "serve_summary.json").read_text())
     keys = ("loop_rate_hz", "period_p50_ms", "period_p99_ms", "period_p999_ms", "worst_gap_ms",
             "physics_rate_hz", "max_force_N", "final_force_N")

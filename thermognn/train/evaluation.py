@@ -61,17 +61,34 @@ def _fmt(x: float) -> str:
     return f"{x:.3e}" if math.isfinite(x) else "nan"
 
 
-def energy_entropy_along(model, graph: Graph, pred: torch.Tensor, forces: torch.Tensor) -> np.ndarray:
-    """[S, 3]: learned E, S and the degeneracy residual ||L dS/dz||^2 + ||M dE/dz||^2 (mean over
-    nodes, normalised units) at every state of a rollout pred [S, N, D]."""
+def energy_entropy_along(model, graph: Graph, pred: torch.Tensor, forces: torch.Tensor, dt: float) -> np.ndarray:
+    """[S, 4]: learned E, S, the degeneracy residual ||L dS/dw||^2 + ||M dE/dw||^2 (mean over
+    nodes, balanced units) and the step's energy error E_s - E_{s-1} - dt P((z_{s-1} + z_s) / 2)
+    (0 at s = 0) at every state of a rollout pred [S, N, D], with the load f_s of the step: the
+    change of the learned energy that the port's power P does not account for. The continuous
+    dynamics make it zero for Hamiltonian (and exactly degenerate GENERIC) models; what remains
+    is the integrator's drift plus the port-power quadrature."""
     rows = []
+    g = graph
     with torch.enable_grad():
         for s in range(pred.shape[0]):
             f = forces[min(s, forces.shape[0] - 1)]
-            e, s_ = model.energy_entropy(pred[s], graph.edge_index, graph.node_type, graph.ref_pos, f)
-            deg = model.rates(pred[s], f, graph.edge_index, graph.node_type, graph.ref_pos, False)[5]
-            rows.append([float(e.detach()), float(s_.detach()), float(deg.detach())])
+            e, s_ = model.energy_entropy(pred[s], g.edge_index, g.node_type, g.ref_pos, f)
+            deg = model.rates(pred[s], f, g.edge_index, g.node_type, g.ref_pos, False)[5]
+            err = 0.0
+            if s > 0:
+                e_prev = model.energy_entropy(pred[s - 1], g.edge_index, g.node_type, g.ref_pos, f)[0]
+                power = model.energy_power(0.5 * (pred[s - 1] + pred[s]), f, g.edge_index, g.node_type, g.ref_pos)[2]
+                err = float((e - e_prev - dt * power).detach())
+            rows.append([float(e.detach()), float(s_.detach()), float(deg.detach()), err])
     return np.asarray(rows)
+
+
+def energy_balance(rows: list[np.ndarray]) -> float:
+    """sum |energy error| / sum |E_s - E_{s-1}| over rollouts (arrays of :func:`energy_entropy_along`)."""
+    err = sum(float(np.abs(r[1:, 3]).sum()) for r in rows)
+    change = sum(float(np.abs(np.diff(r[:, 0])).sum()) for r in rows)
+    return err / change if change > 0 else float("nan")
 
 
 def write_vtu(path: Path, ds: Dataset, traj: TrajectoryTensors, pred: torch.Tensor, step: int) -> None:
@@ -123,7 +140,8 @@ def _mean_groups(per_traj: list[dict[str, float]], groups: list[str]) -> dict[st
 def evaluate(cfg) -> dict:
     """Roll out the test trajectories with the checkpoint's model; print and write the errors.
 
-    Returns {group: mean test RRMSE, ..., "ms_per_step": wall time of one step [ms]}."""
+    Returns {group: mean test RRMSE, ..., "ms_per_step": wall time of one step [ms],
+    "energy_balance": see :func:`energy_balance`}."""
     torch.set_num_threads(int(OmegaConf.select(cfg, "train.threads", default=2)))
     ckpt_path = project_path(cfg.paths.checkpoint)
     ckpt = load_checkpoint(ckpt_path)
@@ -191,10 +209,11 @@ def evaluate(cfg) -> dict:
     files += ["rrmse_per_trajectory.csv", "rrmse_per_trajectory.png"]
 
     # energy, entropy and degeneracy along each test rollout
-    rows = []
+    rows, along = [], []
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.5))
     for t, pred in zip(test, preds):
-        ees = energy_entropy_along(model, data.graph, pred, t.force)
+        ees = energy_entropy_along(model, data.graph, pred, t.force, data.dt)
+        along.append(ees)
         tt = np.arange(pred.shape[0]) * data.dt
         rows += [[t.name, s, tt[s], *ees[s]] for s in range(pred.shape[0])]
         for k, ax in enumerate(axes):
@@ -204,7 +223,9 @@ def evaluate(cfg) -> dict:
         ax.set_xlabel("time [s]")
     if len(test) <= 10:
         axes[0].legend(fontsize=7)
-    _write_csv(out / "energy_entropy.csv", ["trajectory", "step", "time_s", "energy", "entropy", "degeneracy"], rows)
+    _write_csv(out / "energy_entropy.csv",
+               ["trajectory", "step", "time_s", "energy", "entropy", "degeneracy", "energy_error"], rows)
+    balance = energy_balance(along)
     _save_fig(fig, out / "energy_entropy.png")
     files += ["energy_entropy.csv", "energy_entropy.png"]
 
@@ -217,6 +238,7 @@ def evaluate(cfg) -> dict:
         files.append(name)
 
     mean_test["ms_per_step"] = ms
+    mean_test["energy_balance"] = balance
     print_rrmse_table(f"rollout RRMSE ({len(test)} test, {len(train_trajs)} train trajectories)",
                       {"test": {g: mean_test[g] for g in groups}, "train": mean_train})
     print(f"evaluate: {ms:.2f} ms per step ({data.graph.n_nodes} nodes, {torch.get_num_threads()} threads); "
@@ -228,7 +250,11 @@ def evaluate(cfg) -> dict:
              f"- model: {ckpt['structure']}, {ckpt['dtype']}, {parameter_count(model)} parameters, "
              f"trained {ckpt.get('epoch', '?')} epochs (validation RRMSE {ckpt.get('val_rrmse', float('nan')):.3e})",
              f"- trajectories: {len(test)} test, {len(train_trajs)} train (of {len(data.split['train'])})",
-             f"- speed: {ms:.2f} ms per step (forward + autograd, {torch.get_num_threads()} threads, CPU)", "",
+             f"- speed: {ms:.2f} ms per step (forward + autograd, {torch.get_num_threads()} threads, CPU, "
+             f"integrator {model.integrator})",
+             f"- energy balance: {_fmt(balance)} = sum |E_s - E_(s-1) - dt P| / sum |E_s - E_(s-1)| over the "
+             "test rollouts (the learned energy's change that the port's work P does not explain: "
+             "integrator drift; `energy_error` in `energy_entropy.csv`)", "",
              "Relative L2 error per snapshot ||z_pred - z_gt|| / ||z_gt|| over all nodes of a group, "
              "averaged over the rollout steps (clamped nodes imposed) and trajectories.", "",
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),

@@ -97,12 +97,12 @@ def step_loss(model: TIGNN, batch, dt: float, noise: float, generator: torch.Gen
     Training noise (std ``noise`` in normalised units) perturbs the input state of the free
     entries; the target rate is taken from the perturbed input to the true next state."""
     z, z_next = batch.z, batch.z_next                                   # [B*N, D]
-    imposed = (batch.node_type == 1).unsqueeze(1) & model.imposed_columns.unsqueeze(0)  # [B*N, D]
-    free = (~imposed).to(z.dtype)
+    free = model.free_entries(batch.node_type, z)                      # [B*N, D]
     if noise > 0:
         eps = torch.randn(z.shape, generator=generator, dtype=z.dtype) * noise * model.z_std
         z = z + eps * free
-    dzdt_n, _, _, _, _, deg = model.rates(z, batch.f, batch.edge_index, batch.node_type, batch.pos, True)
+    at = model.rate_state(z, z_next)                 # z (Euler) or the step's midpoint (midpoint rule)
+    dzdt_n, _, _, _, _, deg = model.rates(at, batch.f, batch.edge_index, batch.node_type, batch.pos, True)
     target = (z_next - z) / dt / model.dzdt_std
     data_loss = ((dzdt_n - target).pow(2) * free).sum() / free.sum().clamp(min=1.0)
     loss = lambda_data * data_loss + lambda_degeneracy * deg

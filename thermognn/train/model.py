@@ -11,10 +11,27 @@ Positions enter only as differences along edges (Galilean invariance). The decod
 ``l`` (D x D), ``m`` (D x D), E_i and S_i; with L = l - l^T (skew), M = m m^T (PSD),
 E = sum_i E_i, S = sum_i S_i and the gradients taken by autograd with respect to zn::
 
-    dzn/dt = L dE/dzn + M dS/dzn (+ W fn, the port term)          GENERIC
-    dzn/dt = L dE/dzn            (+ W fn)                          Hamiltonian
-    dz/dt  = dzn/dt * dzdt_std   [SI units per second]
-    z_{n+1} = z_n + dt dz/dt,  then q = X, v = 0 imposed on clamped nodes.
+    r = L dE/dw + M dS/dw (+ W fn, the port term)                 GENERIC
+    r = L dE/dw           (+ W fn)                                 Hamiltonian
+    dz/dt  = r * dzdt_std,  r = (dw/dt) / c   [SI units per second]
+
+in the balanced coordinates w = zn / c = (z - z_mean) / sqrt(z_std * dzdt_std), c = sqrt(dzdt_std
+/ z_std) [D] (per column, 1/sqrt(s)): each column scaled by the geometric mean of its state and
+rate scales, so that L and M need no entries spanning the columns' very different time scales.
+In w the operators are exactly skew (L) and PSD (M), so the *physical* dynamics conserve the
+learned E (dE/dt = dE/dz . dz/dt = dE/dw . L dE/dw = 0 without the port) and produce entropy
+(dS/dt = dS/dw . M dS/dw >= 0 where L dS/dw = 0), while r stays O(1) per column for the loss.
+(Applying L to dE/dzn and rescaling each column by dzdt_std would break both identities.)
+Checkpoints from before this form load with ``balanced=False`` (c = 1).
+
+Integrators (``integrator``), with q = X, v = 0 imposed on clamped nodes after every update::
+
+    euler      z_{n+1} = z_n + dt dz/dt(z_n)                        1 network call per step
+    midpoint   z_{n+1} = z_n + dt dz/dt((z_n + z_{n+1}) / 2)        implicit, solved by
+               ``implicit_iterations`` fixed-point sweeps from the Euler predictor
+               (1 + iterations calls); second order, and E changes only by the port's work
+               up to O(dt^3) per step (Euler: O(dt^2)). Trained the same way: the rate is
+               evaluated at the midpoint of the two known snapshots (no extra cost).
 
 Everything here is TorchScript-able (``torch.jit.script``): message passing is written with
 ``index_select``/``index_add`` rather than PyG's MessagePassing. The module must never run under
@@ -119,10 +136,16 @@ class TIGNN(nn.Module):
 
     def __init__(self, dim: int, velocity_columns: List[int], hidden: int = 64, mlp_layers: int = 2,
                  message_passing: int = 4, shared_weights: bool = False, aggregation: str = "sum",
-                 hamiltonian: bool = False, port: bool = True, reference_edges: bool = True) -> None:
+                 hamiltonian: bool = False, port: bool = True, reference_edges: bool = True,
+                 balanced: bool = False, integrator: str = "euler", implicit_iterations: int = 3) -> None:
         super().__init__()
         if aggregation not in ("sum", "mean"):
             raise ValueError(f"aggregation '{aggregation}', expected sum or mean")
+        if integrator not in ("euler", "midpoint"):
+            raise ValueError(f"integrator '{integrator}', expected euler or midpoint")
+        self.balanced = balanced
+        self.integrator = integrator
+        self.implicit_iterations = int(implicit_iterations)
         self.dim = dim
         self.hamiltonian = hamiltonian
         self.use_port = port
@@ -187,25 +210,47 @@ class TIGNN(nn.Module):
                 h, e = block(h, e, edge_index, inv_deg)
         return self.decoder(h)
 
+    def balance(self) -> Tensor:
+        """c = sqrt(dzdt_std / z_std) [D] [1/sqrt(s)]: w = zn / c are the coordinates in which L and M
+        act (ones for ``balanced=False``)."""
+        if self.balanced:
+            return torch.sqrt(self.dzdt_std / self.z_std)
+        return torch.ones_like(self.z_std)
+
+    @torch.jit.export
+    def imposed_entries(self, node_type: Tensor) -> Tensor:
+        """[N, D] bool: the state entries imposed rather than predicted (q, v of clamped nodes)."""
+        return (node_type == 1).unsqueeze(1) & self.imposed_columns.unsqueeze(0)
+
+    def free_entries(self, node_type: Tensor, like: Tensor) -> Tensor:
+        """[N, D] 1.0 where the state entry evolves, 0.0 where it is imposed. L and M act on the free
+        entries only (P L P stays skew, P M P PSD), so the constrained dynamics keep the energy
+        and entropy identities and the imposed entries have zero rate."""
+        return (~self.imposed_entries(node_type)).to(like.dtype)
+
     @torch.jit.export
     def rates(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
               create_graph: bool) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """GENERIC rates. Returns (dzn/dt [N, D], L [N, D, D], M [N, D, D], dE/dzn [N, D],
-        dS/dzn [N, D], degeneracy loss (0-dim)). M and dS/dzn are zero for Hamiltonian models."""
+        """GENERIC rates. Returns (r [N, D] with dz/dt = r * dzdt_std, L [N, D, D], M [N, D, D],
+        dE/dw [N, D], dS/dw [N, D], degeneracy loss (0-dim)), w the balanced coordinates (module
+        docstring). M and dS/dw are zero for Hamiltonian models."""
         D = self.dim
         zn = ((z - self.z_mean) / self.z_std).detach().requires_grad_(True)
         fn = (f - self.f_mean) / self.f_std
         out = self.decode(zn, fn, edge_index, node_type, ref_pos)
         n = zn.shape[0]
+        c = self.balance()                                     # [D]; d/dw = c * d/dzn
+        free = self.free_entries(node_type, zn)                # [N, D]; 0 where q, v are imposed
         L = skew(out[:, : D * D].reshape(n, D, D))
         energy = out[:, D * D].sum()
         if self.hamiltonian:
             grads = torch.autograd.grad([energy], [zn], create_graph=create_graph)
-            g_e = grads[0]
-            assert g_e is not None
+            g_e_opt = grads[0]
+            assert g_e_opt is not None
+            g_e = g_e_opt * c * free
             g_s = torch.zeros_like(g_e)
             M = torch.zeros_like(L)
-            dzdt = torch.bmm(L, g_e.unsqueeze(-1)).squeeze(-1)
+            dwdt = torch.bmm(L, g_e.unsqueeze(-1)).squeeze(-1)
             deg = torch.zeros((), dtype=z.dtype, device=z.device)
         else:
             k = D * D + 1
@@ -215,27 +260,64 @@ class TIGNN(nn.Module):
             g_s_opt = torch.autograd.grad([entropy], [zn], create_graph=create_graph)[0]
             assert g_e_opt is not None
             assert g_s_opt is not None
-            g_e, g_s = g_e_opt, g_s_opt
-            dzdt = (torch.bmm(L, g_e.unsqueeze(-1)) + torch.bmm(M, g_s.unsqueeze(-1))).squeeze(-1)
+            g_e, g_s = g_e_opt * c * free, g_s_opt * c * free
+            dwdt = (torch.bmm(L, g_e.unsqueeze(-1)) + torch.bmm(M, g_s.unsqueeze(-1))).squeeze(-1)
             deg = degeneracy_loss(L, M, g_e, g_s)
         if self.use_port:
-            dzdt = dzdt + self.port(fn)
-        return dzdt, L, M, g_e, g_s, deg
+            dwdt = dwdt + self.port(fn)
+        dwdt = dwdt * free
+        # dz/dt = z_std * dzn/dt = z_std * c * dw/dt = dzdt_std * (dw/dt) / c   (c^2 = dzdt_std / z_std)
+        return dwdt / c, L, M, g_e, g_s, deg
 
     @torch.jit.export
     def impose(self, z: Tensor, node_type: Tensor, ref_pos: Tensor) -> Tensor:
         """Clamped nodes: q = reference position X, v = 0. z [N, D]."""
         fixed = torch.cat([ref_pos, torch.zeros(z.shape[0], self.dim - 3, dtype=z.dtype, device=z.device)], 1)
-        mask = (node_type == 1).unsqueeze(1) & self.imposed_columns.unsqueeze(0)  # [N, D]
-        return torch.where(mask, fixed, z)
+        return torch.where(self.imposed_entries(node_type), fixed, z)
+
+    @torch.jit.export
+    def rate_state(self, z: Tensor, z_next: Tensor) -> Tensor:
+        """The state at which the integrator evaluates the rate of the step z -> z_next (training:
+        both known): z for Euler, (z + z_next) / 2 for the midpoint rule. [N, D]"""
+        if self.integrator == "midpoint":
+            return 0.5 * (z + z_next)
+        return z
 
     @torch.jit.export
     def step(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
              dt: Tensor) -> Tensor:
-        """One explicit step z_n -> z_{n+1} [N, D] in SI units, driven by the force f [N, 3] at t_{n+1}."""
-        dzdt_n = self.rates(z, f, edge_index, node_type, ref_pos, False)[0]
-        z_next = z.detach() + dt * dzdt_n.detach() * self.dzdt_std
-        return self.impose(z_next, node_type, ref_pos)
+        """One step z_n -> z_{n+1} [N, D] in SI units, driven by the force f [N, 3] at t_{n+1}
+        (``integrator``: euler, or midpoint by fixed-point sweeps from the Euler predictor)."""
+        z0 = z.detach()
+        rate = self.rates(z0, f, edge_index, node_type, ref_pos, False)[0].detach()
+        z_next = self.impose(z0 + dt * rate * self.dzdt_std, node_type, ref_pos)
+        if self.integrator == "midpoint":
+            for _ in range(self.implicit_iterations):
+                rate = self.rates(self.rate_state(z0, z_next), f, edge_index, node_type, ref_pos, False)[0].detach()
+                z_next = self.impose(z0 + dt * rate * self.dzdt_std, node_type, ref_pos)
+        return z_next
+
+    @torch.jit.export
+    def energy_power(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor,
+                     ref_pos: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+        """(E, dE/dt, port power) at state z [N, D] under load f [N, 3], all 0-dim: the learned
+        energy, its rate along the model's own dynamics dE/dz . dz/dt, and the part of that rate
+        the port term W f supplies. Without dissipation dE/dt equals the port power to round-off;
+        an integrator's energy error is E_{n+1} - E_n minus the port work dt * power."""
+        D = self.dim
+        zn = ((z - self.z_mean) / self.z_std).detach().requires_grad_(True)
+        fn = (f - self.f_mean) / self.f_std
+        out = self.decode(zn, fn, edge_index, node_type, ref_pos)
+        energy = out[:, D * D].sum()
+        g = torch.autograd.grad([energy], [zn])[0]
+        assert g is not None
+        rate = self.rates(z, f, edge_index, node_type, ref_pos, False)[0].detach()
+        dzn_dt_scale = self.dzdt_std / self.z_std               # dzn/dt = r * dzdt_std / z_std
+        de_dt = (g * rate * dzn_dt_scale).sum()
+        power = torch.zeros_like(de_dt)
+        if self.use_port:
+            power = (g * self.port(fn) * self.free_entries(node_type, z) / self.balance() * dzn_dt_scale).sum()
+        return energy.detach(), de_dt.detach(), power.detach()
 
     @torch.jit.export
     def energy_entropy(self, z: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
@@ -267,6 +349,9 @@ def hyperparameters(cfg_model, dim: int, velocity_columns: List[int], hamiltonia
         "hamiltonian": bool(hamiltonian),
         "port": bool(sel("port", True)),
         "reference_edges": bool(sel("reference_edges", True)),
+        "balanced": True,
+        "integrator": str(sel("integrator", "euler")),
+        "implicit_iterations": int(sel("implicit_iterations", 3)),
     }
 
 
