@@ -23,7 +23,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --upgrade "pip>=23"
 	@# numpy pinned to Debian's own build (dolfinx and h5py are compiled against it; never numpy 2)
 	$(PY) -m pip install -q "numpy==$$(/usr/bin/python3 -c 'import numpy; print(numpy.__version__)')" \
-	  "torch==2.13.0" torch-geometric typer "hydra-core>=1.3" rich pytest matplotlib
+	  "torch==2.13.0" torch-geometric typer "hydra-core>=1.3" rich pytest matplotlib tensorboard
 	$(PY) -m pip install -q --no-deps -e .
 	@$(PY) -c "import numpy, dolfinx, torch, torch_geometric, h5py, meshio; assert numpy.__version__ < '2', numpy.__version__"
 	@touch $(STAMP)

@@ -267,3 +267,30 @@ def test_energy_drift_report_midpoint_against_euler(trained):
         pred = rollout(model, data.graph, t.z[0], t.force, data.dt)
         balance[integrator] = energy_balance([energy_entropy_along(model, data.graph, pred, t.force, data.dt)])
     assert balance["midpoint"] < 0.2 * balance["euler"], balance
+
+
+def test_metrics_also_logged_for_tensorboard(trained):
+    """train.tensorboard=auto with tensorboard installed (make setup installs it): the event file
+    holds the same per-epoch losses as metrics.csv."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out, _, _ = trained
+    acc = EventAccumulator(str(out / "tensorboard"))
+    acc.Reload()
+    logged = [(e.step, e.value) for e in acc.Scalars("train/loss")]
+    rows = _rows(out)
+    assert [s for s, _ in logged] == [int(r["epoch"]) for r in rows]
+    assert [v for _, v in logged] == pytest.approx([float(r["loss"]) for r in rows], rel=1e-6)
+
+
+def test_tensorboard_required_but_missing_is_one_line_error(tmp_path, monkeypatch):
+    import sys
+
+    from thermognn.core.errors import ConfigError
+    from thermognn.train.loop import _tensorboard
+
+    monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", None)   # as if not installed
+    assert _tensorboard("auto", tmp_path) is None and _tensorboard(False, tmp_path) is None
+    with pytest.raises(ConfigError, match="train.tensorboard = true") as err:
+        _tensorboard(True, tmp_path)
+    assert "\n" not in str(err.value)

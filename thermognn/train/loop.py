@@ -144,6 +144,22 @@ def _write_metrics(path: Path, history: list[dict]) -> None:
                 w.writerow({k: row.get(k, "") for k in METRIC_FIELDS})
 
 
+def _tensorboard(setting, log_dir: Path):
+    """A TensorBoard SummaryWriter under ``log_dir`` (``train.tensorboard``: auto = when the
+    tensorboard package is installed, true = required, false = off), or None."""
+    mode = str(setting).lower()
+    if mode in ("false", "off", "none"):
+        return None
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        if mode == "true":
+            raise ConfigError("train.tensorboard = true, but the tensorboard package is not installed "
+                              "(pip install tensorboard, or train.tensorboard=auto)") from None
+        return None
+    return SummaryWriter(log_dir=str(log_dir))
+
+
 def _progress(disable: bool = False):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -230,6 +246,7 @@ def train(cfg) -> Path:
         print(f"train: {len(train_trajs)} train / {len(val_trajs)} val / {len(data.split['test'])} test "
               f"trajectories, {len(pairs)} steps, structure {structure}, {parameter_count(model)} parameters")
 
+    tb = _tensorboard(_sel(tc, "tensorboard", "auto"), out_dir / "tensorboard") if dist.main else None
     stopped = start_epoch >= epochs or (patience > 0 and stale >= patience)
     with _progress(disable=not dist.main) as progress:
         task = progress.add_task("train", total=epochs, completed=start_epoch, info="")
@@ -279,10 +296,17 @@ def train(cfg) -> Path:
                                  "history": history, "best_val": best_val, "stale_rounds": stale,
                                  "identity": training_identity(cfg, hparams, dtype_name)}, last)
                 _write_metrics(out_dir / "metrics.csv", history)
+                if tb is not None:
+                    for key, value in row.items():
+                        if key != "epoch" and math.isfinite(value):
+                            tb.add_scalar(f"train/{key}", value, epoch)
+                    tb.flush()
             progress.update(task, completed=epoch,
                             info=f"loss {row['loss']:.3e} val {row.get('val_rrmse', float('nan')):.3e}")
             if stopped and dist.main:
                 print(f"early stopping at epoch {epoch} (no improvement in {patience} validation rounds)")
+    if tb is not None:
+        tb.close()
     dist.barrier()
     dist.close()
     if dist.main:
