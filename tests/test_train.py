@@ -42,7 +42,7 @@ def test_training_lowers_loss_and_writes_outputs(trained):
     assert [int(r["epoch"]) for r in rows] == list(range(1, 13))
     losses = [float(r["loss"]) for r in rows]
     assert losses[-1] < 0.5 * losses[0]
-    assert any(r["val_rrmse"] for r in rows)
+    assert any(r["val_error"] for r in rows)
 
 
 def test_checkpoint_contents_and_round_trip(trained):
@@ -294,3 +294,20 @@ def test_tensorboard_required_but_missing_is_one_line_error(tmp_path, monkeypatc
     with pytest.raises(ConfigError, match="train.tensorboard = true") as err:
         _tensorboard(True, tmp_path)
     assert "\n" not in str(err.value)
+
+
+def test_validation_error_stays_finite_where_a_group_comes_to_rest():
+    """A velocity that comes to rest: the per-snapshot metric explodes at the last step, the
+    whole-trajectory error used for model selection stays at the size of the deviation."""
+    from thermognn.core.state import state_layout
+    from thermognn.train.rollout import rrmse_per_step, trajectory_error
+
+    layout = state_layout(["elastic", "inertia"])
+    truth = torch.zeros(3, 4, layout.dim, dtype=torch.float64)
+    truth[1:] = 1.0
+    truth[2, :, layout.slice("v")] = 1e-9                      # at rest at the last step
+    pred = truth.clone()
+    pred[1:, :, layout.slice("v")] += 1e-3
+    assert rrmse_per_step(pred, truth, layout)["v"][2] > 1e5
+    err = trajectory_error(pred, truth, layout)
+    assert err["v"] == pytest.approx(1e-3 * math.sqrt(2), rel=1e-6) and err["q"] == 0.0

@@ -10,7 +10,7 @@ A checkpoint is a ``torch.save``d dict of plain types and tensors (loadable with
     stats         normalisation statistics {name: tensor} (training split only)
     state_layout  JSON string, dt [s], effects (list), structure ("generic" | "hamiltonian"), scene
     config        resolved config YAML, versions JSON, dataset (path), fingerprint (dict), split (dict)
-    epoch, val_rrmse
+    epoch, val_error   (validation rollout error, ``rollout.validation_error``)
     (the ``last`` checkpoint adds optimizer, scheduler, rng, history, best_val, stale_rounds)
 """
 

@@ -248,7 +248,7 @@ def evaluate(cfg) -> dict:
              f"- dataset: `{ds_path}` (scene `{data.dataset.scene}`, {data.graph.n_nodes} nodes, "
              f"D = {data.layout.dim}, dt = {data.dt} s)",
              f"- model: {ckpt['structure']}, {ckpt['dtype']}, {parameter_count(model)} parameters, "
-             f"trained {ckpt.get('epoch', '?')} epochs (validation RRMSE {ckpt.get('val_rrmse', float('nan')):.3e})",
+             f"trained {ckpt.get('epoch', '?')} epochs (validation error {ckpt.get('val_error', float('nan')):.3e})",
              f"- trajectories: {len(test)} test, {len(train_trajs)} train (of {len(data.split['train'])})",
              f"- speed: {ms:.2f} ms per step (forward + autograd, {torch.get_num_threads()} threads, CPU, "
              f"integrator {model.integrator})",

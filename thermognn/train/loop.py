@@ -22,9 +22,9 @@ from .checkpoint import (FORMAT, last_path, load_checkpoint, model_from_checkpoi
 from .data import (LoadedData, check_fingerprint, compute_stats, fingerprint, load_data, make_batch,
                    samples, velocity_columns)
 from .model import TIGNN, build_model, hyperparameters, parameter_count
-from .rollout import rollout_errors, scalar_error
+from .rollout import rollout_errors, validation_error
 
-METRIC_FIELDS = ["epoch", "lr", "loss", "data_loss", "degeneracy_loss", "val_rrmse", "seconds"]
+METRIC_FIELDS = ["epoch", "lr", "loss", "data_loss", "degeneracy_loss", "val_error", "seconds"]
 
 
 def _sel(cfg, key: str, default):
@@ -276,13 +276,13 @@ def train(cfg) -> Path:
             epoch += 1
             if epoch % val_every == 0 or epoch == epochs:
                 model.eval()
-                val = scalar_error(rollout_errors(model, data.graph, val_trajs, ds.layout, ds.dt)[0])
-                row["val_rrmse"] = val
+                val = validation_error(model, data.graph, val_trajs, ds.layout, ds.dt)
+                row["val_error"] = val
                 if val < best_val or best_val == math.inf:  # the first round always saves
                     best_val, stale = min(val, best_val), 0
                     if dist.main:
                         save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": epoch,
-                                         "val_rrmse": val}, ckpt_path)
+                                         "val_error": val}, ckpt_path)
                 else:
                     stale += 1
                 stopped = patience > 0 and stale >= patience
@@ -290,7 +290,7 @@ def train(cfg) -> Path:
             history.append(row)
             if dist.main:
                 save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": epoch,
-                                 "val_rrmse": row.get("val_rrmse", math.nan), "optimizer": opt.state_dict(),
+                                 "val_error": row.get("val_error", math.nan), "optimizer": opt.state_dict(),
                                  "scheduler": sched.state_dict(),
                                  "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
                                  "history": history, "best_val": best_val, "stale_rounds": stale,
@@ -302,7 +302,7 @@ def train(cfg) -> Path:
                             tb.add_scalar(f"train/{key}", value, epoch)
                     tb.flush()
             progress.update(task, completed=epoch,
-                            info=f"loss {row['loss']:.3e} val {row.get('val_rrmse', float('nan')):.3e}")
+                            info=f"loss {row['loss']:.3e} val {row.get('val_error', float('nan')):.3e}")
             if stopped and dist.main:
                 print(f"early stopping at epoch {epoch} (no improvement in {patience} validation rounds)")
     if tb is not None:
