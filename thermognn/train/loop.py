@@ -94,12 +94,14 @@ def step_loss(model: TIGNN, batch, dt: float, noise: float, generator: torch.Gen
               lambda_data: float, lambda_degeneracy: float) -> tuple[torch.Tensor, float, float]:
     """Loss of one batch: lambda_data MSE(dz/dt, normalised) + lambda_degeneracy degeneracy.
 
-    Training noise (std ``noise`` in normalised units) perturbs the input state of the free
-    entries; the target rate is taken from the perturbed input to the true next state."""
+    Training noise perturbs the input state of the free entries by ``noise`` times a typical
+    step's change of each column (dzdt_std * dt), and the target rate is taken from the perturbed
+    input to the true next state: the network learns to bring a state that drifted off the data
+    (e.g. a stress no longer consistent with the strain) back, the usual cure for rollout drift."""
     z, z_next = batch.z, batch.z_next                                   # [B*N, D]
     free = model.free_entries(batch.node_type, z)                      # [B*N, D]
     if noise > 0:
-        eps = torch.randn(z.shape, generator=generator, dtype=z.dtype) * noise * model.z_std
+        eps = torch.randn(z.shape, generator=generator, dtype=z.dtype) * (noise * dt) * model.dzdt_std
         z = z + eps * free
     at = model.rate_state(z, z_next)                 # z (Euler) or the step's midpoint (midpoint rule)
     dzdt_n, _, _, _, _, deg = model.rates(at, batch.f, batch.edge_index, batch.node_type, batch.pos, True)
