@@ -172,10 +172,17 @@ def compute_stats(train: list[TrajectoryTensors], graph: Graph, dt: float,
                   reference_edges: bool) -> dict[str, Tensor]:
     """Per-column normalisation from the TRAINING trajectories only (float64, SI units).
 
-    z_mean/z_std [D] over all snapshots and nodes; edge_mean/edge_std [4|12] over edge features
+    z_mean/z_std [D] over all snapshots and nodes, except that z_std of the positions q is the
+    spread of the displacement q - X, the scale on which q moves (the network sees q only through
+    edge differences, so this scale only sets how dE/dq and the GENERIC operators are balanced;
+    the spread of the absolute positions would make the energy needlessly steep in q);
+    edge_mean/edge_std [4|12] over edge features
     (``model.raw_edge_features``);
     f_mean/f_std [3] over the driving forces; dzdt_std [D] root mean square of (z[s+1]-z[s])/dt
-    (scale only, no shift, so that a zero rate stays zero)."""
+    (scale only, no shift, so that a zero rate stays zero). A column that never changes (e.g. a
+    stress component a plane load never excites) gets z_std = 1 and the typical (geometric mean)
+    rate-to-state ratio of the others, so that it sits in the model's balanced coordinates
+    (``TIGNN.balance``) like them instead of distorting the operators' scaling."""
     z = torch.cat([t.z for t in train]).double()                    # [sum S, N, D]
     f = torch.cat([t.force[1:] for t in train]).double()            # [sum (S-1), N, 3]
     dzdt = torch.cat([(t.z[1:] - t.z[:-1]).double() / dt for t in train])  # [sum (S-1), N, D]
@@ -183,11 +190,19 @@ def compute_stats(train: list[TrajectoryTensors], graph: Graph, dt: float,
     zf = z.reshape(-1, D)
     edge_mean, edge_std = _edge_stats(z, graph, reference_edges)
     rms = dzdt.reshape(-1, D).pow(2).mean(0).sqrt()
-    return {"z_mean": zf.mean(0), "z_std": _safe_std(zf),
+    z_std = _safe_std(zf)
+    z_std[:3] = _safe_std((z[..., :3] - graph.ref_pos.double()).reshape(-1, 3))   # displacement scale [m]
+    live = rms > 1e-30
+    dzdt_std = torch.ones_like(rms)
+    dzdt_std[live] = rms[live]
+    if bool(live.any()):                                             # still columns: typical ratio
+        ratio = torch.exp(torch.log(rms[live] / z_std[live]).mean())
+        dzdt_std[~live] = ratio * z_std[~live]
+    return {"z_mean": zf.mean(0), "z_std": z_std,
             "edge_mean": edge_mean, "edge_std": edge_std,
             "f_mean": torch.zeros(3, dtype=torch.float64),
             "f_std": _safe_std(torch.cat([f.reshape(-1, 3), -f.reshape(-1, 3)])),
-            "dzdt_std": torch.where(rms > 1e-30, rms, torch.ones_like(rms))}
+            "dzdt_std": dzdt_std}
 
 
 def samples(trajs: list[TrajectoryTensors]) -> list[tuple[int, int]]:
