@@ -80,7 +80,7 @@ def test_resume_after_interruption_matches_uninterrupted(tmp_path, monkeypatch):
 
     write_oscillator_dataset(tmp_path / "a" / "dataset.h5", n_trajectories=4, steps=6)
     write_oscillator_dataset(tmp_path / "b" / "dataset.h5", n_trajectories=4, steps=6)
-    extra = ("train.epochs=4", "train.noise=0.01")
+    extra = ("train.epochs=4", "train.noise=0.01", "train.rollout_pairs=2")
     ref = train(_cfg(tmp_path / "a", *extra))
 
     real_write = loop._write_metrics
@@ -311,3 +311,25 @@ def test_validation_error_stays_finite_where_a_group_comes_to_rest():
     assert rrmse_per_step(pred, truth, layout)["v"][2] > 1e5
     err = trajectory_error(pred, truth, layout)
     assert err["v"] == pytest.approx(1e-3 * math.sqrt(2), rel=1e-6) and err["q"] == 0.0
+
+
+def test_rollout_pairs_start_from_the_models_own_bounded_drift(trained):
+    """drifted_states: the model's rollout, its deviation from the truth clipped per column;
+    make_batch takes (i, s, 1) items from it and still aims at the true next state."""
+    from thermognn.train.data import make_batch
+    from thermognn.train.loop import ROLLOUT_CLIP, drifted_states
+
+    out, cfg, ckpt = trained
+    model = model_from_checkpoint(load_checkpoint(ckpt))
+    data = load_data(out / "dataset.h5", cfg.train.split, 0)
+    trajs = data.of("train")[:2]
+    rolled = drifted_states(model, data.graph, trajs, data.dt)
+    bound = ROLLOUT_CLIP * data.dt * model.dzdt_std
+    for t, r in zip(trajs, rolled):
+        assert r.shape == t.z.shape and torch.isfinite(r).all()
+        assert ((r - t.z).abs() <= bound * (1 + 1e-6)).all()
+        assert (r[1:] != t.z[1:]).any()                              # it did drift somewhere
+    batch = make_batch(trajs, [(1, 3, 1), (0, 2)], data.graph, rolled)
+    n = data.graph.n_nodes
+    assert torch.equal(batch.z[:n], rolled[1][3]) and torch.equal(batch.z[n:], trajs[0].z[2])
+    assert torch.equal(batch.z_next[:n], trajs[1].z[4])

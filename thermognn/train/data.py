@@ -210,18 +210,24 @@ def samples(trajs: list[TrajectoryTensors]) -> list[tuple[int, int]]:
     return [(i, s) for i, t in enumerate(trajs) for s in range(t.z.shape[0] - 1)]
 
 
-def make_batch(trajs: list[TrajectoryTensors], items: list[tuple[int, int]], graph: Graph):
+def make_batch(trajs: list[TrajectoryTensors], items: list[tuple[int, ...]], graph: Graph,
+               rolled: list[Tensor] | None = None):
     """Concatenate snapshot pairs into one disjoint graph (a ``torch_geometric.data.Data``, laid
     out as ``Batch.from_data_list`` would, built directly since all snapshots share one mesh).
+
+    An item (i, s) pairs z[s] with z[s+1] of trajectory i; an item (i, s, 1) starts instead from
+    ``rolled[i][s]`` [N, D], the model's own rollout of that trajectory, still aiming at the true
+    z[s+1] (training on its own drift, ``train.rollout_pairs``).
 
     Fields: z [B*N, D], z_next [B*N, D], f [B*N, 3], pos [B*N, 3] (reference X),
     node_type [B*N], edge_index [2, B*E] (graph b's indices offset by b*N), batch [B*N]."""
     from torch_geometric.data import Data
 
     B, N = len(items), graph.n_nodes
-    z = torch.stack([trajs[i].z[s] for i, s in items]).reshape(B * N, -1)
-    z_next = torch.stack([trajs[i].z[s + 1] for i, s in items]).reshape(B * N, -1)
-    f = torch.stack([trajs[i].force[s + 1] for i, s in items]).reshape(B * N, 3)
+    z = torch.stack([(rolled[it[0]] if len(it) > 2 and it[2] else trajs[it[0]].z)[it[1]] for it in items])
+    z = z.reshape(B * N, -1)
+    z_next = torch.stack([trajs[it[0]].z[it[1] + 1] for it in items]).reshape(B * N, -1)
+    f = torch.stack([trajs[it[0]].force[it[1] + 1] for it in items]).reshape(B * N, 3)
     offsets = (torch.arange(B) * N).view(B, 1, 1)                              # [B, 1, 1]
     edge_index = (graph.edge_index.unsqueeze(0) + offsets).permute(1, 0, 2).reshape(2, -1)  # [2, B*E]
     return Data(z=z, z_next=z_next, f=f, pos=graph.ref_pos.repeat(B, 1), node_type=graph.node_type.repeat(B),

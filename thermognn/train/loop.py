@@ -22,7 +22,7 @@ from .checkpoint import (FORMAT, last_path, load_checkpoint, model_from_checkpoi
 from .data import (LoadedData, check_fingerprint, compute_stats, fingerprint, load_data, make_batch,
                    samples, velocity_columns)
 from .model import TIGNN, build_model, hyperparameters, parameter_count
-from .rollout import rollout_errors, validation_error
+from .rollout import rollout, rollout_errors, validation_error
 
 METRIC_FIELDS = ["epoch", "lr", "loss", "data_loss", "degeneracy_loss", "val_error", "seconds"]
 
@@ -111,8 +111,29 @@ def step_loss(model: TIGNN, batch, dt: float, noise: float, generator: torch.Gen
     return loss, float(data_loss.detach()), float(deg.detach())
 
 
+#: largest deviation of a rollout-pair input from the truth, in typical steps' changes per column
+ROLLOUT_CLIP = 10.0
+
+
+def drifted_states(model: TIGNN, graph, trajs: list, dt: float) -> list[torch.Tensor]:
+    """The model's own rollout of each training trajectory ([S, N, D] each, from z[0]), each
+    state's deviation from the truth clipped to ROLLOUT_CLIP typical steps' changes
+    (dzdt_std * dt) per column so that an early, wild model gives bounded targets. Paired with
+    the true next states (``train.rollout_pairs``), they teach the network to steer its own
+    drift (a lagging stress, a sluggish response) back to the data, as DAgger does."""
+    model.eval()
+    bound = ROLLOUT_CLIP * dt * model.dzdt_std.detach()                 # [D]
+    out = []
+    for t in trajs:
+        pred = rollout(model, graph, t.z[0], t.force, dt)
+        dev = torch.nan_to_num(pred - t.z, nan=0.0, posinf=0.0, neginf=0.0)
+        out.append(t.z + torch.maximum(torch.minimum(dev, bound), -bound))
+    return out
+
+
 #: train settings a resumed run must share with the interrupted one (besides model and dataset)
-RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy", "noise", "split")
+RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy", "noise", "split",
+               "rollout_pairs")
 
 
 def training_identity(cfg, hparams: dict, dtype_name: str) -> dict:
@@ -239,6 +260,8 @@ def train(cfg) -> Path:
                 print(f"resuming from {last} at epoch {start_epoch}")
 
     pairs = samples(train_trajs)
+    rollout_from = int(_sel(tc, "rollout_pairs", 0))
+    rolled: list[torch.Tensor] | None = None
     batch_size = max(1, int(tc.batch_size))
     noise = float(_sel(tc, "noise", 0.0))
     lam_d, lam_g = float(_sel(tc, "lambda_data", 1.0)), float(_sel(tc, "lambda_degeneracy", 1.0))
@@ -255,14 +278,17 @@ def train(cfg) -> Path:
         epoch = start_epoch
         while not stopped and epoch < epochs:
             t0 = time.perf_counter()
+            if rollout_from > 0 and epoch >= rollout_from:           # refreshed every epoch (resumes exactly)
+                rolled = drifted_states(model, data.graph, train_trajs, ds.dt)
+            items = pairs + ([(i, s, 1) for i, s in pairs if s > 0] if rolled is not None else [])
             model.train()
-            perm = torch.randperm(len(pairs), generator=gen).tolist()
+            perm = torch.randperm(len(items), generator=gen).tolist()
             n_use = len(perm) // dist.world * dist.world if dist.world > 1 else len(perm)
             mine = perm[dist.rank:n_use:dist.world]
             tot = dat = dgn = 0.0
             n_batches = 0
             for b in range(0, len(mine), batch_size):
-                batch = make_batch(train_trajs, [pairs[i] for i in mine[b:b + batch_size]], data.graph)
+                batch = make_batch(train_trajs, [items[i] for i in mine[b:b + batch_size]], data.graph, rolled)
                 loss, dl, dg = step_loss(model, batch, ds.dt, noise, gen, lam_d, lam_g)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
