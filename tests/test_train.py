@@ -333,3 +333,24 @@ def test_rollout_pairs_start_from_the_models_own_bounded_drift(trained):
     n = data.graph.n_nodes
     assert torch.equal(batch.z[:n], rolled[1][3]) and torch.equal(batch.z[n:], trajs[0].z[2])
     assert torch.equal(batch.z_next[:n], trajs[1].z[4])
+
+
+def test_warm_start_from_a_checkpoint(trained, tmp_path):
+    """train.init: the run starts from the checkpoint's weights and statistics (its first epoch
+    starts where that model ended, far below a fresh start); another model is a one-line error."""
+    import shutil
+
+    from thermognn.core.errors import ConfigError
+
+    out, _, ckpt = trained
+    shutil.copy(out / "dataset.h5", tmp_path / "dataset.h5")
+    fresh = _rows(out)[0]
+    train(_cfg(tmp_path, "train.epochs=1", f"train.init={ckpt}", "train.lr=1e-5"))
+    warm = _rows(tmp_path)[0]
+    assert float(warm["data_loss"]) < 0.5 * float(fresh["data_loss"])
+    started = load_checkpoint(tmp_path / "model.ckpt")
+    assert torch.equal(started["stats"]["dzdt_std"], load_checkpoint(ckpt)["stats"]["dzdt_std"])
+    with pytest.raises(ConfigError, match=r"train.init = .*hidden \(24 there, 32 here\)") as err:
+        train(_cfg(tmp_path / "b", "train.epochs=1", f"train.init={ckpt}", "model.hidden=32",
+                   f"paths.dataset={tmp_path / 'dataset.h5'}"))
+    assert "\n" not in str(err.value)

@@ -131,9 +131,22 @@ def drifted_states(model: TIGNN, graph, trajs: list, dt: float) -> list[torch.Te
     return out
 
 
+def warm_start(model: TIGNN, path: Path, ds, hparams: dict) -> dict:
+    """Load weights and normalisation statistics of the checkpoint ``path`` (``train.init``) into
+    ``model``; it must fit the dataset and have the same hyperparameters. Returns its stats."""
+    src = load_checkpoint(path)
+    check_fingerprint(src["fingerprint"], ds, path, hint="train.init must come from this dataset")
+    changed = sorted(k for k in set(hparams) | set(src["hparams"]) if src["hparams"].get(k) != hparams.get(k))
+    if changed:
+        raise ConfigError(f"train.init = '{path}': its model differs from this run's in "
+                          + ", ".join(f"{k} ({src['hparams'].get(k)} there, {hparams.get(k)} here)" for k in changed))
+    model.load_state_dict(src["state_dict"])
+    return {k: v.clone() for k, v in src["stats"].items()}
+
+
 #: train settings a resumed run must share with the interrupted one (besides model and dataset)
 RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy", "noise", "split",
-               "rollout_pairs")
+               "rollout_pairs", "init")
 
 
 def training_identity(cfg, hparams: dict, dtype_name: str) -> dict:
@@ -229,6 +242,8 @@ def train(cfg) -> Path:
     torch.manual_seed(seed)
     model = build_model(hparams, dtype)
     model.set_stats(stats)
+    if _sel(tc, "init", None):                 # warm start (fine-tuning): weights and statistics
+        stats = warm_start(model, project_path(str(tc.init)), ds, hparams)
     base = _base_checkpoint(cfg, data, hparams, dtype_name, structure, stats)
     lr = float(tc.lr)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
