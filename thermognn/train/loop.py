@@ -293,7 +293,7 @@ def train(cfg) -> Path:
         epoch = start_epoch
         while not stopped and epoch < epochs:
             t0 = time.perf_counter()
-            if rollout_from > 0 and epoch >= rollout_from:           # refreshed every epoch (resumes exactly)
+            if rollout_from > 0 and epoch + 1 >= rollout_from:       # refreshed every epoch (resumes exactly)
                 rolled = drifted_states(model, data.graph, train_trajs, ds.dt)
             items = pairs + ([(i, s, 1) for i, s in pairs if s > 0] if rolled is not None else [])
             model.train()
