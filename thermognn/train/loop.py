@@ -237,13 +237,14 @@ def train(cfg) -> Path:
     structure = resolve_structure(_sel(cfg, "model.structure", "auto"), ds.effects, ds.config_yaml)
     hparams = hyperparameters(cfg.model, ds.layout.dim, velocity_columns(ds.layout), structure == "hamiltonian")
     train_trajs, val_trajs = data.of("train"), data.of("val")
-    stats = compute_stats(train_trajs, data.graph, ds.dt, hparams["reference_edges"])
 
     torch.manual_seed(seed)
     model = build_model(hparams, dtype)
-    model.set_stats(stats)
     if _sel(tc, "init", None):                 # warm start (fine-tuning): weights and statistics
         stats = warm_start(model, project_path(str(tc.init)), ds, hparams)
+    else:
+        stats = compute_stats(train_trajs, data.graph, ds.dt, hparams["reference_edges"])
+        model.set_stats(stats)
     base = _base_checkpoint(cfg, data, hparams, dtype_name, structure, stats)
     lr = float(tc.lr)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
