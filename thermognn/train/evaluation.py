@@ -67,7 +67,8 @@ def energy_entropy_along(model, graph: Graph, pred: torch.Tensor, forces: torch.
     (0 at s = 0) at every state of a rollout pred [S, N, D], with the load f_s of the step: the
     change of the learned energy that the port's power P does not account for. The continuous
     dynamics make it zero for Hamiltonian (and exactly degenerate GENERIC) models; what remains
-    is the integrator's drift plus the port-power quadrature."""
+    is the integrator's drift plus the port-power quadrature (and, for GENERIC models, the
+    energy M moves where the learned degeneracy is not exact)."""
     rows = []
     g = graph
     with torch.enable_grad():
@@ -254,8 +255,9 @@ def evaluate(cfg) -> dict:
              f"- speed: {ms:.2f} ms per step (forward + autograd, {torch.get_num_threads()} threads, CPU, "
              f"integrator {model.integrator})",
              f"- energy balance: {_fmt(balance)} = sum |E_s - E_(s-1) - dt P| / sum |E_s - E_(s-1)| over the "
-             "test rollouts (the learned energy's change that the port's work P does not explain: "
-             "integrator drift; `energy_error` in `energy_entropy.csv`)", "",
+             "test rollouts (the learned energy's change that the port's work P does not explain: the "
+             "integrator's drift, and for GENERIC models also what M changes where the learned "
+             "degeneracy M dE/dz = 0 is not exact; `energy_error` in `energy_entropy.csv`)", "",
              "Relative L2 error per snapshot ||z_pred - z_gt|| / ||z_gt|| over all nodes of a group, "
              "averaged over the rollout steps (clamped nodes imposed) and trajectories.", "",
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
