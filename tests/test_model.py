@@ -3,7 +3,8 @@
 import pytest
 import torch
 
-from thermognn.train.model import TIGNN, degeneracy_loss, psd, skew
+from thermognn.train.model import (TIGNN, degeneracy_loss, edge_feature_count, poisson_apply, psd,
+                                   raw_edge_features, skew)
 
 
 def _graph(n=20, n_edges=80, seed=0, dtype=torch.float64):
@@ -49,6 +50,24 @@ def test_degeneracy_zero_for_constructed_case():
     assert float(degeneracy_loss(L, M, a, grad_e)) > 1e-3  # swapped: not degenerate
 
 
+def test_graph_coupled_poisson_operator_is_skew():
+    """poisson_apply with edge blocks: <a, L b> = -<b, L a> for any a, b, so g . L g = 0."""
+    z, f, ei, nt, ref = _graph(seed=8)
+    g = torch.Generator().manual_seed(8)
+    n, d = z.shape
+    L = skew(torch.randn(n, d, d, generator=g, dtype=torch.float64))
+    A = torch.randn(ei.shape[1], d, d, generator=g, dtype=torch.float64)
+    a, b = torch.randn(n, d, generator=g, dtype=torch.float64), torch.randn(n, d, generator=g, dtype=torch.float64)
+    ab, ba = (a * poisson_apply(L, A, ei, b)).sum(), (b * poisson_apply(L, A, ei, a)).sum()
+    assert abs(float(ab + ba)) < 1e-12 * float(ab.abs())
+    # the coupling acts across edges: node i's rate depends on a neighbour's gradient
+    e0 = poisson_apply(L, A, ei, a)
+    a2 = a.clone()
+    a2[int(ei[0, 0])] += 1.0
+    assert not torch.allclose(poisson_apply(L, A, ei, a2)[int(ei[1, 0])], e0[int(ei[1, 0])])
+    assert torch.equal(poisson_apply(L, A[:0], ei, a), torch.bmm(L, a.unsqueeze(-1)).squeeze(-1))
+
+
 def _with_stats(model, seed=1):
     """Non-uniform normalisation statistics (as after training): the columns' state and rate
     scales differ, which is where a GENERIC structure applied in the wrong coordinates breaks."""
@@ -70,10 +89,12 @@ def _physical_rates(model, z, f, ei, nt, ref):
     return r * model.dzdt_std, g_e, g_s
 
 
-def test_hamiltonian_conserves_energy_in_physical_units():
+@pytest.mark.parametrize("edge_operators", [False, True])
+def test_hamiltonian_conserves_energy_in_physical_units(edge_operators):
     # dE/dt = dE/dz . dz/dt = 0 to round-off (no port term), with non-uniform statistics
     z, f, ei, nt, ref = _graph()
-    model = _with_stats(_model(hamiltonian=True, balanced=True))
+    model = _with_stats(_model(hamiltonian=True, balanced=True, edge_operators=edge_operators,
+                               velocity_edges=edge_operators))
     dzdt, g_e, _ = _physical_rates(model, z, f, ei, nt, ref)
     terms = g_e * dzdt
     assert abs(float(terms.sum())) < 1e-12 * float(terms.abs().sum())
@@ -95,9 +116,10 @@ def test_port_power_is_the_only_energy_input():
     assert abs(float(de_dt - power)) < 1e-10 * abs(float(power))
 
 
-def test_generic_entropy_production_non_negative():
+@pytest.mark.parametrize("edge_operators", [False, True])
+def test_generic_entropy_production_non_negative(edge_operators):
     z, f, ei, nt, ref = _graph(seed=3)
-    model = _with_stats(_model(balanced=True))
+    model = _with_stats(_model(balanced=True, edge_operators=edge_operators))
     _, _, M, _, g_s, deg = model.rates(z, f, ei, nt, ref, False)
     production = torch.einsum("ni,nij,nj->n", g_s, M, g_s)
     assert float(production.min()) >= -1e-12 * float(production.abs().max())
@@ -148,7 +170,8 @@ def test_midpoint_training_evaluates_the_rate_between_snapshots():
 def test_scripted_matches_eager(hamiltonian, shared, aggregation):
     z, f, ei, nt, ref = _graph(seed=1)
     model = _with_stats(_model(hamiltonian=hamiltonian, port=True, shared_weights=shared, aggregation=aggregation,
-                               balanced=True, integrator="midpoint" if shared else "euler"))
+                               balanced=True, integrator="midpoint" if shared else "euler", velocity_edges=shared,
+                               edge_operators=shared))
     scripted = torch.jit.script(model)
     dt = torch.tensor(0.01, dtype=torch.float64)
     a = model.step(z, f, ei, nt, ref, dt)
@@ -181,6 +204,29 @@ def test_galilean_invariance():
     model.z_mean[:3] += shift
     d2 = model.rates(z2, f, ei, nt, ref + shift, False)[0]
     assert torch.allclose(d1, d2, atol=1e-10)
+
+
+def test_velocity_edges_carry_the_stretch_rate_and_ignore_a_uniform_velocity():
+    """[dv, dv . dq/|dq|]: the stretch rate is d|dq|/dt, and a rigid velocity v0 changes nothing."""
+    g = torch.Generator().manual_seed(7)
+    dq, dx, dv = (torch.randn(50, 3, generator=g, dtype=torch.float64) for _ in range(3))
+    feats = raw_edge_features(dq, dx, dv, True, True)
+    assert feats.shape == (50, edge_feature_count(True, True)) == (50, 16)
+    h = 1e-7
+    stretch_rate = ((dq + h * dv).norm(dim=1) - (dq - h * dv).norm(dim=1)) / (2 * h)
+    assert torch.allclose(feats[:, 15], stretch_rate, rtol=1e-6, atol=1e-9)
+    z, f, ei, nt, ref = _graph(seed=6)
+    model = _model(port=True, velocity_edges=True)
+    z2 = z.clone()
+    z2[:, 3:6] += torch.tensor([2.0, -1.0, 0.5], dtype=torch.float64)
+    e1, e2 = model.edge_features(z, ref, ei), model.edge_features(z2, ref, ei)
+    assert torch.allclose(e1, e2, rtol=0, atol=1e-12)
+    z2[:, 3:6] += 0.1 * z[:, 3:6]                                    # a non-uniform velocity change
+    e3 = model.edge_features(z2, ref, ei)
+    assert torch.equal(e3[:, :12], e1[:, :12]) and not torch.allclose(e3[:, 12:], e1[:, 12:])
+    assert _model(port=True).edge_features(z, ref, ei).shape[1] == 12
+    with pytest.raises(ValueError, match="velocity_edges needs the velocity"):
+        TIGNN(9, [], velocity_edges=True)
 
 
 def test_quasi_static_layout_without_velocity():

@@ -149,16 +149,20 @@ def _safe_std(x: Tensor) -> Tensor:
     return torch.where(s > 1e-12 * (1.0 + x.abs().mean(0)), s, torch.ones_like(s))
 
 
-def _edge_stats(z: Tensor, graph: Graph, reference_edges: bool, chunk: int = 64) -> tuple[Tensor, Tensor]:
-    """Mean and std [4|12] of the raw edge features over all snapshots z [S, N, D] (two passes
-    over chunks of snapshots: exact, and memory bounded for large datasets)."""
+def _edge_stats(z: Tensor, graph: Graph, hparams: dict, chunk: int = 64) -> tuple[Tensor, Tensor]:
+    """Mean and std [edge_feature_count] of the raw edge features over all snapshots z [S, N, D]
+    (two passes over chunks of snapshots: exact, and memory bounded for large datasets)."""
     src, dst = graph.edge_index[0], graph.edge_index[1]
     X = graph.ref_pos.double()
     dx = X[dst] - X[src]                                                      # [E, 3]
+    reference, velocity = bool(hparams["reference_edges"]), bool(hparams.get("velocity_edges", False))
+    vc = int(hparams["velocity_columns"][0]) if velocity else 0
 
-    def feats(zc: Tensor) -> Tensor:                                          # [c * E, 4|12]
-        dq = (zc[:, dst, :3] - zc[:, src, :3]).reshape(-1, 3)
-        return raw_edge_features(dq, dx.repeat(zc.shape[0], 1), reference_edges)
+    def feats(zc: Tensor) -> Tensor:                                          # [c * E, F]
+        dz = zc[:, dst] - zc[:, src]                                          # [c, E, D]
+        dq = dz[..., :3].reshape(-1, 3)
+        dv = dz[..., vc:vc + 3].reshape(-1, 3) if velocity else dq[:, :0]
+        return raw_edge_features(dq, dx.repeat(zc.shape[0], 1), dv, reference, velocity)
 
     chunks = [z[i:i + chunk] for i in range(0, z.shape[0], chunk)]
     count = z.shape[0] * dx.shape[0]
@@ -169,15 +173,15 @@ def _edge_stats(z: Tensor, graph: Graph, reference_edges: bool, chunk: int = 64)
 
 
 def compute_stats(train: list[TrajectoryTensors], graph: Graph, dt: float,
-                  reference_edges: bool) -> dict[str, Tensor]:
+                  hparams: dict) -> dict[str, Tensor]:
     """Per-column normalisation from the TRAINING trajectories only (float64, SI units).
 
     z_mean/z_std [D] over all snapshots and nodes, except that z_std of the positions q is the
     spread of the displacement q - X, the scale on which q moves (the network sees q only through
     edge differences, so this scale only sets how dE/dq and the GENERIC operators are balanced;
     the spread of the absolute positions would make the energy needlessly steep in q);
-    edge_mean/edge_std [4|12] over edge features
-    (``model.raw_edge_features``);
+    edge_mean/edge_std over the edge features (``model.raw_edge_features``, as the model's
+    ``hparams`` select them);
     f_mean/f_std [3] over the driving forces; dzdt_std [D] root mean square of (z[s+1]-z[s])/dt
     (scale only, no shift, so that a zero rate stays zero). A column that never changes (e.g. a
     stress component a plane load never excites) gets z_std = 1 and the typical (geometric mean)
@@ -188,7 +192,7 @@ def compute_stats(train: list[TrajectoryTensors], graph: Graph, dt: float,
     dzdt = torch.cat([(t.z[1:] - t.z[:-1]).double() / dt for t in train])  # [sum (S-1), N, D]
     D = z.shape[-1]
     zf = z.reshape(-1, D)
-    edge_mean, edge_std = _edge_stats(z, graph, reference_edges)
+    edge_mean, edge_std = _edge_stats(z, graph, hparams)
     rms = dzdt.reshape(-1, D).pow(2).mean(0).sqrt()
     z_std = _safe_std(zf)
     z_std[:3] = _safe_std((z[..., :3] - graph.ref_pos.double()).reshape(-1, 3))   # displacement scale [m]

@@ -243,7 +243,7 @@ def train(cfg) -> Path:
     if _sel(tc, "init", None):                 # warm start (fine-tuning): weights and statistics
         stats = warm_start(model, project_path(str(tc.init)), ds, hparams)
     else:
-        stats = compute_stats(train_trajs, data.graph, ds.dt, hparams["reference_edges"])
+        stats = compute_stats(train_trajs, data.graph, ds.dt, hparams)
         model.set_stats(stats)
     base = _base_checkpoint(cfg, data, hparams, dtype_name, structure, stats)
     lr = float(tc.lr)

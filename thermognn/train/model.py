@@ -100,18 +100,30 @@ class ProcessorBlock(nn.Module):
         return h, e
 
 
-def raw_edge_features(dq: Tensor, dx: Tensor, reference_edges: bool) -> Tensor:
-    """Edge features before normalisation, from q_i - q_j and X_i - X_j (both [E, 3], metres):
-    [dq, |dq|] (4), with ``reference_edges`` also [dX, |dX|, dq - dX, |dq| - |dX|] (12 in all).
+def edge_feature_count(reference_edges: bool, velocity_edges: bool) -> int:
+    """Width of ``raw_edge_features``: 4, +8 with reference edges, +4 with velocity edges."""
+    return 4 + (8 if reference_edges else 0) + (4 if velocity_edges else 0)
+
+
+def raw_edge_features(dq: Tensor, dx: Tensor, dv: Tensor, reference_edges: bool, velocity_edges: bool) -> Tensor:
+    """Edge features before normalisation, from q_i - q_j and X_i - X_j (both [E, 3], metres) and
+    v_i - v_j ([E, 3], m/s): [dq, |dq|] (4); with ``reference_edges`` also
+    [dX, |dX|, dq - dX, |dq| - |dX|] (+8); with ``velocity_edges`` also [dv, dv . dq / |dq|] (+4).
 
     The relative displacement dq - dX = u_i - u_j and the stretch |dq| - |dX| carry the strain,
     which for small deformations is a tiny perturbation of dq: normalised on their own (training
-    statistics) they reach the network at full scale."""
+    statistics) they reach the network at full scale. Likewise the relative velocity dv and the
+    edge's stretch rate d|dq|/dt = dv . dq / |dq| carry the strain *rate* (which drives the stress
+    rate and the viscous dissipation); as node inputs the velocities differ between neighbours by
+    a tiny fraction of their spread. All are Galilean invariant."""
     len_q = torch.sqrt(dq.pow(2).sum(1, keepdim=True) + 1e-30)  # [E, 1]
-    if not reference_edges:
-        return torch.cat([dq, len_q], 1)
-    len_x = torch.sqrt(dx.pow(2).sum(1, keepdim=True))
-    return torch.cat([dq, len_q, dx, len_x, dq - dx, len_q - len_x], 1)  # [E, 12]
+    feats = [dq, len_q]
+    if reference_edges:
+        len_x = torch.sqrt(dx.pow(2).sum(1, keepdim=True))
+        feats += [dx, len_x, dq - dx, len_q - len_x]
+    if velocity_edges:
+        feats += [dv, (dv * dq).sum(1, keepdim=True) / len_q]
+    return torch.cat(feats, 1)  # [E, edge_feature_count]
 
 
 def skew(l: Tensor) -> Tensor:
@@ -122,6 +134,21 @@ def skew(l: Tensor) -> Tensor:
 def psd(m: Tensor) -> Tensor:
     """M = m m^T for a batch of matrices [N, D, D]."""
     return torch.bmm(m, m.transpose(1, 2))
+
+
+def poisson_apply(L: Tensor, A: Tensor, edge_index: Tensor, g: Tensor) -> Tensor:
+    """The Poisson operator applied to a gradient g [N, D]: node blocks L [N, D, D] (skew) plus the
+    graph coupling A [E, D, D] of the directed edges j -> i (``edge_index`` rows source j, target
+    i) and its adjoint, (L g)_i + sum_{e: j->i} A_e g_j - sum_{e: i->k} A_e^T g_k. The whole
+    operator is skew (g . L g = 0 for every g): the TIGNN form in which neighbours' gradients
+    (e.g. their velocities through dE/dv) drive a node's rates, as the divergence and gradient
+    operators of continuum mechanics do. A = [0, D, D]: node blocks only. [N, D]"""
+    out = torch.bmm(L, g.unsqueeze(-1)).squeeze(-1)
+    if A.shape[0] > 0:
+        src, dst = edge_index[0], edge_index[1]
+        out = out.index_add(0, dst, torch.bmm(A, g.index_select(0, src).unsqueeze(-1)).squeeze(-1))
+        out = out.index_add(0, src, -torch.bmm(A.transpose(1, 2), g.index_select(0, dst).unsqueeze(-1)).squeeze(-1))
+    return out
 
 
 def degeneracy_loss(L: Tensor, M: Tensor, grad_E: Tensor, grad_S: Tensor) -> Tensor:
@@ -137,7 +164,8 @@ class TIGNN(nn.Module):
     def __init__(self, dim: int, velocity_columns: List[int], hidden: int = 64, mlp_layers: int = 2,
                  message_passing: int = 4, shared_weights: bool = False, aggregation: str = "sum",
                  hamiltonian: bool = False, port: bool = True, reference_edges: bool = True,
-                 balanced: bool = False, integrator: str = "euler", implicit_iterations: int = 3) -> None:
+                 balanced: bool = False, integrator: str = "euler", implicit_iterations: int = 3,
+                 velocity_edges: bool = False, edge_operators: bool = False) -> None:
         super().__init__()
         if aggregation not in ("sum", "mean"):
             raise ValueError(f"aggregation '{aggregation}', expected sum or mean")
@@ -150,7 +178,11 @@ class TIGNN(nn.Module):
         self.hamiltonian = hamiltonian
         self.use_port = port
         self.reference_edges = reference_edges
-        n_edge = 12 if reference_edges else 4
+        if velocity_edges and len(velocity_columns) != 3:
+            raise ValueError("velocity_edges needs the velocity v in the state (a scene with inertia)")
+        self.velocity_edges = velocity_edges
+        self.v_col = int(velocity_columns[0]) if velocity_columns else 0  # first column of v
+        n_edge = edge_feature_count(reference_edges, velocity_edges)
         n_node = (dim - 3) + NODE_TYPES + 3
         self.node_encoder = MLP(n_node, hidden, hidden, mlp_layers, True)
         self.edge_encoder = MLP(n_edge, hidden, hidden, mlp_layers, True)
@@ -161,6 +193,10 @@ class TIGNN(nn.Module):
         # decoder outputs: l (D*D), E (1) [, m (D*D), S (1)]
         self.n_out = dim * dim + 1 if hamiltonian else 2 * (dim * dim + 1)
         self.decoder = MLP(hidden, hidden, self.n_out, mlp_layers, False)
+        # graph-coupled Poisson blocks A_e (D*D per directed edge), one decoder or none
+        self.edge_operators = edge_operators
+        self.edge_decoders = nn.ModuleList([MLP(hidden, hidden, dim * dim, mlp_layers, False)]
+                                           if edge_operators else [])
         self.port = nn.Linear(3, dim, bias=False)
         # normalisation (identity until set_stats)
         self.register_buffer("z_mean", torch.zeros(dim))
@@ -183,12 +219,15 @@ class TIGNN(nn.Module):
             getattr(self, k).copy_(torch.as_tensor(v, dtype=getattr(self, k).dtype))
 
     # --- features -------------------------------------------------------------------------
-    def edge_features(self, q: Tensor, ref_pos: Tensor, edge_index: Tensor) -> Tensor:
-        """Normalised edge features [E, 4|12] from positions q [N, 3] and reference X [N, 3]."""
+    def edge_features(self, z: Tensor, ref_pos: Tensor, edge_index: Tensor) -> Tensor:
+        """Normalised edge features [E, edge_feature_count] from the state z [N, D] in SI units
+        (positions q, velocities v) and the reference positions X [N, 3]."""
         src, dst = edge_index[0], edge_index[1]
-        dq = q.index_select(0, dst) - q.index_select(0, src)  # [E, 3], q_i - q_j
+        dz = z.index_select(0, dst) - z.index_select(0, src)  # [E, D], z_i - z_j
         dx = ref_pos.index_select(0, dst) - ref_pos.index_select(0, src)
-        return (raw_edge_features(dq, dx, self.reference_edges) - self.edge_mean) / self.edge_std
+        dv = dz[:, self.v_col: self.v_col + 3] if self.velocity_edges else dz[:, :0]
+        raw = raw_edge_features(dz[:, :3], dx, dv, self.reference_edges, self.velocity_edges)
+        return (raw - self.edge_mean) / self.edge_std
 
     def inv_degree(self, n: int, edge_index: Tensor, like: Tensor) -> Tensor:
         deg = torch.zeros(n, 1, dtype=like.dtype, device=like.device)
@@ -198,17 +237,22 @@ class TIGNN(nn.Module):
 
     # --- network --------------------------------------------------------------------------
     def decode(self, zn: Tensor, fn: Tensor, edge_index: Tensor, node_type: Tensor,
-               ref_pos: Tensor) -> Tensor:
-        """Raw decoder output [N, n_out] for normalised state zn [N, D] and force fn [N, 3]."""
-        q = zn[:, :3] * self.z_std[:3] + self.z_mean[:3]  # positions back in metres
+               ref_pos: Tensor) -> Tuple[Tensor, Tensor]:
+        """Raw decoder outputs for normalised state zn [N, D] and force fn [N, 3]: per node
+        [N, n_out] (l, E [, m, S]) and per directed edge [E, D*D] (the Poisson coupling blocks A_e;
+        [E, 0] without ``edge_operators``)."""
+        z = zn * self.z_std + self.z_mean  # back in SI units (positions only enter as differences)
         onehot = torch.nn.functional.one_hot(node_type, 3).to(zn.dtype)
         h = self.node_encoder(torch.cat([zn[:, 3:], onehot, fn], 1))
-        e = self.edge_encoder(self.edge_features(q, ref_pos, edge_index))
+        e = self.edge_encoder(self.edge_features(z, ref_pos, edge_index))
         inv_deg = self.inv_degree(zn.shape[0], edge_index, zn)
         for _ in range(self.repeats):
             for block in self.blocks:
                 h, e = block(h, e, edge_index, inv_deg)
-        return self.decoder(h)
+        coupling = e[:, :0]
+        for edge_decoder in self.edge_decoders:
+            coupling = edge_decoder(e)                                          # [E, D*D]
+        return self.decoder(h), coupling
 
     def balance(self) -> Tensor:
         """c = sqrt(dzdt_std / z_std) [D] [1/sqrt(s)]: w = zn / c are the coordinates in which L and M
@@ -233,15 +277,18 @@ class TIGNN(nn.Module):
               create_graph: bool) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
         """GENERIC rates. Returns (r [N, D] with dz/dt = r * dzdt_std, L [N, D, D], M [N, D, D],
         dE/dw [N, D], dS/dw [N, D], degeneracy loss (0-dim)), w the balanced coordinates (module
-        docstring). M and dS/dw are zero for Hamiltonian models."""
+        docstring). M and dS/dw are zero for Hamiltonian models. With ``edge_operators`` L is the
+        node (diagonal) part of the Poisson operator; the edge coupling (``poisson_apply``) acts
+        besides it and enters the rates and the degeneracy loss."""
         D = self.dim
         zn = ((z - self.z_mean) / self.z_std).detach().requires_grad_(True)
         fn = (f - self.f_mean) / self.f_std
-        out = self.decode(zn, fn, edge_index, node_type, ref_pos)
+        out, coupling = self.decode(zn, fn, edge_index, node_type, ref_pos)
         n = zn.shape[0]
         c = self.balance()                                     # [D]; d/dw = c * d/dzn
         free = self.free_entries(node_type, zn)                # [N, D]; 0 where q, v are imposed
         L = skew(out[:, : D * D].reshape(n, D, D))
+        A = coupling.reshape(coupling.shape[0], D, D) if self.edge_operators else L[:0]  # [E, D, D]
         energy = out[:, D * D].sum()
         if self.hamiltonian:
             grads = torch.autograd.grad([energy], [zn], create_graph=create_graph)
@@ -250,7 +297,7 @@ class TIGNN(nn.Module):
             g_e = g_e_opt * c * free
             g_s = torch.zeros_like(g_e)
             M = torch.zeros_like(L)
-            dwdt = torch.bmm(L, g_e.unsqueeze(-1)).squeeze(-1)
+            dwdt = poisson_apply(L, A, edge_index, g_e)
             deg = torch.zeros((), dtype=z.dtype, device=z.device)
         else:
             k = D * D + 1
@@ -261,8 +308,9 @@ class TIGNN(nn.Module):
             assert g_e_opt is not None
             assert g_s_opt is not None
             g_e, g_s = g_e_opt * c * free, g_s_opt * c * free
-            dwdt = (torch.bmm(L, g_e.unsqueeze(-1)) + torch.bmm(M, g_s.unsqueeze(-1))).squeeze(-1)
-            deg = degeneracy_loss(L, M, g_e, g_s)
+            m_de = torch.bmm(M, g_e.unsqueeze(-1)).squeeze(-1)             # M dE/dw [N, D]
+            dwdt = poisson_apply(L, A, edge_index, g_e) + torch.bmm(M, g_s.unsqueeze(-1)).squeeze(-1)
+            deg = (poisson_apply(L, A, edge_index, g_s).pow(2).sum(1) + m_de.pow(2).sum(1)).mean()
         if self.use_port:
             dwdt = dwdt + self.port(fn)
         dwdt = dwdt * free
@@ -307,7 +355,7 @@ class TIGNN(nn.Module):
         D = self.dim
         zn = ((z - self.z_mean) / self.z_std).detach().requires_grad_(True)
         fn = (f - self.f_mean) / self.f_std
-        out = self.decode(zn, fn, edge_index, node_type, ref_pos)
+        out = self.decode(zn, fn, edge_index, node_type, ref_pos)[0]
         energy = out[:, D * D].sum()
         g = torch.autograd.grad([energy], [zn])[0]
         assert g is not None
@@ -326,7 +374,7 @@ class TIGNN(nn.Module):
         D = self.dim
         zn = (z - self.z_mean) / self.z_std
         fn = (f - self.f_mean) / self.f_std
-        out = self.decode(zn, fn, edge_index, node_type, ref_pos)
+        out = self.decode(zn, fn, edge_index, node_type, ref_pos)[0]
         energy = out[:, D * D].sum()
         if self.hamiltonian:
             return energy, torch.zeros_like(energy)
@@ -352,6 +400,8 @@ def hyperparameters(cfg_model, dim: int, velocity_columns: List[int], hamiltonia
         "balanced": True,
         "integrator": str(sel("integrator", "euler")),
         "implicit_iterations": int(sel("implicit_iterations", 3)),
+        "velocity_edges": bool(sel("velocity_edges", True)) and len(velocity_columns) == 3,
+        "edge_operators": bool(sel("edge_operators", False)),
     }
 
 
