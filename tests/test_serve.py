@@ -339,8 +339,9 @@ class _Recorder:
     """The exported module with a hand on the session (in this process): records every force
     model published before a step and requests a stop after ``steps`` physics steps."""
 
-    def __init__(self, module, shared, steps: int) -> None:
+    def __init__(self, module, shared, steps: int, slow_calls: int = 0, slow_s: float = 0.0) -> None:
         self.module, self.z0, self.dt = module, module.z0, module.dt
+        self.slow_calls, self.slow_s, self.calls = slow_calls, slow_s, 0   # a slow warm-up, if asked
         self.control = shared["control"]
         self.buf = VersionedBuffer(shared["model"], P.MODEL_PAYLOAD)
         self.payload = np.zeros(P.MODEL_PAYLOAD)
@@ -353,10 +354,13 @@ class _Recorder:
             self.published.append(self.payload.copy())
         if len(self.published) >= self.steps:                            # this is the last step
             P.request_stop(self.control, "duration")
+        self.calls += 1
+        if self.calls <= self.slow_calls:
+            time.sleep(self.slow_s)
         return self.module(z, f)
 
 
-def _run_physics(model: Path, steps: int, tool_x, **params):
+def _run_physics(model: Path, steps: int, tool_x, slow=(0, 0.0), **params):
     """run_physics on the exported model in this process, the tool held at ``tool_x``: (summary, payloads)."""
     from thermognn.core.state import StateLayout
     from thermognn.serve.physics import load_exported, run_physics
@@ -368,7 +372,7 @@ def _run_physics(model: Path, steps: int, tool_x, **params):
         tool = np.zeros(P.TOOL_PAYLOAD)
         tool[P.T_X] = tool_x
         VersionedBuffer(shared["tool"], P.TOOL_PAYLOAD).publish(tool)
-        recorder = _Recorder(module, shared, steps)
+        recorder = _Recorder(module, shared, steps, *slow)
         params = {"stale_ms": 50.0, "model": str(model), **params}
         summary = run_physics(params, recorder, StateLayout.from_json(meta["state_layout"]).slice("q"), contact,
                               shared)
@@ -401,6 +405,20 @@ def test_physics_publishes_contact_in_series_with_the_body(exported_model):
     k0 = -np.trace(pub0[:, P.M_K].reshape(-1, 3, 3), axis1=1, axis2=2)
     assert k0[pub0[:, P.M_CONTACT] > 0] == pytest.approx(300.0)           # contact stiffness only
     assert pub[:, P.M_F0] == pytest.approx(pub0[:, P.M_F0], rel=1e-12, abs=1e-15)   # FD steps discarded
+
+
+def test_body_stiffness_returns_after_a_slow_warm_up(exported_model):
+    """The step-time check repeats every RECHECK_STEPS steps: a warm-up of 0.2 s steps (2 x 0.2 s
+    > 0.8 x 0.3 s) holds the FD step off at step 10, the fast steps after it let it back at step 60."""
+    from thermognn.serve.physics import RECHECK_STEPS, WARMUP_STEPS
+    press = [0.0, 0.0, 0.02 + 0.003 - 0.002]
+    steps = WARMUP_STEPS[1] + RECHECK_STEPS + 15
+    summary, pub = _run_physics(exported_model, steps, press, slow=(WARMUP_STEPS[1], 0.2), body_stiffness_every=1,
+                                stale_ms=300.0)
+    assert summary["fd_off_checks"] == 1 and summary["fd_disabled"] == ""
+    contact = pub[:, P.M_CONTACT] > 0
+    back = np.arange(len(pub)) >= WARMUP_STEPS[1] + RECHECK_STEPS
+    assert summary["fd_evaluations"] == (contact & back).sum() > 0
 
 
 def test_physics_warns_when_steps_come_near_stale_ms(exported_model, capsys):

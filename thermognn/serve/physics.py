@@ -30,7 +30,8 @@ from .shm import SharedArrays, VersionedBuffer
 FORMAT = "thermognn-model/1"
 FD_EPS = 0.1                 # relative load perturbation of the body-stiffness finite difference
 TIMING_WINDOW = 4096         # step times kept for the medians (the latest ones)
-WARMUP_STEPS = (3, 10)       # steps (1-based) whose median step time the glitch check uses
+WARMUP_STEPS = (3, 10)       # steps (1-based) whose median step time the first glitch check uses
+RECHECK_STEPS = 50           # then the check again every this many steps, on the latest ones' median
 STALE_MARGIN = 0.8           # warn when a publish gap exceeds this fraction of serve.stale_ms
 BUFFERS = ("reference_positions", "z0", "edge_index", "node_type", "surface_faces", "dt")
 
@@ -118,12 +119,15 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     rigid). The perturbed step is discarded; its k_b applies from the next publish on and is
     kept until the next evaluation or the loss of contact.
 
-    Glitch check, after steps 3..10 (the first ones include warm-up; no FD step before it): an
-    FD step delays the next published force model by one more model step, so FD stays off for
-    the session when two model steps would exceed 0.8 * ``stale_ms`` (the watchdog would fade
-    the force): the stiffness is never bought with a glitch (``fd_disabled`` in the summary
-    says why). If one step alone exceeds it, a one-line warning goes to stderr (prefix
-    'thermognn serve: warning:') and into the summary.
+    Glitch check, first after steps 3..10 (the first ones include warm-up; no FD step before
+    it), then every RECHECK_STEPS steps on the median of the latest RECHECK_STEPS step times: an
+    FD step delays the next published force model by one more model step, so FD stays off while
+    two model steps would exceed 0.8 * ``stale_ms`` (the watchdog would fade the force): the
+    stiffness is never bought with a glitch. ``fd_disabled`` in the summary says why while it is
+    off ("" once a later check finds the steps fast enough again, e.g. after a slow warm-up),
+    ``fd_off_checks`` counts the checks that held it off. If one step alone exceeds the margin
+    at the first check, a one-line warning goes to stderr (prefix 'thermognn serve: warning:')
+    and into the summary.
     """
     import torch
 
@@ -153,7 +157,8 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     k_body_sum, n_k_body, n_rigid = 0.0, 0, 0
     scale_sum, n_scale = 0.0, 0
     warning = ""
-    fd_disabled = ""                                     # why FD was switched off ("" while allowed)
+    fd_disabled = ""                                     # why FD is off ("" while allowed)
+    fd_off_checks = 0                                    # glitch checks that held FD off
     parent = os.getppid()
 
     def stats() -> dict:
@@ -163,7 +168,7 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
                 "fd_evaluations": n_fd, "fd_rigid": n_rigid,
                 "body_stiffness_mean_N_per_m": k_body_sum / n_k_body if n_k_body else float("nan"),
                 "k_scale_mean": scale_sum / n_scale if n_scale else float("nan"), "warning": warning,
-                "fd_disabled": fd_disabled}
+                "fd_disabled": fd_disabled, "fd_off_checks": fd_off_checks}
 
     while control[P.C_STOP] == 0:
         if step % 100 == 0 and os.getppid() != parent:     # main process killed: stop on our own
@@ -224,15 +229,21 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
                     k_body = float("inf")                # no measurable yield: rigid
                     n_rigid += 1
 
-        if step == WARMUP_STEPS[1]:
-            step_ms = float(np.median(times[WARMUP_STEPS[0] - 1:WARMUP_STEPS[1]])) * 1e3
+        if step >= WARMUP_STEPS[1] and (step - WARMUP_STEPS[1]) % RECHECK_STEPS == 0:   # step-time check
+            if step == WARMUP_STEPS[1]:
+                step_ms = float(np.median(times[WARMUP_STEPS[0] - 1:WARMUP_STEPS[1]])) * 1e3
+                warning = _step_time_warning(params, step_ms)
+                if warning:
+                    print(f"thermognn serve: warning: {warning}", file=sys.stderr, flush=True)
+            else:                                        # the latest RECHECK_STEPS unperturbed steps
+                latest = [(step - 1 - i) % TIMING_WINDOW for i in range(RECHECK_STEPS)]
+                step_ms = float(np.median(times[latest])) * 1e3
             limit_ms = STALE_MARGIN * float(params["stale_ms"])
+            fd_disabled = ""
             if every > 0 and 2.0 * step_ms > limit_ms:
+                fd_off_checks += 1
                 fd_disabled = (f"a model step takes {step_ms:.1f} ms: with a finite-difference step the gap "
                                f"between force models would pass {limit_ms:.0f} ms (0.8 serve.stale_ms)")
-            warning = _step_time_warning(params, step_ms)
-            if warning:
-                print(f"thermognn serve: warning: {warning}", file=sys.stderr, flush=True)
         if realtime:                                     # pace to the model's dt (else: flat out)
             wait = t0 + step * dt - time.perf_counter()
             if wait > 0:

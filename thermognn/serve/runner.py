@@ -213,7 +213,8 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
     Returns the summary dict (loop_rate_hz, period_p50/p99/p999_ms, worst_gap_ms,
     physics_rate_hz, max_force_N, max_force_step_N, contact_ticks, final_force_N, exit_reason,
     physics_step_ms (median model step), body_fd_evaluations, contact_K_scale_mean (published K
-    over contact stiffness), body_fd_disabled ("" or why the body-stiffness FD was off),
+    over contact stiffness), body_fd_disabled ("" or why the body-stiffness FD was off at the end),
+    body_fd_off_checks (step-time checks that held it off),
     physics_warning ("" or the step-time warning), ...).
     """
     from thermognn import devices
@@ -336,6 +337,7 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
         contact_K_scale_mean=float(physics_summary.get("k_scale_mean", float("nan"))),
         physics_warning=str(physics_summary.get("warning", "")),
         body_fd_disabled=str(physics_summary.get("fd_disabled", "")),
+        body_fd_off_checks=int(physics_summary.get("fd_off_checks", 0)),
         n_nodes=int(geometry["n_nodes"]),
         haptic_scheduler=str(haptic_summary.get("scheduler", "")),
         haptic_torch_loaded=bool(haptic_summary.get("torch_loaded", False)),
