@@ -90,8 +90,8 @@ def main(argv: list[str]) -> None:
     print(f"{'published':12s} {REFERENCE['q']:9.2e} {REFERENCE['v']:9.2e} {REFERENCE['sigma']:9.2e} "
           f"{REFERENCE['params']:9d} {REFERENCE['ms_per_step']:8.1f}")
     print(f"{'thermognn':12s} {mean['q']:9.2e} {mean['v']:9.2e} {mean['sigma']:9.2e} {params:9d} {ms:8.1f}")
-    print(f"epochs {ckpt.get('epoch')}, training wall time {train_s / 60:.1f} min (this run), "
-          f"{torch.get_num_threads()} threads")
+    print(f"best checkpoint from epoch {ckpt.get('epoch')}; training wall time {train_s / 60:.1f} min (this run, "
+          f"train.threads={cfg.train.threads}); ms/step with {torch.get_num_threads()} threads")
 
 
 if __name__ == "__main__":

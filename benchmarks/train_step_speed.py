@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/train_step_speed.py [--threads 2] [--repeats 50] [--json out.json]
         [--dataset runs/tignn_beam/dataset.h5 ...]   # also time on the graphs of these datasets
+        [model.edge_operators=true ...]               # config overrides for the model timed
 
 TorchScript is timed twice: with the default (profiling, optimising) graph executor and inside
 ``torch.jit.optimized_execution(False)``, which for this autograd-in-forward model is as fast
@@ -51,9 +52,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=50)
     ap.add_argument("--json", default=None)
     ap.add_argument("--dataset", nargs="*", default=[], help="thermognn datasets whose graphs to time too")
-    args = ap.parse_args()
+    args, overrides = ap.parse_known_args()
     torch.set_num_threads(args.threads)
-    cfg = load_config()
+    cfg = load_config(overrides)
     results = []
     graphs = [graph_of(shape) for shape in ((6, 5, 5), (12, 9, 7))]
     for path in args.dataset:
