@@ -4,19 +4,25 @@ Notation (per node i of a graph with N nodes, state dimension D, E directed edge
 
     z   [N, D]   state (q, v, sigma, ...) in SI units; zn = (z - z_mean) / z_std (normalised)
     f   [N, 3]   external nodal force [N]
-    edge features  [E, 4 or 8]   q_i - q_j, |q_i - q_j|  (+ X_i - X_j, |X_i - X_j|)  [m]
+    edge features  [E, 4..16]    q_i - q_j, |q_i - q_j| (+ reference and relative-displacement
+                                 terms, + v_i - v_j and the stretch rate: ``raw_edge_features``)
     node features  [N, D-3+3+3]  zn without q (v, sigma, ...), node type one-hot, normalised force
 
-Positions enter only as differences along edges (Galilean invariance). The decoder gives per node
-``l`` (D x D), ``m`` (D x D), E_i and S_i; with L = l - l^T (skew), M = m m^T (PSD),
-E = sum_i E_i, S = sum_i S_i and the gradients taken by autograd with respect to zn::
+Positions enter only as differences along edges (Galilean invariance); with inertia the edges also
+carry v_i - v_j and the stretch rate (``velocity_edges``). The decoder gives per node ``l``
+(D x D), ``m`` (D x D), E_i and S_i; with L = l - l^T (skew), M = m m^T (PSD), E = sum_i E_i,
+S = sum_i S_i and the gradients taken by autograd with respect to zn::
 
     r = L dE/dw + M dS/dw (+ W fn, the port term)                 GENERIC
     r = L dE/dw           (+ W fn)                                 Hamiltonian
     dz/dt  = r * dzdt_std,  r = (dw/dt) / c   [SI units per second]
 
-in the balanced coordinates w = zn / c = (z - z_mean) / sqrt(z_std * dzdt_std), c = sqrt(dzdt_std
-/ z_std) [D] (per column, 1/sqrt(s)): each column scaled by the geometric mean of its state and
+With ``edge_operators`` an edge decoder also gives A_e (D x D) per directed edge j -> i and the
+Poisson operator is diag(L_i) + A - A^T (``poisson_apply``; still skew, the graph-coupled L of
+TIGNN): node i's rate then depends on its neighbours' dE/dw directly.
+
+The operators act in the balanced coordinates w = zn / c = (z - z_mean) / sqrt(z_std * dzdt_std),
+c = sqrt(dzdt_std / z_std) [D] (per column, 1/sqrt(s)): each column scaled by the geometric mean of its state and
 rate scales, so that L and M need no entries spanning the columns' very different time scales.
 In w the operators are exactly skew (L) and PSD (M), so the *physical* dynamics conserve the
 learned E (dE/dt = dE/dz . dz/dt = dE/dw . L dE/dw = 0 without the port) and produce entropy
