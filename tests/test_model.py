@@ -46,8 +46,9 @@ def test_degeneracy_zero_for_constructed_case():
     w = torch.linalg.cross(u, grad_e)                              # w . grad_e = 0
     m = torch.stack([u[0], w[0], torch.zeros(3, dtype=torch.float64)], 1).unsqueeze(0)
     M = psd(m)
-    assert float(degeneracy_loss(L, M, grad_e, a)) < 1e-24
-    assert float(degeneracy_loss(L, M, a, grad_e)) > 1e-3  # swapped: not degenerate
+    no_edges = (L[:0], torch.zeros(2, 0, dtype=torch.long))                  # node blocks only
+    assert float(degeneracy_loss(L, M, grad_e, a, *no_edges)) < 1e-24
+    assert float(degeneracy_loss(L, M, a, grad_e, *no_edges)) > 1e-3  # swapped: not degenerate
 
 
 def test_graph_coupled_poisson_operator_is_skew():

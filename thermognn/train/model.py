@@ -157,9 +157,11 @@ def poisson_apply(L: Tensor, A: Tensor, edge_index: Tensor, g: Tensor) -> Tensor
     return out
 
 
-def degeneracy_loss(L: Tensor, M: Tensor, grad_E: Tensor, grad_S: Tensor) -> Tensor:
-    """Mean over nodes of ||L dS/dz||^2 + ||M dE/dz||^2. L, M [N, D, D]; gradients [N, D]."""
-    l_ds = torch.bmm(L, grad_S.unsqueeze(-1)).squeeze(-1)
+def degeneracy_loss(L: Tensor, M: Tensor, grad_E: Tensor, grad_S: Tensor, A: Tensor, edge_index: Tensor) -> Tensor:
+    """Mean over nodes of ||L dS/dz||^2 + ||M dE/dz||^2. L (node blocks), M [N, D, D]; gradients
+    [N, D]; the Poisson operator's edge coupling A [E, D, D] on ``edge_index`` (``poisson_apply``;
+    A = [0, D, D]: node blocks only)."""
+    l_ds = poisson_apply(L, A, edge_index, grad_S)
     m_de = torch.bmm(M, grad_E.unsqueeze(-1)).squeeze(-1)
     return (l_ds.pow(2).sum(1) + m_de.pow(2).sum(1)).mean()
 
@@ -314,9 +316,8 @@ class TIGNN(nn.Module):
             assert g_e_opt is not None
             assert g_s_opt is not None
             g_e, g_s = g_e_opt * c * free, g_s_opt * c * free
-            m_de = torch.bmm(M, g_e.unsqueeze(-1)).squeeze(-1)             # M dE/dw [N, D]
             dwdt = poisson_apply(L, A, edge_index, g_e) + torch.bmm(M, g_s.unsqueeze(-1)).squeeze(-1)
-            deg = (poisson_apply(L, A, edge_index, g_s).pow(2).sum(1) + m_de.pow(2).sum(1)).mean()
+            deg = degeneracy_loss(L, M, g_e, g_s, A, edge_index)
         if self.use_port:
             dwdt = dwdt + self.port(fn)
         dwdt = dwdt * free
