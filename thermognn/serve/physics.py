@@ -230,14 +230,13 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
                     n_rigid += 1
 
         if step >= WARMUP_STEPS[1] and (step - WARMUP_STEPS[1]) % RECHECK_STEPS == 0:   # step-time check
-            if step == WARMUP_STEPS[1]:
-                step_ms = float(np.median(times[WARMUP_STEPS[0] - 1:WARMUP_STEPS[1]])) * 1e3
+            first = step == WARMUP_STEPS[1]              # median of steps 3..10, later of the latest 50
+            window = WARMUP_STEPS[1] - WARMUP_STEPS[0] + 1 if first else RECHECK_STEPS
+            step_ms = float(np.median(times[[(step - 1 - i) % TIMING_WINDOW for i in range(window)]])) * 1e3
+            if first:
                 warning = _step_time_warning(params, step_ms)
                 if warning:
                     print(f"thermognn serve: warning: {warning}", file=sys.stderr, flush=True)
-            else:                                        # the latest RECHECK_STEPS unperturbed steps
-                latest = [(step - 1 - i) % TIMING_WINDOW for i in range(RECHECK_STEPS)]
-                step_ms = float(np.median(times[latest])) * 1e3
             limit_ms = STALE_MARGIN * float(params["stale_ms"])
             fd_disabled = ""
             if every > 0 and 2.0 * step_ms > limit_ms:
