@@ -172,7 +172,7 @@ def test_scripted_matches_eager(hamiltonian, shared, aggregation):
     z, f, ei, nt, ref = _graph(seed=1)
     model = _with_stats(_model(hamiltonian=hamiltonian, port=True, shared_weights=shared, aggregation=aggregation,
                                balanced=True, integrator="midpoint" if shared else "euler", velocity_edges=shared,
-                               edge_operators=shared))
+                               edge_operators=shared, exact_kinematics=shared and not hamiltonian))
     scripted = torch.jit.script(model)
     dt = torch.tensor(0.01, dtype=torch.float64)
     a = model.step(z, f, ei, nt, ref, dt)
@@ -181,6 +181,35 @@ def test_scripted_matches_eager(hamiltonian, shared, aggregation):
     ea, sa = model.energy_entropy(z, ei, nt, ref, f)
     eb, sb = scripted.energy_entropy(z, ei, nt, ref, f)
     assert torch.allclose(ea, eb) and torch.allclose(sa, sb)
+
+
+@pytest.mark.parametrize("integrator", ["euler", "midpoint"])
+def test_exact_kinematics_take_positions_from_velocities(integrator):
+    """q_{n+1} = q_n + dt (v_n + v_{n+1}) / 2 on free nodes; the rest of the state as without it."""
+    z, f, ei, nt, ref = _graph(seed=6)
+    dt = torch.tensor(0.01, dtype=torch.float64)
+    learned = _with_stats(_model(port=True, balanced=True, integrator=integrator, implicit_iterations=0))
+    exact = _with_stats(_model(port=True, balanced=True, integrator=integrator, implicit_iterations=0,
+                               exact_kinematics=True))
+    a, b = learned.step(z, f, ei, nt, ref, dt), exact.step(z, f, ei, nt, ref, dt)
+    free = nt != 1
+    assert torch.allclose(b[free, :3], z[free, :3] + 0.5 * dt * (z[free, 3:6] + b[free, 3:6]), rtol=1e-14)
+    assert not torch.allclose(a[free, :3], b[free, :3])          # the network's dq/dt is not v
+    assert torch.equal(a[:, 3:], b[:, 3:]) and torch.equal(b[~free, :3], ref[~free])
+
+
+def test_kinematics_option_follows_the_scene():
+    from omegaconf import OmegaConf
+
+    from thermognn.train.model import hyperparameters
+
+    hp = lambda kin, vel, ham: hyperparameters(OmegaConf.create({"kinematics": kin}), 12, vel, ham)["exact_kinematics"]  # noqa: E731
+    assert hp("auto", [3, 4, 5], False) and not hp("auto", [3, 4, 5], True) and not hp("auto", [], False)
+    assert hp("exact", [3, 4, 5], True) and not hp("learned", [3, 4, 5], False)
+    with pytest.raises(ValueError, match="kinematics = exact needs the velocity"):
+        hp("exact", [], False)
+    with pytest.raises(ValueError, match="model.kinematics 'rigid'"):
+        hp("rigid", [3, 4, 5], False)
 
 
 def test_clamped_nodes_imposed():

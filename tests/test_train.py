@@ -350,6 +350,10 @@ def test_warm_start_from_a_checkpoint(trained, tmp_path):
     assert float(warm["data_loss"]) < 0.5 * float(fresh["data_loss"])
     started = load_checkpoint(tmp_path / "model.ckpt")
     assert torch.equal(started["stats"]["dzdt_std"], load_checkpoint(ckpt)["stats"]["dzdt_std"])
+    # the time step alone may change: fine-tuning under another integrator and kinematics
+    train(_cfg(tmp_path / "c", "train.epochs=1", f"train.init={ckpt}", "model.integrator=midpoint",
+               "model.kinematics=learned", f"paths.dataset={tmp_path / 'dataset.h5'}"))
+    assert load_checkpoint(tmp_path / "c" / "model.ckpt")["hparams"]["integrator"] == "midpoint"
     with pytest.raises(ConfigError, match=r"train.init = .*hidden \(24 there, 32 here\)") as err:
         train(_cfg(tmp_path / "b", "train.epochs=1", f"train.init={ckpt}", "model.hidden=32",
                    f"paths.dataset={tmp_path / 'dataset.h5'}"))

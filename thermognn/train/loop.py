@@ -131,12 +131,18 @@ def drifted_states(model: TIGNN, graph, trajs: list, dt: float) -> list[torch.Te
     return out
 
 
+#: hyperparameters that change how the model steps but not its weights
+STEP_ONLY = ("integrator", "implicit_iterations", "exact_kinematics")
+
+
 def warm_start(model: TIGNN, path: Path, ds, hparams: dict) -> dict:
     """Load weights and normalisation statistics of the checkpoint ``path`` (``train.init``) into
-    ``model``; it must fit the dataset and have the same hyperparameters. Returns its stats."""
+    ``model``; it must fit the dataset and have the same hyperparameters, except those of the time
+    step alone (``STEP_ONLY``: a model may be fine-tuned under another integrator). Returns its stats."""
     src = load_checkpoint(path)
     check_fingerprint(src["fingerprint"], ds, path, hint="train.init must come from this dataset")
-    changed = sorted(k for k in set(hparams) | set(src["hparams"]) if src["hparams"].get(k) != hparams.get(k))
+    changed = sorted(k for k in set(hparams) | set(src["hparams"])
+                     if k not in STEP_ONLY and src["hparams"].get(k) != hparams.get(k))
     if changed:
         raise ConfigError(f"train.init = '{path}': its model differs from this run's in "
                           + ", ".join(f"{k} ({src['hparams'].get(k)} there, {hparams.get(k)} here)" for k in changed))
