@@ -253,11 +253,12 @@ def evaluate(cfg) -> dict:
              f"trained {ckpt.get('epoch', '?')} epochs (validation error {ckpt.get('val_error', float('nan')):.3e})",
              f"- trajectories: {len(test)} test, {len(train_trajs)} train (of {len(data.split['train'])})",
              f"- speed: {ms:.2f} ms per step (forward + autograd, {torch.get_num_threads()} threads, CPU, "
-             f"integrator {model.integrator})",
+             f"integrator {model.integrator}, {'exact' if model.exact_kinematics else 'learned'} kinematics)",
              f"- energy balance: {_fmt(balance)} = sum |E_s - E_(s-1) - dt P| / sum |E_s - E_(s-1)| over the "
              "test rollouts (the learned energy's change that the port's work P does not explain: the "
              "integrator's drift, and for GENERIC models also what M changes where the learned "
-             "degeneracy M dE/dz = 0 is not exact; `energy_error` in `energy_entropy.csv`)", "",
+             "degeneracy M dE/dz = 0 is not exact; with exact kinematics also dE/dq . (v - the "
+             "network's dq/dt); `energy_error` in `energy_entropy.csv`)", "",
              "Relative L2 error per snapshot ||z_pred - z_gt|| / ||z_gt|| over all nodes of a group, "
              "averaged over the rollout steps (clamped nodes imposed) and trajectories.", "",
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
