@@ -201,15 +201,19 @@ def test_exact_kinematics_take_positions_from_velocities(integrator):
 def test_kinematics_option_follows_the_scene():
     from omegaconf import OmegaConf
 
+    from thermognn.core.errors import ConfigError
     from thermognn.train.model import hyperparameters
 
     hp = lambda kin, vel, ham: hyperparameters(OmegaConf.create({"kinematics": kin}), 12, vel, ham)["exact_kinematics"]  # noqa: E731
     assert hp("auto", [3, 4, 5], False) and not hp("auto", [3, 4, 5], True) and not hp("auto", [], False)
     assert hp("exact", [3, 4, 5], True) and not hp("learned", [3, 4, 5], False)
-    with pytest.raises(ValueError, match="kinematics = exact needs the velocity"):
+    with pytest.raises(ConfigError, match="kinematics = exact needs the velocity"):
         hp("exact", [], False)
-    with pytest.raises(ValueError, match="model.kinematics 'rigid'"):
+    with pytest.raises(ConfigError, match="model.kinematics = 'rigid', expected auto | exact | learned"):
         hp("rigid", [3, 4, 5], False)
+    for key in ("aggregation", "integrator"):                        # one-line errors, not tracebacks
+        with pytest.raises(ConfigError, match=f"model.{key} = 'max'"):
+            hyperparameters(OmegaConf.create({key: "max"}), 12, [3, 4, 5], False)
 
 
 def test_clamped_nodes_imposed():

@@ -55,6 +55,8 @@ from typing import Dict, List, Tuple
 import torch
 from torch import Tensor, nn
 
+from ..core.errors import ConfigError
+
 NODE_TYPES = 3  # free, clamped, loadable surface
 CLAMPED = 1
 
@@ -417,6 +419,8 @@ def hyperparameters(cfg_model, dim: int, velocity_columns: List[int], hamiltonia
     from omegaconf import OmegaConf
 
     sel = lambda k, d: OmegaConf.select(cfg_model, k, default=d)  # noqa: E731
+    _choice("aggregation", str(sel("aggregation", "sum")), ("sum", "mean"))
+    _choice("integrator", str(sel("integrator", "euler")), ("euler", "midpoint"))
     return {
         "dim": int(dim),
         "velocity_columns": [int(c) for c in velocity_columns],
@@ -441,13 +445,18 @@ def _exact_kinematics(kinematics: str, velocity_columns: List[int], hamiltonian:
     """``model.kinematics``: exact (q from v by the trapezoidal rule; needs v in the state), learned
     (the network's dq/dt), auto (exact in dissipative scenes with inertia; learned in Hamiltonian
     ones, whose dynamics then conserve the learned energy exactly)."""
-    if kinematics not in ("auto", "exact", "learned"):
-        raise ValueError(f"model.kinematics '{kinematics}', expected auto, exact or learned")
+    _choice("kinematics", kinematics, ("auto", "exact", "learned"))
     if kinematics == "exact" and len(velocity_columns) != 3:
-        raise ValueError("model.kinematics = exact needs the velocity v in the state (effect 'inertia')")
+        raise ConfigError("model.kinematics = exact needs the velocity v in the state (effect 'inertia')")
     if kinematics == "auto":
         return len(velocity_columns) == 3 and not hamiltonian
     return kinematics == "exact"
+
+
+def _choice(key: str, value: str, allowed: Tuple[str, ...]) -> None:
+    """A one-line ConfigError naming ``model.<key>`` unless value is one of ``allowed``."""
+    if value not in allowed:
+        raise ConfigError(f"model.{key} = '{value}', expected " + " | ".join(allowed))
 
 
 def build_model(hparams: dict, dtype: torch.dtype = torch.float32) -> TIGNN:
