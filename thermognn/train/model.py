@@ -59,6 +59,8 @@ from ..core.errors import ConfigError
 
 NODE_TYPES = 3  # free, clamped, loadable surface
 CLAMPED = 1
+AGGREGATIONS = ("sum", "mean")
+INTEGRATORS = ("euler", "midpoint")
 
 
 class MLP(nn.Module):
@@ -182,9 +184,9 @@ class TIGNN(nn.Module):
                  velocity_edges: bool = False, edge_operators: bool = False,
                  exact_kinematics: bool = False) -> None:
         super().__init__()
-        if aggregation not in ("sum", "mean"):
+        if aggregation not in AGGREGATIONS:
             raise ValueError(f"aggregation '{aggregation}', expected sum or mean")
-        if integrator not in ("euler", "midpoint"):
+        if integrator not in INTEGRATORS:
             raise ValueError(f"integrator '{integrator}', expected euler or midpoint")
         self.balanced = balanced
         self.integrator = integrator
@@ -419,8 +421,8 @@ def hyperparameters(cfg_model, dim: int, velocity_columns: List[int], hamiltonia
     from omegaconf import OmegaConf
 
     sel = lambda k, d: OmegaConf.select(cfg_model, k, default=d)  # noqa: E731
-    _choice("aggregation", str(sel("aggregation", "sum")), ("sum", "mean"))
-    _choice("integrator", str(sel("integrator", "euler")), ("euler", "midpoint"))
+    _choice("aggregation", str(sel("aggregation", "sum")), AGGREGATIONS)
+    _choice("integrator", str(sel("integrator", "euler")), INTEGRATORS)
     return {
         "dim": int(dim),
         "velocity_columns": [int(c) for c in velocity_columns],
