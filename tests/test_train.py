@@ -358,3 +358,18 @@ def test_warm_start_from_a_checkpoint(trained, tmp_path):
         train(_cfg(tmp_path / "b", "train.epochs=1", f"train.init={ckpt}", "model.hidden=32",
                    f"paths.dataset={tmp_path / 'dataset.h5'}"))
     assert "\n" not in str(err.value)
+
+
+def test_start_repeats_adds_each_trajectorys_first_transition(trained):
+    """train.start_repeats k: every transition once, each trajectory's first k times in all;
+    below 1 is a one-line configuration error."""
+    from thermognn.core.errors import ConfigError
+    from thermognn.train.data import samples
+
+    out, cfg, _ = trained
+    trajs = load_data(out / "dataset.h5", cfg.train.split, 0).of("train")
+    once, thrice = samples(trajs), samples(trajs, 3)
+    assert len(once) == sum(t.z.shape[0] - 1 for t in trajs)
+    assert sorted(thrice) == sorted(once + [(i, 0) for i in range(len(trajs))] * 2)
+    with pytest.raises(ConfigError, match="train.start_repeats = 0"):
+        samples(trajs, 0)

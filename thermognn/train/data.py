@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from thermognn.core.errors import DataError
+from thermognn.core.errors import ConfigError, DataError
 from thermognn.core.schema import Dataset
 from thermognn.core.state import StateLayout
 
@@ -209,9 +209,15 @@ def compute_stats(train: list[TrajectoryTensors], graph: Graph, dt: float,
             "dzdt_std": dzdt_std}
 
 
-def samples(trajs: list[TrajectoryTensors]) -> list[tuple[int, int]]:
-    """(trajectory index, step s) for every transition z[s] -> z[s+1]."""
-    return [(i, s) for i, t in enumerate(trajs) for s in range(t.z.shape[0] - 1)]
+def samples(trajs: list[TrajectoryTensors], start_repeats: int = 1) -> list[tuple[int, int]]:
+    """(trajectory index, step s) for every transition z[s] -> z[s+1]; each trajectory's first
+    transition ``start_repeats`` times. The start (a body at rest in its reference shape, or
+    already moving) is one sample in a trajectory's length but the error made there is carried
+    through the whole rollout (``train.start_repeats``)."""
+    if start_repeats < 1:
+        raise ConfigError(f"train.start_repeats = {start_repeats}, expected an integer >= 1")
+    every = [(i, s) for i, t in enumerate(trajs) for s in range(t.z.shape[0] - 1)]
+    return every + [(i, 0) for i, t in enumerate(trajs) if t.z.shape[0] > 1] * (start_repeats - 1)
 
 
 def make_batch(trajs: list[TrajectoryTensors], items: list[tuple[int, ...]], graph: Graph,

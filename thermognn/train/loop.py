@@ -152,7 +152,7 @@ def warm_start(model: TIGNN, path: Path, ds, hparams: dict) -> dict:
 
 #: train settings a resumed run must share with the interrupted one (besides model and dataset)
 RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy", "noise", "split",
-               "rollout_pairs", "init")
+               "rollout_pairs", "start_repeats", "init")
 
 
 def training_identity(cfg, hparams: dict, dtype_name: str) -> dict:
@@ -281,7 +281,7 @@ def train(cfg) -> Path:
             if dist.main:
                 print(f"resuming from {last} at epoch {start_epoch}")
 
-    pairs = samples(train_trajs)
+    pairs = samples(train_trajs, int(_sel(tc, "start_repeats", 1)))
     rollout_from = int(_sel(tc, "rollout_pairs", 0))
     rolled: list[torch.Tensor] | None = None
     batch_size = max(1, int(tc.batch_size))
