@@ -373,3 +373,34 @@ def test_start_repeats_adds_each_trajectorys_first_transition(trained):
     assert sorted(thrice) == sorted(once + [(i, 0) for i in range(len(trajs))] * 2)
     with pytest.raises(ConfigError, match="train.start_repeats = 0"):
         samples(trajs, 0)
+
+
+def test_rest_samples_hold_the_unloaded_reference_state(trained, tmp_path):
+    """train.rest_samples: z0 -> z0 under zero force, taken from the data's common rest start;
+    refused (one line) for trajectories that start moving or loaded, and for scenes with gravity."""
+    from dataclasses import replace
+
+    from thermognn.core.errors import ConfigError
+    from thermognn.train.data import make_batch, rest_trajectory, velocity_columns
+
+    out, cfg, _ = trained
+    data = load_data(out / "dataset.h5", cfg.train.split, 0)
+    trajs, vel = data.of("train"), velocity_columns(data.layout)
+    rest = rest_trajectory(trajs, data.dataset.effects, vel)
+    assert rest.z.shape == (2, *trajs[0].z.shape[1:]) and torch.equal(rest.z[0], trajs[0].z[0])
+    assert torch.equal(rest.z[1], rest.z[0]) and not rest.force.any()
+    batch = make_batch(trajs + [rest], [(len(trajs), 0)], data.graph)
+    assert torch.equal(batch.z, batch.z_next) and not batch.f.any()
+
+    moving = replace(trajs[1], z=trajs[1].z.clone())
+    moving.z[0, :, vel[0]] = 1e-3
+    with pytest.raises(ConfigError, match=f"trajectory {moving.name} does not start at rest"):
+        rest_trajectory([trajs[0], moving], data.dataset.effects, vel)
+    with pytest.raises(ConfigError, match="gravity"):
+        rest_trajectory(trajs, ["elastic", "inertia", "gravity"], vel)
+
+    run = tmp_path / "rest"
+    run.mkdir()
+    (run / "dataset.h5").symlink_to(out / "dataset.h5")
+    train(_cfg(run, "train.epochs=1", "train.rest_samples=3"))
+    assert _rows(run)[0]["loss"]

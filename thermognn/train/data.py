@@ -220,6 +220,31 @@ def samples(trajs: list[TrajectoryTensors], start_repeats: int = 1) -> list[tupl
     return every + [(i, 0) for i, t in enumerate(trajs) if t.z.shape[0] > 1] * (start_repeats - 1)
 
 
+def rest_trajectory(trajs: list[TrajectoryTensors], effects, velocity_cols: list[int],
+                    key: str = "train.rest_samples") -> TrajectoryTensors:
+    """The unloaded body at rest, held for one step: z[0] -> z[0] under zero force [2, N, D].
+
+    Taken from the data: every trajectory must start from one common state with zero velocity
+    and zero load (the reference configuration). Without this sample nothing in a loaded
+    dataset says that an unloaded body stays put, and a model whose kinematics are exact
+    integrates a small bias at rest into a drift. Not for scenes with gravity, whose reference
+    configuration is not an equilibrium."""
+    if "gravity" in effects:
+        raise ConfigError(f"{key}: the scene has gravity, so its reference state is not at rest; "
+                          f"set {key}=0")
+    z0 = trajs[0].z[0]
+    for t in trajs:
+        if t.force[0].abs().max() > 0 or (velocity_cols and t.z[0][:, velocity_cols].abs().max() > 0):
+            raise ConfigError(f"{key}: trajectory {t.name} does not start at rest (unloaded, zero "
+                              f"velocity); set {key}=0")
+        if not torch.allclose(t.z[0], z0, rtol=1e-6, atol=1e-9 * float(z0.abs().max().clamp(min=1.0))):
+            raise ConfigError(f"{key}: trajectory {t.name} starts from another state than "
+                              f"{trajs[0].name}; set {key}=0")
+    return TrajectoryTensors(name="rest", z=torch.stack([z0, z0]),
+                             force=torch.zeros(2, *trajs[0].force.shape[1:], dtype=trajs[0].force.dtype),
+                             time=trajs[0].time[:2].clone())
+
+
 def make_batch(trajs: list[TrajectoryTensors], items: list[tuple[int, ...]], graph: Graph,
                rolled: list[Tensor] | None = None):
     """Concatenate snapshot pairs into one disjoint graph (a ``torch_geometric.data.Data``, laid

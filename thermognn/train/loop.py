@@ -20,7 +20,7 @@ from thermognn.core.state import is_reversible
 from .checkpoint import (FORMAT, last_path, load_checkpoint, model_from_checkpoint, save_checkpoint,
                          torch_dtype)
 from .data import (LoadedData, check_fingerprint, compute_stats, fingerprint, load_data, make_batch,
-                   samples, velocity_columns)
+                   rest_trajectory, samples, velocity_columns)
 from .model import TIGNN, build_model, hyperparameters, parameter_count
 from .rollout import rollout, rollout_errors, validation_error
 
@@ -152,7 +152,7 @@ def warm_start(model: TIGNN, path: Path, ds, hparams: dict) -> dict:
 
 #: train settings a resumed run must share with the interrupted one (besides model and dataset)
 RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy", "noise", "split",
-               "rollout_pairs", "start_repeats", "init")
+               "rollout_pairs", "start_repeats", "rest_samples", "init")
 
 
 def training_identity(cfg, hparams: dict, dtype_name: str) -> dict:
@@ -282,6 +282,14 @@ def train(cfg) -> Path:
                 print(f"resuming from {last} at epoch {start_epoch}")
 
     pairs = samples(train_trajs, int(_sel(tc, "start_repeats", 1)))
+    n_rest = int(_sel(tc, "rest_samples", 0))
+    if n_rest < 0:
+        raise ConfigError(f"train.rest_samples = {n_rest}, expected an integer >= 0")
+    if n_rest:          # the unloaded rest state stays put: (len(train_trajs), 0) items
+        pairs += [(len(train_trajs), 0)] * n_rest
+        batch_trajs = train_trajs + [rest_trajectory(train_trajs, ds.effects, velocity_columns(ds.layout))]
+    else:
+        batch_trajs = train_trajs
     rollout_from = int(_sel(tc, "rollout_pairs", 0))
     rolled: list[torch.Tensor] | None = None
     batch_size = max(1, int(tc.batch_size))
@@ -310,7 +318,7 @@ def train(cfg) -> Path:
             tot = dat = dgn = 0.0
             n_batches = 0
             for b in range(0, len(mine), batch_size):
-                batch = make_batch(train_trajs, [items[i] for i in mine[b:b + batch_size]], data.graph, rolled)
+                batch = make_batch(batch_trajs, [items[i] for i in mine[b:b + batch_size]], data.graph, rolled)
                 loss, dl, dg = step_loss(model, batch, ds.dt, noise, gen, lam_d, lam_g)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
