@@ -6,6 +6,7 @@ Files written (all atomically)::
     rrmse_vs_time.csv / .png        mean RRMSE over the test trajectories per step and group (paper Fig. 8)
     rrmse_per_trajectory.csv / .png box plots of per-trajectory RRMSE, train vs test, per group
     energy_entropy.csv / .png       learned E, S and the degeneracy residual along each test rollout
+    rest_drift.csv                  the unloaded body left at rest for 10x the horizon: how far it drifts
     snapshot_<traj>_<step>.vtu      predicted vs ground truth point data (datasets with tets only)
     summary.md                      the numbers above in one page
 """
@@ -26,7 +27,10 @@ from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
 
 from .checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype
-from .data import Graph, LoadedData, TrajectoryTensors, check_fingerprint, load_data
+from thermognn.core.errors import ConfigError
+
+from .data import (Graph, LoadedData, TrajectoryTensors, check_fingerprint, load_data, rest_trajectory,
+                   velocity_columns)
 from .loop import print_rrmse_table
 from .model import parameter_count
 from .rollout import rollout, rrmse_per_step, trajectory_error, trajectory_rrmse
@@ -111,6 +115,23 @@ def write_vtu(path: Path, ds: Dataset, traj: TrajectoryTensors, pred: torch.Tens
     mesh = meshio.Mesh(X, [("tetra", np.asarray(ds.mesh.tets, np.int64))], point_data=point_data)
     with atomic_path(path) as tmp:
         meshio.write(tmp, mesh, file_format="vtu")
+
+
+#: the rest-drift rollout is this many times the data's horizon
+REST_HORIZONS = 10
+
+
+def rest_drift(model, graph: Graph, rest: TrajectoryTensors, steps: int, velocity_cols: list[int]) -> np.ndarray:
+    """Leave the unloaded body at rest (``rest.z[0]``, zero force) for ``steps`` steps, as ``serve``
+    does while nothing touches it. Returns [steps + 1, 2] per step: the largest displacement from
+    the start over all nodes, max |q - q0| (m), and the largest velocity entry, max |v| (m/s).
+    A body at rest in its reference configuration stays there; a model with exact kinematics
+    integrates any rate bias at rest into a drift (``train.rest_samples`` trains against it)."""
+    dt = float(rest.time[1] - rest.time[0])
+    pred = rollout(model, graph, rest.z[0], rest.force[:1], dt, steps)      # [steps + 1, N, D]
+    q = (pred[:, :, 0:3] - pred[:1, :, 0:3]).abs().flatten(1).amax(1)
+    v = pred[:, :, velocity_cols].abs().flatten(1).amax(1) if velocity_cols else torch.zeros_like(q)
+    return torch.stack([q, v], 1).double().numpy()
 
 
 def _rollouts(model, data: LoadedData, trajs: list[TrajectoryTensors]):
@@ -231,6 +252,26 @@ def evaluate(cfg) -> dict:
     _save_fig(fig, out / "energy_entropy.png")
     files += ["energy_entropy.csv", "energy_entropy.png"]
 
+    # the unloaded body left at rest for 10x the horizon (datasets that start from rest)
+    drift_line = "- rest drift: not measured (the trajectories do not all start from one unloaded rest state)"
+    drift = math.nan
+    try:
+        rest = rest_trajectory(test + train_trajs, data.dataset.effects, velocity_columns(data.layout))
+    except ConfigError:
+        rest = None
+    if rest is not None:
+        steps = REST_HORIZONS * (n_steps - 1)
+        held = rest_drift(model, data.graph, rest, steps, velocity_columns(data.layout))
+        _write_csv(out / "rest_drift.csv", ["step", "time_s", "max_displacement_m", "max_velocity_m_s"],
+                   [[s, s * data.dt, *held[s]] for s in range(held.shape[0])])
+        files.append("rest_drift.csv")
+        reach = max(float((t.z[:, :, 0:3] - t.z[:1, :, 0:3]).abs().max()) for t in test)
+        drift = float(np.nanmax(held[:, 0])) / max(reach, 1e-300) if np.isfinite(held).all() else math.inf
+        drift_line = (f"- rest drift: unloaded and left at rest for {steps} steps ({REST_HORIZONS}x the horizon), "
+                      f"the body moved at most {_fmt(float(np.nanmax(held[:, 0])))} m, {_fmt(drift)} of the "
+                      f"largest displacement in the test data ({_fmt(reach)} m); `rest_drift.csv`")
+        print(f"evaluate: {drift_line[2:]}")
+
     # predicted vs ground truth at one snapshot (VTU for ParaView; needs tets)
     if len(data.dataset.mesh.tets) and test:
         snap = int(OmegaConf.select(cfg, "train.eval_snapshot", default=-1))
@@ -241,6 +282,7 @@ def evaluate(cfg) -> dict:
 
     mean_test["ms_per_step"] = ms
     mean_test["energy_balance"] = balance
+    mean_test["rest_drift"] = drift
     print_rrmse_table(f"rollout RRMSE ({len(test)} test, {len(train_trajs)} train trajectories)",
                       {"test": {g: mean_test[g] for g in groups}, "train": mean_train})
     print(f"evaluate: {ms:.2f} ms per step ({data.graph.n_nodes} nodes, {torch.get_num_threads()} threads); "
@@ -258,7 +300,7 @@ def evaluate(cfg) -> dict:
              "test rollouts (the learned energy's change that the port's work P does not explain: the "
              "integrator's drift, and for GENERIC models also what M changes where the learned "
              "degeneracy M dE/dz = 0 is not exact; with exact kinematics also dE/dq . (v - the "
-             "network's dq/dt); `energy_error` in `energy_entropy.csv`)", "",
+             "network's dq/dt); `energy_error` in `energy_entropy.csv`)", drift_line, "",
              "Relative L2 error per snapshot ||z_pred - z_gt|| / ||z_gt|| over all nodes of a group, "
              "averaged over the rollout steps (clamped nodes imposed) and trajectories.", "",
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
