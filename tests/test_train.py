@@ -399,6 +399,16 @@ def test_rest_samples_hold_the_unloaded_reference_state(trained, tmp_path):
     with pytest.raises(ConfigError, match="gravity"):
         rest_trajectory(trajs, ["elastic", "inertia", "gravity"], vel)
 
+    from thermognn.train.data import rest_samples
+
+    assert rest_samples("auto", trajs, data.dataset.effects, vel)[0] == len(trajs)
+    assert rest_samples("auto", [trajs[0], moving], data.dataset.effects, vel) == (0, None)
+    assert rest_samples(0, trajs, data.dataset.effects, vel) == (0, None)
+    n, held = rest_samples(2, trajs, data.dataset.effects, vel)
+    assert n == 2 and torch.equal(held.z, rest.z)
+    with pytest.raises(ConfigError, match="train.rest_samples = 'some', expected auto or an integer >= 0"):
+        rest_samples("some", trajs, data.dataset.effects, vel)
+
     run = tmp_path / "rest"
     run.mkdir()
     (run / "dataset.h5").symlink_to(out / "dataset.h5")

@@ -245,6 +245,25 @@ def rest_trajectory(trajs: list[TrajectoryTensors], effects, velocity_cols: list
                              time=trajs[0].time[:2].clone())
 
 
+def rest_samples(setting, trajs: list[TrajectoryTensors], effects,
+                 velocity_cols: list[int]) -> tuple[int, TrajectoryTensors | None]:
+    """``train.rest_samples``: how many rest transitions per epoch, and the rest trajectory.
+    ``auto``: one per training trajectory where the data start from one unloaded rest state
+    (without gravity), else none; an integer: that many (refused where there is no rest state)."""
+    if str(setting).lower() == "auto":
+        try:
+            return len(trajs), rest_trajectory(trajs, effects, velocity_cols)
+        except ConfigError:
+            return 0, None
+    try:
+        n = int(setting)
+    except (TypeError, ValueError):
+        n = -1
+    if n < 0:
+        raise ConfigError(f"train.rest_samples = {setting!r}, expected auto or an integer >= 0")
+    return n, (rest_trajectory(trajs, effects, velocity_cols) if n else None)
+
+
 def make_batch(trajs: list[TrajectoryTensors], items: list[tuple[int, ...]], graph: Graph,
                rolled: list[Tensor] | None = None):
     """Concatenate snapshot pairs into one disjoint graph (a ``torch_geometric.data.Data``, laid

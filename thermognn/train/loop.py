@@ -20,7 +20,7 @@ from thermognn.core.state import is_reversible
 from .checkpoint import (FORMAT, last_path, load_checkpoint, model_from_checkpoint, save_checkpoint,
                          torch_dtype)
 from .data import (LoadedData, check_fingerprint, compute_stats, fingerprint, load_data, make_batch,
-                   rest_trajectory, samples, velocity_columns)
+                   rest_samples, samples, velocity_columns)
 from .model import TIGNN, build_model, hyperparameters, parameter_count
 from .rollout import rollout, rollout_errors, validation_error
 
@@ -282,14 +282,9 @@ def train(cfg) -> Path:
                 print(f"resuming from {last} at epoch {start_epoch}")
 
     pairs = samples(train_trajs, int(_sel(tc, "start_repeats", 1)))
-    n_rest = int(_sel(tc, "rest_samples", 0))
-    if n_rest < 0:
-        raise ConfigError(f"train.rest_samples = {n_rest}, expected an integer >= 0")
-    if n_rest:          # the unloaded rest state stays put: (len(train_trajs), 0) items
-        pairs += [(len(train_trajs), 0)] * n_rest
-        batch_trajs = train_trajs + [rest_trajectory(train_trajs, ds.effects, velocity_columns(ds.layout))]
-    else:
-        batch_trajs = train_trajs
+    n_rest, rest = rest_samples(_sel(tc, "rest_samples", "auto"), train_trajs, ds.effects, velocity_columns(ds.layout))
+    pairs += [(len(train_trajs), 0)] * n_rest        # the unloaded rest state stays put
+    batch_trajs = train_trajs + ([rest] if rest is not None else [])
     rollout_from = int(_sel(tc, "rollout_pairs", 0))
     rolled: list[torch.Tensor] | None = None
     batch_size = max(1, int(tc.batch_size))
@@ -299,7 +294,7 @@ def train(cfg) -> Path:
     patience = int(_sel(tc, "patience", 0))
     if dist.main:
         print(f"train: {len(train_trajs)} train / {len(val_trajs)} val / {len(data.split['test'])} test "
-              f"trajectories, {len(pairs)} steps, structure {structure}, {parameter_count(model)} parameters")
+              f"trajectories, {len(pairs)} steps ({n_rest} at rest), structure {structure}, {parameter_count(model)} parameters")
 
     tb = _tensorboard(_sel(tc, "tensorboard", "auto"), out_dir / "tensorboard") if dist.main else None
     stopped = start_epoch >= epochs or (patience > 0 and stale >= patience)
