@@ -17,6 +17,7 @@ The published pretrained model, re-run on this machine: q 4.1e-3, v 1.7e-2, sigm
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -105,6 +106,10 @@ def main(argv: list[str]) -> None:
           f"   (the same weights, {kin(not model.exact_kinematics)} kinematics)")
     print(f"best checkpoint from epoch {ckpt.get('epoch')}; training wall time {train_s / 60:.1f} min (this run, "
           f"train.threads={cfg.train.threads}); ms/step with {torch.get_num_threads()} threads")
+    load, cores = os.getloadavg()[0], os.cpu_count() or 1
+    if load > cores:                      # this process itself counts: more means a second job ran
+        print(f"warning: load average {load:.1f} on {cores} cores while timing: the ms/step above is "
+              f"contended; repeat with --eval-only on a quiet machine")
 
 
 if __name__ == "__main__":
