@@ -371,8 +371,10 @@ def test_start_repeats_adds_each_trajectorys_first_transition(trained):
     once, thrice = samples(trajs), samples(trajs, 3)
     assert len(once) == sum(t.z.shape[0] - 1 for t in trajs)
     assert sorted(thrice) == sorted(once + [(i, 0) for i in range(len(trajs))] * 2)
-    with pytest.raises(ConfigError, match="train.start_repeats = 0"):
+    with pytest.raises(ConfigError, match="train.start_repeats = 0, expected an integer >= 1"):
         samples(trajs, 0)
+    with pytest.raises(ConfigError, match="train.start_repeats = 'many'"):
+        samples(trajs, "many")
 
 
 def test_rest_samples_hold_the_unloaded_reference_state(trained, tmp_path):

@@ -209,15 +209,19 @@ def compute_stats(train: list[TrajectoryTensors], graph: Graph, dt: float,
             "dzdt_std": dzdt_std}
 
 
-def samples(trajs: list[TrajectoryTensors], start_repeats: int = 1) -> list[tuple[int, int]]:
+def samples(trajs: list[TrajectoryTensors], start_repeats: int | str = 1) -> list[tuple[int, int]]:
     """(trajectory index, step s) for every transition z[s] -> z[s+1]; each trajectory's first
     transition ``start_repeats`` times. The start (a body at rest in its reference shape, or
     already moving) is one sample in a trajectory's length but the error made there is carried
     through the whole rollout (``train.start_repeats``)."""
-    if start_repeats < 1:
-        raise ConfigError(f"train.start_repeats = {start_repeats}, expected an integer >= 1")
+    try:
+        k = int(start_repeats)
+    except (TypeError, ValueError):
+        k = 0
+    if k < 1:
+        raise ConfigError(f"train.start_repeats = {start_repeats!r}, expected an integer >= 1")
     every = [(i, s) for i, t in enumerate(trajs) for s in range(t.z.shape[0] - 1)]
-    return every + [(i, 0) for i, t in enumerate(trajs) if t.z.shape[0] > 1] * (start_repeats - 1)
+    return every + [(i, 0) for i, t in enumerate(trajs) if t.z.shape[0] > 1] * (k - 1)
 
 
 def rest_trajectory(trajs: list[TrajectoryTensors], effects, velocity_cols: list[int],

@@ -23,12 +23,11 @@ import torch
 from omegaconf import OmegaConf
 
 from thermognn.core.config import project_path
+from thermognn.core.errors import ConfigError
 from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
 
 from .checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype
-from thermognn.core.errors import ConfigError
-
 from .data import (Graph, LoadedData, TrajectoryTensors, check_fingerprint, load_data, rest_trajectory,
                    velocity_columns)
 from .loop import print_rrmse_table
@@ -265,7 +264,7 @@ def evaluate(cfg) -> dict:
         _write_csv(out / "rest_drift.csv", ["step", "time_s", "max_displacement_m", "max_velocity_m_s"],
                    [[s, s * data.dt, *held[s]] for s in range(held.shape[0])])
         files.append("rest_drift.csv")
-        reach = max(float((t.z[:, :, 0:3] - t.z[:1, :, 0:3]).abs().max()) for t in test)
+        reach = max((float((t.z[:, :, 0:3] - t.z[:1, :, 0:3]).abs().max()) for t in test), default=0.0)
         drift = float(np.nanmax(held[:, 0])) / max(reach, 1e-300) if np.isfinite(held).all() else math.inf
         drift_line = (f"- rest drift: unloaded and left at rest for {steps} steps ({REST_HORIZONS}x the horizon), "
                       f"the body moved at most {_fmt(float(np.nanmax(held[:, 0])))} m, {_fmt(drift)} of the "

@@ -281,8 +281,9 @@ def train(cfg) -> Path:
             if dist.main:
                 print(f"resuming from {last} at epoch {start_epoch}")
 
-    pairs = samples(train_trajs, int(_sel(tc, "start_repeats", 1)))
-    n_rest, rest = rest_samples(_sel(tc, "rest_samples", "auto"), train_trajs, ds.effects, velocity_columns(ds.layout))
+    pairs = samples(train_trajs, _sel(tc, "start_repeats", 1))
+    n_rest, rest = rest_samples(_sel(tc, "rest_samples", "auto"), train_trajs, ds.effects,
+                                velocity_columns(ds.layout))
     pairs += [(len(train_trajs), 0)] * n_rest        # the unloaded rest state stays put
     batch_trajs = train_trajs + ([rest] if rest is not None else [])
     rollout_from = int(_sel(tc, "rollout_pairs", 0))
@@ -294,7 +295,8 @@ def train(cfg) -> Path:
     patience = int(_sel(tc, "patience", 0))
     if dist.main:
         print(f"train: {len(train_trajs)} train / {len(val_trajs)} val / {len(data.split['test'])} test "
-              f"trajectories, {len(pairs)} steps ({n_rest} at rest), structure {structure}, {parameter_count(model)} parameters")
+              f"trajectories, {len(pairs)} steps ({n_rest} at rest), structure {structure}, "
+              f"{parameter_count(model)} parameters")
 
     tb = _tensorboard(_sel(tc, "tensorboard", "auto"), out_dir / "tensorboard") if dist.main else None
     stopped = start_epoch >= epochs or (patience > 0 and stale >= patience)
