@@ -51,7 +51,7 @@ def main(argv: list[str]) -> None:
 
     from thermognn.core.config import load_config
     from thermognn.train import train
-    from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint
+    from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint, with_rollout
     from thermognn.train.data import load_data
     from thermognn.train.model import parameter_count
     from thermognn.train.rollout import rrmse_per_step, trajectory_rrmse
@@ -67,7 +67,7 @@ def main(argv: list[str]) -> None:
     train_s = time.perf_counter() - t0
 
     torch.set_num_threads(2)
-    ckpt = load_checkpoint(cfg.paths.checkpoint)
+    ckpt, stepped = with_rollout(load_checkpoint(cfg.paths.checkpoint), cfg)     # rollout.* may restep it
     model = model_from_checkpoint(ckpt).eval()
     data = load_data(dataset, cfg.train.split, int(cfg.seed), next(model.parameters()).dtype, parts=("test",))
     def test_error(exact_kinematics: bool) -> dict:
@@ -101,7 +101,9 @@ def main(argv: list[str]) -> None:
           f"{REFERENCE['params']:9d} {REFERENCE['ms_per_step']:8.1f}")
     kin = lambda exact: "exact" if exact else "learned"  # noqa: E731
     print(f"{'thermognn':12s} {mean['q']:9.2e} {mean['v']:9.2e} {mean['sigma']:9.2e} {params:9d} {ms:8.1f}"
-          f"   ({kin(model.exact_kinematics)} kinematics, as trained)")
+          f"   ({kin(model.exact_kinematics)} kinematics, integrator {model.integrator}"
+          f"{', ' + str(model.implicit_iterations) + ' sweeps' if model.integrator == 'midpoint' else ''}; "
+          f"{stepped or 'as trained'})")
     print(f"{'':12s} {other['q']:9.2e} {other['v']:9.2e} {other['sigma']:9.2e} {'':9s} {'':8s}"
           f"   (the same weights, {kin(not model.exact_kinematics)} kinematics)")
     print(f"best checkpoint from epoch {ckpt.get('epoch')}; training wall time {train_s / 60:.1f} min (this run, "

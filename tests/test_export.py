@@ -105,3 +105,29 @@ def test_export_graph_only_dataset_has_empty_surface(tmp_path):
     m = torch.jit.load(str(export(cfg)))
     assert m.surface_faces.shape == (0, 3) and m.surface_faces.dtype == torch.int64
     assert m.edge_index.shape[1] > 0
+
+
+def test_export_with_another_time_step(exported, tmp_path):
+    """``rollout.*`` at export: the file steps by the midpoint rule with exact kinematics, says so
+    in its metadata, and matches the eager model stepped the same way."""
+    from thermognn.train.model import stepping
+
+    out, cfg, _ = exported
+    path = export(load_config([f"out={out}", *SMALL, f"model.dtype={cfg.model.dtype}", f"paths.exported={tmp_path / 'm.pt'}",
+                               "rollout.integrator=midpoint", "rollout.implicit_iterations=2", "rollout.kinematics=exact"]))
+    extra = {"thermognn.json": ""}
+    m = torch.jit.load(str(path), _extra_files=extra)
+    assert json.loads(extra["thermognn.json"])["step"] == {"integrator": "midpoint", "implicit_iterations": 2,
+                                                           "kinematics": "exact"}
+    ckpt = load_checkpoint(out / "model.ckpt")
+    plain = {"thermognn.json": ""}
+    torch.jit.load(str(out / "model.pt"), _extra_files=plain)           # exported as trained
+    assert json.loads(plain["thermognn.json"])["step"]["integrator"] == ckpt["hparams"]["integrator"] == "euler"
+    core = model_from_checkpoint({**ckpt, "hparams": stepping(ckpt["hparams"], "midpoint", 2, "exact")})
+    f = 0.1 * torch.ones(m.z0.shape[0], 3, dtype=m.z0.dtype)
+    a, b = m(m.z0, f), core.step(m.z0, f, m.edge_index, m.node_type, m.reference_positions, m.dt)
+    scale = b.abs().amax(0).clamp(min=1e-30)
+    assert float(((a - b).abs() / scale).max()) < (1e-4 if m.z0.dtype == torch.float32 else 1e-10)
+    free = m.node_type != 1                     # exact kinematics: q_1 = q_0 + dt (v_0 + v_1) / 2
+    assert torch.allclose(a[free, :3], m.z0[free, :3] + 0.5 * m.dt * (m.z0[free, 3:6] + a[free, 3:6]),
+                          rtol=0, atol=1e-6 if m.z0.dtype == torch.float32 else 1e-12)

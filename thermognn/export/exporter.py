@@ -13,7 +13,7 @@ from thermognn.core.config import project_path
 from thermognn.core.errors import DataError
 from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
-from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype
+from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype, with_rollout
 from thermognn.train.data import check_fingerprint, load_graph
 
 from .module import ExportedTIGNN
@@ -26,9 +26,13 @@ DEFAULT_RTOL = {torch.float32: 1e-4, torch.float64: 1e-9}
 
 def metadata(ckpt: dict) -> str:
     """The ``thermognn.json`` extra file (keys as in docs/stages.md)."""
+    hp = ckpt.get("hparams", {})
     return json.dumps({"format": FORMAT, "scene": ckpt.get("scene", ""), "effects": list(ckpt.get("effects", [])),
                        "state_layout": ckpt["state_layout"], "dt": float(ckpt["dt"]),
                        "structure": ckpt["structure"], "config": ckpt.get("config", ""),
+                       "step": {"integrator": hp.get("integrator", "euler"),
+                                "implicit_iterations": int(hp.get("implicit_iterations", 3)),
+                                "kinematics": "exact" if hp.get("exact_kinematics") else "learned"},
                        "versions": ckpt.get("versions", "{}")})
 
 
@@ -91,6 +95,9 @@ def export(cfg) -> Path:
     ckpt = load_checkpoint(ckpt_path)
     ds = Dataset(project_path(cfg.paths.dataset))
     check_fingerprint(ckpt["fingerprint"], ds, ckpt_path)
+    ckpt, stepped = with_rollout(ckpt, cfg)
+    if stepped:
+        print(f"export: stepping the trained model with {stepped}")
     eager = build_exported(ckpt, ds)
     scripted = script(eager)
     dtype = eager.z0.dtype

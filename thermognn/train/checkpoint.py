@@ -77,3 +77,32 @@ def model_from_checkpoint(ckpt: dict):
         raise DataError(f"{ckpt.get('_path', 'checkpoint')}: weights do not fit the model they describe "
                         f"(written by another thermognn version?): {first}") from None
     return model
+
+
+#: how a trained model is stepped, overridable at evaluate and export time (``rollout.<key>``)
+ROLLOUT_KEYS = ("integrator", "implicit_iterations", "kinematics")
+
+
+def with_rollout(ckpt: dict, cfg) -> tuple[dict, str]:
+    """The checkpoint with the ``rollout`` config group applied to its time step: the integrator,
+    its sweeps and the kinematics of the same learned dz/dt (null: as trained). Returns the
+    changed copy and a note for reports, e.g. "integrator midpoint (trained: euler)", or "" when
+    nothing changed."""
+    from omegaconf import OmegaConf
+
+    from .model import stepping
+
+    want = {k: OmegaConf.select(cfg, f"rollout.{k}", default=None) for k in ROLLOUT_KEYS}
+    if all(v is None for v in want.values()):
+        return ckpt, ""
+    old = ckpt["hparams"]
+    new = stepping(old, **want)
+    kin = lambda exact: "exact" if exact else "learned"  # noqa: E731
+    changes = []
+    if new["integrator"] != old.get("integrator", "euler"):
+        changes.append(f"integrator {new['integrator']} (trained: {old.get('integrator', 'euler')})")
+    if new["integrator"] == "midpoint" and new["implicit_iterations"] != old.get("implicit_iterations", 3):
+        changes.append(f"{new['implicit_iterations']} midpoint sweeps (trained: {old.get('implicit_iterations', 3)})")
+    if bool(new["exact_kinematics"]) != bool(old.get("exact_kinematics", False)):
+        changes.append(f"{kin(new['exact_kinematics'])} kinematics (trained: {kin(old.get('exact_kinematics', False))})")
+    return {**ckpt, "hparams": new}, ", ".join(changes)

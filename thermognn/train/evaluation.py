@@ -27,7 +27,7 @@ from thermognn.core.errors import ConfigError
 from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
 
-from .checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype
+from .checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype, with_rollout
 from .data import (Graph, LoadedData, TrajectoryTensors, check_fingerprint, load_data, rest_trajectory,
                    velocity_columns)
 from .loop import print_rrmse_table
@@ -181,6 +181,9 @@ def evaluate(cfg) -> dict:
             data.trajectories[n] = TrajectoryTensors(n, torch.as_tensor(t.z, dtype=dtype),
                                                      torch.as_tensor(t.force, dtype=dtype),
                                                      torch.as_tensor(t.time, dtype=torch.float64))
+    ckpt, stepped = with_rollout(ckpt, cfg)
+    if stepped:
+        print(f"evaluate: stepping the trained model with {stepped}")
     model = model_from_checkpoint(ckpt).eval()
     groups = data.layout.names
     test = data.of("test")
@@ -294,7 +297,10 @@ def evaluate(cfg) -> dict:
              f"trained {ckpt.get('epoch', '?')} epochs (validation error {ckpt.get('val_error', float('nan')):.3e})",
              f"- trajectories: {len(test)} test, {len(train_trajs)} train (of {len(data.split['train'])})",
              f"- speed: {ms:.2f} ms per step (forward + autograd, {torch.get_num_threads()} threads, CPU, "
-             f"integrator {model.integrator}, {'exact' if model.exact_kinematics else 'learned'} kinematics)",
+             f"integrator {model.integrator}"
+             + (f" with {model.implicit_iterations} sweeps" if model.integrator == "midpoint" else "")
+             + f", {'exact' if model.exact_kinematics else 'learned'} kinematics"
+             + (f"; `rollout` overrides: {stepped}" if stepped else "") + ")",
              f"- energy balance: {_fmt(balance)} = sum |E_s - E_(s-1) - dt P| / sum |E_s - E_(s-1)| over the "
              "test rollouts (the learned energy's change that the port's work P does not explain: the "
              "integrator's drift, and for GENERIC models also what M changes where the learned "

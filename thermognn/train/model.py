@@ -444,22 +444,48 @@ def hyperparameters(cfg_model, dim: int, velocity_columns: List[int], hamiltonia
     }
 
 
-def _exact_kinematics(kinematics: str, velocity_columns: List[int], hamiltonian: bool) -> bool:
+def _exact_kinematics(kinematics: str, velocity_columns: List[int], hamiltonian: bool,
+                      group: str = "model") -> bool:
     """``model.kinematics``: exact (q from v by the trapezoidal rule; needs v in the state), learned
     (the network's dq/dt), auto (exact in dissipative scenes with inertia; learned in Hamiltonian
-    ones, whose dynamics then conserve the learned energy exactly)."""
-    _choice("kinematics", kinematics, ("auto", "exact", "learned"))
+    ones, whose dynamics then conserve the learned energy exactly). ``group`` names the config
+    group in errors (``rollout`` when a trained model is stepped otherwise)."""
+    _choice("kinematics", kinematics, ("auto", "exact", "learned"), group)
     if kinematics == "exact" and len(velocity_columns) != 3:
-        raise ConfigError("model.kinematics = exact needs the velocity v in the state (effect 'inertia')")
+        raise ConfigError(f"{group}.kinematics = exact needs the velocity v in the state (effect 'inertia')")
     if kinematics == "auto":
         return len(velocity_columns) == 3 and not hamiltonian
     return kinematics == "exact"
 
 
-def _choice(key: str, value: str, allowed: Tuple[str, ...]) -> None:
-    """A one-line ConfigError naming ``model.<key>`` unless value is one of ``allowed``."""
+def _choice(key: str, value: str, allowed: Tuple[str, ...], group: str = "model") -> None:
+    """A one-line ConfigError naming ``<group>.<key>`` unless value is one of ``allowed``."""
     if value not in allowed:
-        raise ConfigError(f"model.{key} = '{value}', expected " + " | ".join(allowed))
+        raise ConfigError(f"{group}.{key} = '{value}', expected " + " | ".join(allowed))
+
+
+def stepping(hparams: dict, integrator=None, implicit_iterations=None, kinematics=None,
+             group: str = "rollout") -> dict:
+    """The hyperparameters ``hparams`` with another time step for the same learned dz/dt: the
+    integrator, its fixed-point sweeps, the kinematics (None keeps the trained setting; errors
+    name ``<group>.<key>``). What the network learned is unchanged, so a trained model may be
+    stepped either way: the midpoint rule costs 1 + implicit_iterations network calls a step."""
+    out = dict(hparams)
+    if integrator is not None:
+        _choice("integrator", str(integrator), INTEGRATORS, group)
+        out["integrator"] = str(integrator)
+    if implicit_iterations is not None:
+        try:
+            n = int(implicit_iterations)
+        except (TypeError, ValueError):
+            n = 0
+        if n < 1 or str(n) != str(implicit_iterations).strip():
+            raise ConfigError(f"{group}.implicit_iterations = {implicit_iterations!r}, expected an integer >= 1")
+        out["implicit_iterations"] = n
+    if kinematics is not None:
+        out["exact_kinematics"] = _exact_kinematics(str(kinematics), list(hparams["velocity_columns"]),
+                                                    bool(hparams["hamiltonian"]), group)
+    return out
 
 
 def build_model(hparams: dict, dtype: torch.dtype = torch.float32) -> TIGNN:
