@@ -441,3 +441,18 @@ def test_evaluate_steps_a_trained_model_another_way(trained, tmp_path):
         with pytest.raises(ConfigError, match=msg.replace("|", r"\|")) as err:
             evaluate(_cfg(out, f"paths.eval_dir={tmp_path / 'bad'}", bad))
         assert "\n" not in str(err.value)
+
+
+def test_rollout_overrides_accept_checkpoints_of_earlier_versions(trained):
+    """A checkpoint written before ``exact_kinematics`` existed (no such hparam) may be re-stepped."""
+    from omegaconf import OmegaConf
+
+    from thermognn.train.checkpoint import with_rollout
+
+    out, cfg, ckpt_path = trained
+    ckpt = load_checkpoint(ckpt_path)
+    ckpt["hparams"] = {k: v for k, v in ckpt["hparams"].items() if k != "exact_kinematics"}
+    restepped, note = with_rollout(ckpt, OmegaConf.create({"rollout": {"integrator": "midpoint"}}))
+    assert note == "integrator midpoint (trained: euler)"
+    assert model_from_checkpoint(restepped).integrator == "midpoint"
+    assert with_rollout(ckpt, OmegaConf.create({"rollout": {"kinematics": "learned"}}))[1] == ""

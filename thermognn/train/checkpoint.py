@@ -99,10 +99,12 @@ def with_rollout(ckpt: dict, cfg) -> tuple[dict, str]:
     new = stepping(old, **want)
     kin = lambda exact: "exact" if exact else "learned"  # noqa: E731
     changes = []
-    if new["integrator"] != old.get("integrator", "euler"):
-        changes.append(f"integrator {new['integrator']} (trained: {old.get('integrator', 'euler')})")
-    if new["integrator"] == "midpoint" and new["implicit_iterations"] != old.get("implicit_iterations", 3):
-        changes.append(f"{new['implicit_iterations']} midpoint sweeps (trained: {old.get('implicit_iterations', 3)})")
-    if bool(new["exact_kinematics"]) != bool(old.get("exact_kinematics", False)):
-        changes.append(f"{kin(new['exact_kinematics'])} kinematics (trained: {kin(old.get('exact_kinematics', False))})")
+    # checkpoints of earlier versions may lack these keys: the model's defaults then apply
+    integ, sweeps = new.get("integrator", "euler"), new.get("implicit_iterations", 3)
+    if integ != old.get("integrator", "euler"):
+        changes.append(f"integrator {integ} (trained: {old.get('integrator', 'euler')})")
+    if integ == "midpoint" and sweeps != old.get("implicit_iterations", 3):
+        changes.append(f"{sweeps} midpoint sweeps (trained: {old.get('implicit_iterations', 3)})")
+    if bool(new.get("exact_kinematics", False)) != bool(old.get("exact_kinematics", False)):
+        changes.append(f"{kin(new.get('exact_kinematics', False))} kinematics (trained: {kin(old.get('exact_kinematics', False))})")
     return {**ckpt, "hparams": new}, ", ".join(changes)
