@@ -36,4 +36,5 @@ def test_demo_runs_every_stage_end_to_end(tmp_path):
     assert summary["final_force_N"] == 0.0
     assert summary["max_force_N"] > 0.0
     assert summary["loop_rate_hz"] > 0.0  # the loop ran; its rate is a benchmark figure, not asserted
+    assert summary["model_step"] == "euler, learned kinematics"         # as trained (the defaults)
     assert "test RRMSE" in res.stdout and "demo summary" in res.stdout

@@ -79,6 +79,7 @@ def test_serve_sim_press_produces_contact_and_ends_at_zero_force(sim_session):
     assert summary["body_fd_evaluations"] > 0 and summary["body_stiffness_mean_N_per_m"] > 0
     assert 0 < summary["contact_K_scale_mean"] <= 1.0
     assert summary["physics_step_ms"] > 0 and isinstance(summary["physics_warning"], str)
+    assert summary["model_step"] == "not recorded in the model file"     # the toy spring model has no step
 
 
 def test_serve_replay_of_a_session_log(sim_session, exported_model, tmp_path):

@@ -339,6 +339,7 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
         body_fd_disabled=str(physics_summary.get("fd_disabled", "")),
         body_fd_off_checks=int(physics_summary.get("fd_off_checks", 0)),
         n_nodes=int(geometry["n_nodes"]),
+        model_step=str(geometry.get("step", "")),
         haptic_scheduler=str(haptic_summary.get("scheduler", "")),
         haptic_torch_loaded=bool(haptic_summary.get("torch_loaded", False)),
         wall_s=time.perf_counter() - t_wall,
