@@ -15,6 +15,7 @@ from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
 from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype, with_rollout
 from thermognn.train.data import check_fingerprint, load_graph
+from thermognn.train.model import step_settings
 
 from .module import ExportedTIGNN
 
@@ -26,13 +27,10 @@ DEFAULT_RTOL = {torch.float32: 1e-4, torch.float64: 1e-9}
 
 def metadata(ckpt: dict) -> str:
     """The ``thermognn.json`` extra file (keys as in docs/stages.md)."""
-    hp = ckpt.get("hparams", {})
     return json.dumps({"format": FORMAT, "scene": ckpt.get("scene", ""), "effects": list(ckpt.get("effects", [])),
                        "state_layout": ckpt["state_layout"], "dt": float(ckpt["dt"]),
                        "structure": ckpt["structure"], "config": ckpt.get("config", ""),
-                       "step": {"integrator": hp.get("integrator", "euler"),
-                                "implicit_iterations": int(hp.get("implicit_iterations", 3)),
-                                "kinematics": "exact" if hp.get("exact_kinematics") else "learned"},
+                       "step": step_settings(ckpt.get("hparams", {})),
                        "versions": ckpt.get("versions", "{}")})
 
 

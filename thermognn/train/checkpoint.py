@@ -90,21 +90,18 @@ def with_rollout(ckpt: dict, cfg) -> tuple[dict, str]:
     nothing changed."""
     from omegaconf import OmegaConf
 
-    from .model import stepping
+    from .model import step_settings, stepping
 
     want = {k: OmegaConf.select(cfg, f"rollout.{k}", default=None) for k in ROLLOUT_KEYS}
     if all(v is None for v in want.values()):
         return ckpt, ""
-    old = ckpt["hparams"]
-    new = stepping(old, **want)
-    kin = lambda exact: "exact" if exact else "learned"  # noqa: E731
+    hparams = stepping(ckpt["hparams"], **want)
+    old, new = step_settings(ckpt["hparams"]), step_settings(hparams)
     changes = []
-    # checkpoints of earlier versions may lack these keys: the model's defaults then apply
-    integ, sweeps = new.get("integrator", "euler"), new.get("implicit_iterations", 3)
-    if integ != old.get("integrator", "euler"):
-        changes.append(f"integrator {integ} (trained: {old.get('integrator', 'euler')})")
-    if integ == "midpoint" and sweeps != old.get("implicit_iterations", 3):
-        changes.append(f"{sweeps} midpoint sweeps (trained: {old.get('implicit_iterations', 3)})")
-    if bool(new.get("exact_kinematics", False)) != bool(old.get("exact_kinematics", False)):
-        changes.append(f"{kin(new.get('exact_kinematics', False))} kinematics (trained: {kin(old.get('exact_kinematics', False))})")
-    return {**ckpt, "hparams": new}, ", ".join(changes)
+    if new["integrator"] != old["integrator"]:
+        changes.append(f"integrator {new['integrator']} (trained: {old['integrator']})")
+    if new["integrator"] == "midpoint" and new["implicit_iterations"] != old["implicit_iterations"]:
+        changes.append(f"{new['implicit_iterations']} midpoint sweeps (trained: {old['implicit_iterations']})")
+    if new["kinematics"] != old["kinematics"]:
+        changes.append(f"{new['kinematics']} kinematics (trained: {old['kinematics']})")
+    return {**ckpt, "hparams": hparams}, ", ".join(changes)

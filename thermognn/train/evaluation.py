@@ -257,13 +257,14 @@ def evaluate(cfg) -> dict:
     # the unloaded body left at rest for 10x the horizon (datasets that start from rest)
     drift_line = "- rest drift: not measured (the trajectories do not all start from one unloaded rest state)"
     drift = math.nan
+    vel_cols = velocity_columns(data.layout)
     try:
-        rest = rest_trajectory(test + train_trajs, data.dataset.effects, velocity_columns(data.layout))
+        rest = rest_trajectory(test + train_trajs, data.dataset.effects, vel_cols)
     except ConfigError:
         rest = None
     if rest is not None:
         steps = REST_HORIZONS * (n_steps - 1)
-        held = rest_drift(model, data.graph, rest, steps, velocity_columns(data.layout))
+        held = rest_drift(model, data.graph, rest, steps, vel_cols)
         _write_csv(out / "rest_drift.csv", ["step", "time_s", "max_displacement_m", "max_velocity_m_s"],
                    [[s, s * data.dt, *held[s]] for s in range(held.shape[0])])
         files.append("rest_drift.csv")

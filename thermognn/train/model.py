@@ -50,6 +50,7 @@ Everything here is TorchScript-able (``torch.jit.script``): message passing is w
 
 from __future__ import annotations
 
+import inspect
 from typing import Dict, List, Tuple
 
 import torch
@@ -462,6 +463,16 @@ def _choice(key: str, value: str, allowed: Tuple[str, ...], group: str = "model"
     """A one-line ConfigError naming ``<group>.<key>`` unless value is one of ``allowed``."""
     if value not in allowed:
         raise ConfigError(f"{group}.{key} = '{value}', expected " + " | ".join(allowed))
+
+
+def step_settings(hparams: dict) -> dict:
+    """How a model with these hyperparameters steps: {"integrator", "implicit_iterations",
+    "kinematics": "exact" | "learned"}, with the constructor's defaults where a checkpoint of an
+    earlier version lacks a key (the exported file's ``step`` metadata)."""
+    defaults = inspect.signature(TIGNN.__init__).parameters
+    get = lambda k: hparams.get(k, defaults[k].default)  # noqa: E731
+    return {"integrator": str(get("integrator")), "implicit_iterations": int(get("implicit_iterations")),
+            "kinematics": "exact" if get("exact_kinematics") else "learned"}
 
 
 def stepping(hparams: dict, integrator=None, implicit_iterations=None, kinematics=None,
