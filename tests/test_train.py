@@ -80,7 +80,7 @@ def test_resume_after_interruption_matches_uninterrupted(tmp_path, monkeypatch):
 
     write_oscillator_dataset(tmp_path / "a" / "dataset.h5", n_trajectories=4, steps=6)
     write_oscillator_dataset(tmp_path / "b" / "dataset.h5", n_trajectories=4, steps=6)
-    extra = ("train.epochs=4", "train.noise=0.01", "train.rollout_pairs=2")
+    extra = ("train.epochs=4", "train.noise=0.01", "train.rollout_pairs=2", "train.rest_rollout=4")
     ref = train(_cfg(tmp_path / "a", *extra))
 
     real_write = loop._write_metrics
@@ -416,6 +416,46 @@ def test_rest_samples_hold_the_unloaded_reference_state(trained, tmp_path):
     (run / "dataset.h5").symlink_to(out / "dataset.h5")
     train(_cfg(run, "train.epochs=1", "train.rest_samples=3"))
     assert _rows(run)[0]["loss"]
+
+
+def test_rest_rollout_takes_the_models_own_drift_at_rest_back(trained, tmp_path):
+    """train.rest_rollout H: the model's own rollout of the unloaded body over H steps; as many of
+    its states as there are rest samples, spread over 1 .. H - 1, are paired with the rest state
+    as target. 0 is off; a bad value, or no rest state, is a one-line error naming the key."""
+    from thermognn.core.errors import ConfigError
+    from thermognn.train.data import make_batch, rest_rollout_steps, rest_trajectory, velocity_columns
+    from thermognn.train.loop import drifted_states
+
+    assert rest_rollout_steps(0, 5) == (0, [])
+    h, steps = rest_rollout_steps(10, 4)
+    assert h == 10 and len(steps) == 4 and max(steps) == 9 and min(steps) == 1
+    assert rest_rollout_steps(10, 1) == (10, [9])
+    for bad in (1, -3, "long"):
+        with pytest.raises(ConfigError, match=f"train.rest_rollout = {bad!r}, expected 0 .off. or an integer >= 2"):
+            rest_rollout_steps(bad, 4)
+    with pytest.raises(ConfigError, match="train.rest_rollout = 10 needs the rest state: train.rest_samples is 0") as err:
+        rest_rollout_steps(10, 0)
+    assert "\n" not in str(err.value)
+
+    out, cfg, ckpt = trained
+    model = model_from_checkpoint(load_checkpoint(ckpt))
+    data = load_data(out / "dataset.h5", cfg.train.split, 0)
+    trajs = data.of("train")
+    rest = rest_trajectory(trajs, data.dataset.effects, velocity_columns(data.layout), steps=10)
+    assert rest.z.shape == (11, *trajs[0].z.shape[1:]) and (rest.z == trajs[0].z[0]).all()
+    assert not rest.force.any() and torch.allclose(rest.time[1:] - rest.time[:-1], trajs[0].time[1] - trajs[0].time[0])
+    held = drifted_states(model, data.graph, [rest], data.dt)[0]                # [11, N, D]
+    batch = make_batch(trajs + [rest], [(len(trajs), 9, 1)], data.graph, [t.z for t in trajs] + [held])
+    assert torch.equal(batch.z, held[9]) and torch.equal(batch.z_next, trajs[0].z[0]) and not batch.f.any()
+
+    run = tmp_path / "restroll"
+    run.mkdir()
+    (run / "dataset.h5").symlink_to(out / "dataset.h5")
+    train(_cfg(run, "train.epochs=1", "train.rest_rollout=6"))
+    assert _rows(run)[0]["loss"]
+    with pytest.raises(ConfigError, match="train.rest_rollout = 6 needs the rest state"):
+        train(_cfg(run / "none", "train.epochs=1", "train.rest_rollout=6", "train.rest_samples=0",
+                   f"paths.dataset={run / 'dataset.h5'}"))
 
 
 def test_evaluate_steps_a_trained_model_another_way(trained, tmp_path):

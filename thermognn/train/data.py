@@ -225,8 +225,9 @@ def samples(trajs: list[TrajectoryTensors], start_repeats: int | str = 1) -> lis
 
 
 def rest_trajectory(trajs: list[TrajectoryTensors], effects, velocity_cols: list[int],
-                    key: str = "train.rest_samples") -> TrajectoryTensors:
-    """The unloaded body at rest, held for one step: z[0] -> z[0] under zero force [2, N, D].
+                    key: str = "train.rest_samples", steps: int = 1) -> TrajectoryTensors:
+    """The unloaded body at rest, held for ``steps`` steps: z[0] repeated under zero force
+    [steps + 1, N, D] (``train.rest_rollout`` rolls the model out along it).
 
     Taken from the data: every trajectory must start from one common state with zero velocity
     and zero load (the reference configuration). Without this sample nothing in a loaded
@@ -244,9 +245,10 @@ def rest_trajectory(trajs: list[TrajectoryTensors], effects, velocity_cols: list
         if not torch.allclose(t.z[0], z0, rtol=1e-6, atol=1e-9 * float(z0.abs().max().clamp(min=1.0))):
             raise ConfigError(f"{key}: trajectory {t.name} starts from another state than "
                               f"{trajs[0].name}; set {key}=0")
-    return TrajectoryTensors(name="rest", z=torch.stack([z0, z0]),
-                             force=torch.zeros(2, *trajs[0].force.shape[1:], dtype=trajs[0].force.dtype),
-                             time=trajs[0].time[:2].clone())
+    dt = trajs[0].time[1] - trajs[0].time[0]
+    return TrajectoryTensors(name="rest", z=z0.expand(steps + 1, *z0.shape).clone(),
+                             force=torch.zeros(steps + 1, *trajs[0].force.shape[1:], dtype=trajs[0].force.dtype),
+                             time=trajs[0].time[0] + dt * torch.arange(steps + 1, dtype=trajs[0].time.dtype))
 
 
 def rest_samples(setting, trajs: list[TrajectoryTensors], effects,
@@ -266,6 +268,24 @@ def rest_samples(setting, trajs: list[TrajectoryTensors], effects,
     if n < 0:
         raise ConfigError(f"train.rest_samples = {setting!r}, expected auto or an integer >= 0")
     return n, (rest_trajectory(trajs, effects, velocity_cols) if n else None)
+
+
+def rest_rollout_steps(setting, n_rest: int) -> tuple[int, list[int]]:
+    """``train.rest_rollout`` H: how long the model's own rollout leaves the unloaded body alone
+    each epoch, and which of its states s (``n_rest`` of them, evenly spread over 1 .. H - 1) are
+    trained back toward rest. 0 is off; otherwise H >= 2, and rest samples are needed."""
+    try:
+        h = int(setting)
+    except (TypeError, ValueError):
+        h = -1
+    if h == 0:
+        return 0, []
+    if h < 2:
+        raise ConfigError(f"train.rest_rollout = {setting!r}, expected 0 (off) or an integer >= 2 (steps)")
+    if n_rest < 1:
+        raise ConfigError(f"train.rest_rollout = {h} needs the rest state: train.rest_samples is 0 here "
+                          f"(the data do not all start from one unloaded rest state, or it was set to 0)")
+    return h, [h - 1 - (k * (h - 2)) // max(n_rest - 1, 1) for k in range(n_rest)]
 
 
 def make_batch(trajs: list[TrajectoryTensors], items: list[tuple[int, ...]], graph: Graph,

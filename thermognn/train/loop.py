@@ -20,7 +20,8 @@ from thermognn.core.state import is_reversible
 from .checkpoint import (FORMAT, last_path, load_checkpoint, model_from_checkpoint, save_checkpoint,
                          torch_dtype)
 from .data import (LoadedData, check_fingerprint, compute_stats, fingerprint, load_data, make_batch,
-                   rest_samples, samples, velocity_columns)
+                   rest_rollout_steps, rest_samples, rest_trajectory, samples,
+                   velocity_columns)
 from .model import TIGNN, build_model, hyperparameters, parameter_count
 from .rollout import rollout, rollout_errors, validation_error
 
@@ -152,7 +153,7 @@ def warm_start(model: TIGNN, path: Path, ds, hparams: dict) -> dict:
 
 #: train settings a resumed run must share with the interrupted one (besides model and dataset)
 RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy", "noise", "split",
-               "rollout_pairs", "start_repeats", "rest_samples", "init")
+               "rollout_pairs", "start_repeats", "rest_samples", "rest_rollout", "init")
 
 
 def training_identity(cfg, hparams: dict, dtype_name: str) -> dict:
@@ -284,6 +285,9 @@ def train(cfg) -> Path:
     pairs = samples(train_trajs, _sel(tc, "start_repeats", 1))
     n_rest, rest = rest_samples(_sel(tc, "rest_samples", "auto"), train_trajs, ds.effects,
                                 velocity_columns(ds.layout))
+    rest_horizon, rest_steps = rest_rollout_steps(_sel(tc, "rest_rollout", 0), n_rest)
+    if rest_horizon:                                 # held as long as the model is left alone there
+        rest = rest_trajectory(train_trajs, ds.effects, velocity_columns(ds.layout), steps=rest_horizon)
     pairs += [(len(train_trajs), 0)] * n_rest        # the unloaded rest state stays put
     batch_trajs = train_trajs + ([rest] if rest is not None else [])
     rollout_from = int(_sel(tc, "rollout_pairs", 0))
@@ -295,7 +299,9 @@ def train(cfg) -> Path:
     patience = int(_sel(tc, "patience", 0))
     if dist.main:
         print(f"train: {len(train_trajs)} train / {len(val_trajs)} val / {len(data.split['test'])} test "
-              f"trajectories, {len(pairs)} steps ({n_rest} at rest), structure {structure}, "
+              f"trajectories, {len(pairs)} steps ({n_rest} at rest"
+              + (f", {len(rest_steps)} more from its own {rest_horizon}-step rollout at rest" if rest_horizon else "")
+              + f"), structure {structure}, "
               f"{parameter_count(model)} parameters")
 
     tb = _tensorboard(_sel(tc, "tensorboard", "auto"), out_dir / "tensorboard") if dist.main else None
@@ -305,9 +311,14 @@ def train(cfg) -> Path:
         epoch = start_epoch
         while not stopped and epoch < epochs:
             t0 = time.perf_counter()
-            if rollout_from > 0 and epoch + 1 >= rollout_from:       # refreshed every epoch (resumes exactly)
+            items = list(pairs)
+            rolled = None                                       # refreshed every epoch (resumes exactly)
+            if rollout_from > 0 and epoch + 1 >= rollout_from:
                 rolled = drifted_states(model, data.graph, train_trajs, ds.dt)
-            items = pairs + ([(i, s, 1) for i, s in pairs if s > 0] if rolled is not None else [])
+                items += [(i, s, 1) for i, s in pairs if s > 0 and i < len(train_trajs)]
+            if rest_horizon:                                    # the model's own drift at rest, taken back
+                rolled = (rolled or [t.z for t in train_trajs]) + drifted_states(model, data.graph, [rest], ds.dt)
+                items += [(len(train_trajs), s, 1) for s in rest_steps]
             model.train()
             perm = torch.randperm(len(items), generator=gen).tolist()
             n_use = len(perm) // dist.world * dist.world if dist.world > 1 else len(perm)
