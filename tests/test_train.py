@@ -80,7 +80,8 @@ def test_resume_after_interruption_matches_uninterrupted(tmp_path, monkeypatch):
 
     write_oscillator_dataset(tmp_path / "a" / "dataset.h5", n_trajectories=4, steps=6)
     write_oscillator_dataset(tmp_path / "b" / "dataset.h5", n_trajectories=4, steps=6)
-    extra = ("train.epochs=4", "train.noise=0.01", "train.rollout_pairs=2", "train.rest_rollout=4")
+    extra = ("train.epochs=4", "train.noise=0.01", "train.rollout_pairs=2", "train.rest_rollout=4",
+             "train.rest_stability=10")
     ref = train(_cfg(tmp_path / "a", *extra))
 
     real_write = loop._write_metrics
@@ -456,6 +457,44 @@ def test_rest_rollout_takes_the_models_own_drift_at_rest_back(trained, tmp_path)
     with pytest.raises(ConfigError, match="train.rest_rollout = 6 needs the rest state"):
         train(_cfg(run / "none", "train.epochs=1", "train.rest_rollout=6", "train.rest_samples=0",
                    f"paths.dataset={run / 'dataset.h5'}"))
+
+
+def test_rest_stability_probes_the_deployed_step_at_rest(trained, tmp_path):
+    """rest_growth: the growth of a disturbance of the rest state over one step of the model's own
+    step map (``TIGNN.step``), and the power iteration's next direction (unit norm, free entries
+    only); train.rest_stability logs the mean growth per epoch; a negative weight, or no rest
+    state, is a one-line error."""
+    from thermognn.core.errors import ConfigError
+    from thermognn.train.data import rest_trajectory, velocity_columns
+    from thermognn.train.loop import STABILITY_PROBE, rest_growth
+
+    out, cfg, ckpt = trained
+    model = model_from_checkpoint(load_checkpoint(ckpt)).double()
+    data = load_data(out / "dataset.h5", cfg.train.split, 0, torch.float64)
+    g = data.graph
+    rest = rest_trajectory(data.of("train"), data.dataset.effects, velocity_columns(data.layout))
+    z0, f, dt = rest.z[0], rest.force[0], torch.tensor(data.dt, dtype=torch.float64)
+    free = model.free_entries(g.node_type, z0)
+    direction = torch.randn(z0.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    growth, nxt = rest_growth(model, rest, g, data.dt, direction)
+    scale = data.dt * model.dzdt_std
+    d = direction * free
+    d = d * STABILITY_PROBE * float(free.sum()) ** 0.5 / d.norm()
+    jd = (model.step(z0 + d * scale, f, g.edge_index, g.node_type, g.ref_pos, dt)
+          - model.step(z0, f, g.edge_index, g.node_type, g.ref_pos, dt)) / scale
+    assert float(growth) == pytest.approx(float(jd.norm() / d.norm()), rel=1e-9)
+    assert float(nxt.norm()) == pytest.approx(1.0) and not (nxt * (1 - free)).any()
+    assert growth.requires_grad and not nxt.requires_grad
+
+    run = tmp_path / "stable"
+    run.mkdir()
+    (run / "dataset.h5").symlink_to(out / "dataset.h5")
+    train(_cfg(run, "train.epochs=1", "train.rest_stability=100"))
+    assert float(_rows(run)[0]["rest_growth"]) > 0
+    for extra, match in ((("train.rest_stability=-1",), r"train.rest_stability = -1.0, expected 0 \(off\) or a weight > 0"),
+                         (("train.rest_stability=1", "train.rest_samples=0"), "where there is a rest state")):
+        with pytest.raises(ConfigError, match=match):
+            train(_cfg(run / "bad", "train.epochs=1", *extra, f"paths.dataset={run / 'dataset.h5'}"))
 
 
 def test_evaluate_steps_a_trained_model_another_way(trained, tmp_path):

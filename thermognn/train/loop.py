@@ -25,7 +25,7 @@ from .data import (LoadedData, check_fingerprint, compute_stats, fingerprint, lo
 from .model import TIGNN, build_model, hyperparameters, parameter_count
 from .rollout import rollout, rollout_errors, validation_error
 
-METRIC_FIELDS = ["epoch", "lr", "loss", "data_loss", "degeneracy_loss", "val_error", "seconds"]
+METRIC_FIELDS = ["epoch", "lr", "loss", "data_loss", "degeneracy_loss", "rest_growth", "val_error", "seconds"]
 
 
 def _sel(cfg, key: str, default):
@@ -132,6 +132,32 @@ def drifted_states(model: TIGNN, graph, trajs: list, dt: float) -> list[torch.Te
     return out
 
 
+#: RMS size of the rest-stability probe per free entry, in typical steps' changes (dzdt_std * dt)
+STABILITY_PROBE = 0.3
+
+
+def rest_growth(model: TIGNN, rest, graph, dt: float, direction: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """How much one step of the model amplifies a small disturbance of the unloaded rest state
+    ``rest.z[0]`` along ``direction`` [N, D] (in units of a typical step's change per column), by
+    a finite difference of the step map Phi (a probe of RMS ``STABILITY_PROBE`` per free entry):
+    g = |Phi(z0 + d) - Phi(z0)| / |d| (0-dim, differentiable in the weights), and the next
+    direction of the power iteration, J d / |J d| (detached). Iterated once per batch, d turns
+    toward the step's fastest-growing mode at rest, where a stable step has g <= 1
+    (``train.rest_stability`` penalises g above 1)."""
+    z0, f = rest.z[0], rest.force[0]
+    scale = dt * model.dzdt_std.detach()                                # [D]
+    free = model.free_entries(graph.node_type, z0)                      # [N, D]
+    d = direction * free
+    d = d * (STABILITY_PROBE * float(free.sum()) ** 0.5 / d.norm().clamp(min=1e-30))
+    dt_t = torch.tensor(dt, dtype=z0.dtype)
+    stepped = []
+    for z in (z0, z0 + d * scale):
+        r = model.rates(z, f, graph.edge_index, graph.node_type, graph.ref_pos, True)[0]
+        stepped.append(model.advance(z, r, dt_t, graph.node_type, graph.ref_pos))
+    jd = (stepped[1] - stepped[0]) / scale * free                       # J d [N, D], typical steps
+    return jd.norm() / d.norm(), (jd / jd.norm().clamp(min=1e-30)).detach()
+
+
 #: hyperparameters that change how the model steps but not its weights
 STEP_ONLY = ("integrator", "implicit_iterations", "exact_kinematics")
 
@@ -153,7 +179,7 @@ def warm_start(model: TIGNN, path: Path, ds, hparams: dict) -> dict:
 
 #: train settings a resumed run must share with the interrupted one (besides model and dataset)
 RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy", "noise", "split",
-               "rollout_pairs", "start_repeats", "rest_samples", "rest_rollout", "init")
+               "rollout_pairs", "start_repeats", "rest_samples", "rest_rollout", "rest_stability", "init")
 
 
 def training_identity(cfg, hparams: dict, dtype_name: str) -> dict:
@@ -259,6 +285,7 @@ def train(cfg) -> Path:
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=gamma)
     gen = torch.Generator().manual_seed(seed)
     start_epoch, history, best_val, stale = 0, [], math.inf, 0
+    resumed_direction = None
 
     last = last_path(ckpt_path)
     if bool(_sel(tc, "resume", True)) and last.exists():
@@ -277,6 +304,7 @@ def train(cfg) -> Path:
             sched.load_state_dict(state["scheduler"])
             gen.set_state(state["rng"]["generator"])
             torch.set_rng_state(state["rng"]["torch"])
+            resumed_direction = state.get("rest_direction")
             start_epoch, history = int(state["epoch"]), list(state["history"])
             best_val, stale = float(state["best_val"]), int(state["stale_rounds"])
             if dist.main:
@@ -290,6 +318,13 @@ def train(cfg) -> Path:
         rest = rest_trajectory(train_trajs, ds.effects, velocity_columns(ds.layout), steps=rest_horizon)
     pairs += [(len(train_trajs), 0)] * n_rest        # the unloaded rest state stays put
     batch_trajs = train_trajs + ([rest] if rest is not None else [])
+    lam_s = float(_sel(tc, "rest_stability", 0.0))
+    if lam_s < 0 or (lam_s > 0 and rest is None):
+        raise ConfigError(f"train.rest_stability = {lam_s}, expected 0 (off) or a weight > 0 where there is a "
+                          f"rest state (train.rest_samples > 0)")
+    direction = resumed_direction                    # power iteration toward the fastest mode at rest
+    if direction is None and lam_s > 0:
+        direction = torch.randn(rest.z.shape[1:], generator=torch.Generator().manual_seed(seed), dtype=rest.z.dtype)
     rollout_from = int(_sel(tc, "rollout_pairs", 0))
     rolled: list[torch.Tensor] | None = None
     batch_size = max(1, int(tc.batch_size))
@@ -323,11 +358,15 @@ def train(cfg) -> Path:
             perm = torch.randperm(len(items), generator=gen).tolist()
             n_use = len(perm) // dist.world * dist.world if dist.world > 1 else len(perm)
             mine = perm[dist.rank:n_use:dist.world]
-            tot = dat = dgn = 0.0
+            tot = dat = dgn = grown = 0.0
             n_batches = 0
             for b in range(0, len(mine), batch_size):
                 batch = make_batch(batch_trajs, [items[i] for i in mine[b:b + batch_size]], data.graph, rolled)
                 loss, dl, dg = step_loss(model, batch, ds.dt, noise, gen, lam_d, lam_g)
+                if lam_s > 0:                        # the step must not amplify a disturbance at rest
+                    growth, direction = rest_growth(model, rest, data.graph, ds.dt, direction)
+                    loss = loss + lam_s * torch.relu(growth - 1.0).pow(2)
+                    grown += float(growth.detach())
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 dist.average_gradients(model)
@@ -338,6 +377,8 @@ def train(cfg) -> Path:
                                 f"lower train.lr or check the dataset")
             row = {"epoch": epoch + 1, "lr": opt.param_groups[0]["lr"], "loss": tot / max(n_batches, 1),
                    "data_loss": dat / max(n_batches, 1), "degeneracy_loss": dgn / max(n_batches, 1)}
+            if lam_s > 0:
+                row["rest_growth"] = grown / max(n_batches, 1)
             sched.step()
             epoch += 1
             if epoch % val_every == 0 or epoch == epochs:
@@ -360,6 +401,7 @@ def train(cfg) -> Path:
                                  "scheduler": sched.state_dict(),
                                  "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
                                  "history": history, "best_val": best_val, "stale_rounds": stale,
+                                 "rest_direction": direction,
                                  "identity": training_identity(cfg, hparams, dtype_name)}, last)
                 _write_metrics(out_dir / "metrics.csv", history)
                 if tb is not None:
