@@ -142,9 +142,10 @@ def test_evaluate_writes_figures_tables_and_vtu(trained):
 
     out, cfg, _ = trained
     res = evaluate(cfg)
-    assert set(res) == {"q", "v", "sigma", "ms_per_step", "energy_balance", "rest_drift"}
+    assert set(res) == {"q", "v", "sigma", "ms_per_step", "energy_balance", "rest_drift", "rest_growth"}
     assert all(math.isfinite(v) for v in res.values())
     ev = out / "eval"
+    assert res["rest_growth"] > 0 and "- rest stability: one step multiplies" in (ev / "summary.md").read_text()
     for name in ("rrmse_vs_time.csv", "rrmse_vs_time.png", "rrmse_per_trajectory.csv", "rrmse_per_trajectory.png",
                  "energy_entropy.csv", "energy_entropy.png", "rest_drift.csv", "summary.md"):
         assert (ev / name).stat().st_size > 0, name

@@ -7,6 +7,7 @@ Files written (all atomically)::
     rrmse_per_trajectory.csv / .png box plots of per-trajectory RRMSE, train vs test, per group
     energy_entropy.csv / .png       learned E, S and the degeneracy residual along each test rollout
     rest_drift.csv                  the unloaded body left at rest for 10x the horizon: how far it drifts
+                                    (the summary adds the growth factor of a disturbance at rest)
     snapshot_<traj>_<step>.vtu      predicted vs ground truth point data (datasets with tets only)
     summary.md                      the numbers above in one page
 """
@@ -30,7 +31,7 @@ from thermognn.core.schema import Dataset
 from .checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype, with_rollout
 from .data import (Graph, LoadedData, TrajectoryTensors, check_fingerprint, load_data, rest_trajectory,
                    velocity_columns)
-from .loop import print_rrmse_table
+from .loop import print_rrmse_table, rest_growth
 from .model import parameter_count
 from .rollout import rollout, rrmse_per_step, trajectory_error, trajectory_rrmse
 
@@ -131,6 +132,24 @@ def rest_drift(model, graph: Graph, rest: TrajectoryTensors, steps: int, velocit
     q = (pred[:, :, 0:3] - pred[:1, :, 0:3]).abs().flatten(1).amax(1)
     v = pred[:, :, velocity_cols].abs().flatten(1).amax(1) if velocity_cols else torch.zeros_like(q)
     return torch.stack([q, v], 1).double().numpy()
+
+
+#: power iterations for the growth factor at rest
+REST_POWER_ITERATIONS = 40
+
+
+def rest_growth_factor(model, graph: Graph, rest: TrajectoryTensors, dt: float,
+                       iterations: int = REST_POWER_ITERATIONS) -> float:
+    """The factor by which one step of the model multiplies a small disturbance of the unloaded
+    rest state along its fastest-growing mode (power iteration of ``loop.rest_growth``, the probe
+    ``train.rest_stability`` trains against; seeded). Above 1 the rest state is unstable: the
+    drift grows geometrically from any rate bias; at or below 1 it stays bounded."""
+    direction = torch.randn(rest.z.shape[1:], generator=torch.Generator().manual_seed(0), dtype=rest.z.dtype)
+    growth = math.nan
+    for _ in range(iterations):
+        g, direction = rest_growth(model, rest, graph, dt, direction)
+        growth = float(g.detach())
+    return growth
 
 
 def _rollouts(model, data: LoadedData, trajs: list[TrajectoryTensors]):
@@ -256,7 +275,7 @@ def evaluate(cfg) -> dict:
 
     # the unloaded body left at rest for 10x the horizon (datasets that start from rest)
     drift_line = "- rest drift: not measured (the trajectories do not all start from one unloaded rest state)"
-    drift = math.nan
+    drift = growth = math.nan
     vel_cols = velocity_columns(data.layout)
     try:
         rest = rest_trajectory(test + train_trajs, data.dataset.effects, vel_cols)
@@ -273,7 +292,11 @@ def evaluate(cfg) -> dict:
         drift_line = (f"- rest drift: unloaded and left at rest for {steps} steps ({REST_HORIZONS}x the horizon), "
                       f"the body moved at most {_fmt(float(np.nanmax(held[:, 0])))} m, {_fmt(drift)} of the "
                       f"largest displacement in the test data ({_fmt(reach)} m); `rest_drift.csv`")
-        print(f"evaluate: {drift_line[2:]}")
+        growth = rest_growth_factor(model, data.graph, rest, data.dt)
+        drift_line += (f"\n- rest stability: one step multiplies a small disturbance of the rest state by "
+                       f"{growth:.4f} along its fastest mode (above 1: the drift grows geometrically)")
+        for line in drift_line.splitlines():
+            print(f"evaluate: {line[2:]}")
 
     # predicted vs ground truth at one snapshot (VTU for ParaView; needs tets)
     if len(data.dataset.mesh.tets) and test:
@@ -286,6 +309,7 @@ def evaluate(cfg) -> dict:
     mean_test["ms_per_step"] = ms
     mean_test["energy_balance"] = balance
     mean_test["rest_drift"] = drift
+    mean_test["rest_growth"] = growth
     print_rrmse_table(f"rollout RRMSE ({len(test)} test, {len(train_trajs)} train trajectories)",
                       {"test": {g: mean_test[g] for g in groups}, "train": mean_train})
     print(f"evaluate: {ms:.2f} ms per step ({data.graph.n_nodes} nodes, {torch.get_num_threads()} threads); "
