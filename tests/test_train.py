@@ -226,6 +226,14 @@ def test_changed_configuration_trains_from_scratch(tmp_path, capsys):
     train(_cfg(tmp_path, "train.epochs=2", "train.lr=1e-4"))  # another learning rate: from scratch
     assert "configuration changed (lr)" in capsys.readouterr().out
     assert [int(r["epoch"]) for r in _rows(tmp_path)] == [1, 2]
+    # the later rest terms join the identity only when on: a run from before them resumes
+    last = last_path(tmp_path / "model.ckpt")
+    state = load_checkpoint(last)
+    assert "rest_stability" not in state["identity"] and "rest_rollout" not in state["identity"]
+    train(_cfg(tmp_path, "train.epochs=3", "train.lr=1e-4", "train.rest_stability=0", "train.rest_rollout=0"))
+    assert "resuming from" in capsys.readouterr().out
+    train(_cfg(tmp_path, "train.epochs=2", "train.lr=1e-4", "train.rest_stability=10"))
+    assert "configuration changed (rest_stability)" in capsys.readouterr().out
 
 
 def test_structure_auto_follows_effects_and_damping():

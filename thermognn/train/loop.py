@@ -179,14 +179,17 @@ def warm_start(model: TIGNN, path: Path, ds, hparams: dict) -> dict:
 
 #: train settings a resumed run must share with the interrupted one (besides model and dataset)
 RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy", "noise", "split",
-               "rollout_pairs", "start_repeats", "rest_samples", "rest_rollout", "rest_stability", "init")
+               "rollout_pairs", "start_repeats", "rest_samples", "init")
+#: later training terms, part of the identity only when on: a run interrupted before they existed resumes
+OPTIONAL_RESUME_KEYS = ("rest_rollout", "rest_stability")
 
 
 def training_identity(cfg, hparams: dict, dtype_name: str) -> dict:
     """What must not change for ``model.last.ckpt`` to be resumed (epochs, patience, threads may)."""
+    optional = {k: v for k in OPTIONAL_RESUME_KEYS for v in [_sel(cfg.train, k, 0)] if v not in (None, 0, 0.0)}
     return {"hparams": hparams, "dtype": dtype_name, "seed": int(_sel(cfg, "seed", 0)),
             **{k: OmegaConf.to_container(v) if OmegaConf.is_config(v) else v
-               for k in RESUME_KEYS for v in [_sel(cfg.train, k, None)]}}
+               for k in RESUME_KEYS for v in [_sel(cfg.train, k, None)]}, **optional}
 
 
 def _fits(model: torch.nn.Module, state_dict: dict) -> bool:
