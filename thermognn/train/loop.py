@@ -150,11 +150,13 @@ def rest_growth(model: TIGNN, rest, graph, dt: float, direction: torch.Tensor) -
     d = direction * free
     d = d * (STABILITY_PROBE * float(free.sum()) ** 0.5 / d.norm().clamp(min=1e-30))
     dt_t = torch.tensor(dt, dtype=z0.dtype)
-    stepped = []
-    for z in (z0, z0 + d * scale):
-        r = model.rates(z, f, graph.edge_index, graph.node_type, graph.ref_pos, True)[0]
-        stepped.append(model.advance(z, r, dt_t, graph.node_type, graph.ref_pos))
-    jd = (stepped[1] - stepped[0]) / scale * free                       # J d [N, D], typical steps
+    n = z0.shape[0]                                  # both states in one pass: two disjoint copies of the mesh
+    z = torch.cat([z0, z0 + d * scale])                                 # [2N, D]
+    edge_index = torch.cat([graph.edge_index, graph.edge_index + n], 1)  # [2, 2E]
+    node_type, ref_pos = graph.node_type.repeat(2), graph.ref_pos.repeat(2, 1)
+    r = model.rates(z, f.repeat(2, 1), edge_index, node_type, ref_pos, True)[0]
+    stepped = model.advance(z, r, dt_t, node_type, ref_pos)             # [2N, D]
+    jd = (stepped[n:] - stepped[:n]) / scale * free                     # J d [N, D], typical steps
     return jd.norm() / d.norm(), (jd / jd.norm().clamp(min=1e-30)).detach()
 
 
