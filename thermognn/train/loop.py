@@ -298,8 +298,10 @@ def train(cfg) -> Path:
         check_fingerprint(state["fingerprint"], ds, last,
                           hint="delete it or pass train.resume=false to train from scratch")
         identity = training_identity(cfg, hparams, dtype_name)
-        if state.get("identity") != identity:
-            changed = sorted(k for k in identity if (state.get("identity") or {}).get(k) != identity[k])
+        stored = {k: v for k, v in (state.get("identity") or {}).items()
+                  if not (k in OPTIONAL_RESUME_KEYS and v in (None, 0, 0.0))}
+        if stored != identity:
+            changed = sorted(k for k in set(identity) | set(stored) if stored.get(k) != identity.get(k))
             print(f"{last}: configuration changed ({', '.join(changed)}); training from scratch")
         elif not _fits(model, state["state_dict"]):
             print(f"{last}: weights from another model version; training from scratch")
