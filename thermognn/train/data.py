@@ -34,6 +34,16 @@ class Graph:
     def n_nodes(self) -> int:
         return int(self.ref_pos.shape[0])
 
+    def copies(self, count: int) -> "Graph":
+        """``count`` disjoint copies of the mesh as one graph, laid out as
+        ``torch_geometric.data.Batch.from_data_list`` would: copy b's node indices offset by b*N.
+        ref_pos [count*N, 3], edge_index [2, count*E], node_type [count*N], surface_faces [count*F, 3]."""
+        offsets = (torch.arange(count) * self.n_nodes).view(count, 1, 1)                       # [count, 1, 1]
+        edge_index = (self.edge_index.unsqueeze(0) + offsets).permute(1, 0, 2).reshape(2, -1)  # [2, count*E]
+        faces = (self.surface_faces.unsqueeze(0) + offsets.to(self.surface_faces.dtype)).reshape(-1, self.surface_faces.shape[-1])
+        return Graph(ref_pos=self.ref_pos.repeat(count, 1), edge_index=edge_index,
+                     node_type=self.node_type.repeat(count), surface_faces=faces)
+
 
 @dataclass
 class TrajectoryTensors:
@@ -306,7 +316,6 @@ def make_batch(trajs: list[TrajectoryTensors], items: list[tuple[int, ...]], gra
     z = z.reshape(B * N, -1)
     z_next = torch.stack([trajs[it[0]].z[it[1] + 1] for it in items]).reshape(B * N, -1)
     f = torch.stack([trajs[it[0]].force[it[1] + 1] for it in items]).reshape(B * N, 3)
-    offsets = (torch.arange(B) * N).view(B, 1, 1)                              # [B, 1, 1]
-    edge_index = (graph.edge_index.unsqueeze(0) + offsets).permute(1, 0, 2).reshape(2, -1)  # [2, B*E]
-    return Data(z=z, z_next=z_next, f=f, pos=graph.ref_pos.repeat(B, 1), node_type=graph.node_type.repeat(B),
-                edge_index=edge_index, batch=torch.arange(B).repeat_interleave(N), num_nodes=B * N)
+    batched = graph.copies(B)
+    return Data(z=z, z_next=z_next, f=f, pos=batched.ref_pos, node_type=batched.node_type,
+                edge_index=batched.edge_index, batch=torch.arange(B).repeat_interleave(N), num_nodes=B * N)

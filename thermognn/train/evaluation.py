@@ -147,7 +147,7 @@ def rest_growth_factor(model, graph: Graph, rest: TrajectoryTensors, dt: float,
     direction = torch.randn(rest.z.shape[1:], generator=torch.Generator().manual_seed(0), dtype=rest.z.dtype)
     growth = math.nan
     for _ in range(iterations):
-        g, direction = rest_growth(model, rest, graph, dt, direction)
+        g, direction = rest_growth(model, rest, graph, dt, direction, create_graph=False)
         growth = float(g.detach())
     return growth
 

@@ -136,26 +136,25 @@ def drifted_states(model: TIGNN, graph, trajs: list, dt: float) -> list[torch.Te
 STABILITY_PROBE = 0.3
 
 
-def rest_growth(model: TIGNN, rest, graph, dt: float, direction: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def rest_growth(model: TIGNN, rest, graph, dt: float, direction: torch.Tensor,
+                create_graph: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """How much one step of the model amplifies a small disturbance of the unloaded rest state
     ``rest.z[0]`` along ``direction`` [N, D] (in units of a typical step's change per column), by
     a finite difference of the step map Phi (a probe of RMS ``STABILITY_PROBE`` per free entry):
     g = |Phi(z0 + d) - Phi(z0)| / |d| (0-dim, differentiable in the weights), and the next
     direction of the power iteration, J d / |J d| (detached). Iterated once per batch, d turns
     toward the step's fastest-growing mode at rest, where a stable step has g <= 1
-    (``train.rest_stability`` penalises g above 1)."""
+    (``train.rest_stability`` penalises g above 1; ``create_graph=False`` to measure only)."""
     z0, f = rest.z[0], rest.force[0]
     scale = dt * model.dzdt_std.detach()                                # [D]
     free = model.free_entries(graph.node_type, z0)                      # [N, D]
     d = direction * free
     d = d * (STABILITY_PROBE * float(free.sum()) ** 0.5 / d.norm().clamp(min=1e-30))
     dt_t = torch.tensor(dt, dtype=z0.dtype)
-    n = z0.shape[0]                                  # both states in one pass: two disjoint copies of the mesh
+    n, pair = z0.shape[0], graph.copies(2)          # both states in one pass
     z = torch.cat([z0, z0 + d * scale])                                 # [2N, D]
-    edge_index = torch.cat([graph.edge_index, graph.edge_index + n], 1)  # [2, 2E]
-    node_type, ref_pos = graph.node_type.repeat(2), graph.ref_pos.repeat(2, 1)
-    r = model.rates(z, f.repeat(2, 1), edge_index, node_type, ref_pos, True)[0]
-    stepped = model.advance(z, r, dt_t, node_type, ref_pos)             # [2N, D]
+    r = model.rates(z, f.repeat(2, 1), pair.edge_index, pair.node_type, pair.ref_pos, create_graph)[0]
+    stepped = model.advance(z, r, dt_t, pair.node_type, pair.ref_pos)   # [2N, D]
     jd = (stepped[n:] - stepped[:n]) / scale * free                     # J d [N, D], typical steps
     return jd.norm() / d.norm(), (jd / jd.norm().clamp(min=1e-30)).detach()
 
@@ -186,12 +185,17 @@ RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy
 OPTIONAL_RESUME_KEYS = ("rest_rollout", "rest_stability")
 
 
+def _without_off_terms(identity: dict) -> dict:
+    """``identity`` without the OPTIONAL_RESUME_KEYS that are off (absent, None or 0)."""
+    return {k: v for k, v in identity.items() if not (k in OPTIONAL_RESUME_KEYS and v in (None, 0, 0.0))}
+
+
 def training_identity(cfg, hparams: dict, dtype_name: str) -> dict:
     """What must not change for ``model.last.ckpt`` to be resumed (epochs, patience, threads may)."""
-    optional = {k: v for k in OPTIONAL_RESUME_KEYS for v in [_sel(cfg.train, k, 0)] if v not in (None, 0, 0.0)}
-    return {"hparams": hparams, "dtype": dtype_name, "seed": int(_sel(cfg, "seed", 0)),
-            **{k: OmegaConf.to_container(v) if OmegaConf.is_config(v) else v
-               for k in RESUME_KEYS for v in [_sel(cfg.train, k, None)]}, **optional}
+    return _without_off_terms(
+        {"hparams": hparams, "dtype": dtype_name, "seed": int(_sel(cfg, "seed", 0)),
+         **{k: OmegaConf.to_container(v) if OmegaConf.is_config(v) else v
+            for k in RESUME_KEYS + OPTIONAL_RESUME_KEYS for v in [_sel(cfg.train, k, None)]}})
 
 
 def _fits(model: torch.nn.Module, state_dict: dict) -> bool:
@@ -298,8 +302,7 @@ def train(cfg) -> Path:
         check_fingerprint(state["fingerprint"], ds, last,
                           hint="delete it or pass train.resume=false to train from scratch")
         identity = training_identity(cfg, hparams, dtype_name)
-        stored = {k: v for k, v in (state.get("identity") or {}).items()
-                  if not (k in OPTIONAL_RESUME_KEYS and v in (None, 0, 0.0))}
+        stored = _without_off_terms(state.get("identity") or {})
         if stored != identity:
             changed = sorted(k for k in set(identity) | set(stored) if stored.get(k) != identity.get(k))
             print(f"{last}: configuration changed ({', '.join(changed)}); training from scratch")
@@ -357,7 +360,7 @@ def train(cfg) -> Path:
             rolled = None                                       # refreshed every epoch (resumes exactly)
             if rollout_from > 0 and epoch + 1 >= rollout_from:
                 rolled = drifted_states(model, data.graph, train_trajs, ds.dt)
-                items += [(i, s, 1) for i, s in pairs if s > 0 and i < len(train_trajs)]
+                items += [(i, s, 1) for i, s in pairs if s > 0]
             if rest_horizon:                                    # the model's own drift at rest, taken back
                 rolled = (rolled or [t.z for t in train_trajs]) + drifted_states(model, data.graph, [rest], ds.dt)
                 items += [(len(train_trajs), s, 1) for s in rest_steps]
