@@ -50,10 +50,11 @@ def main(argv: list[str]) -> None:
     args, overrides = parser.parse_known_args(argv)
 
     from thermognn.core.config import load_config
+    from thermognn.core.state import describe_step
     from thermognn.train import train
     from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint, with_rollout
     from thermognn.train.data import load_data
-    from thermognn.train.model import parameter_count
+    from thermognn.train.model import parameter_count, step_settings
     from thermognn.train.rollout import rrmse_per_step, trajectory_rrmse
     from thermognn.train.tignn_import import import_tignn
 
@@ -101,9 +102,7 @@ def main(argv: list[str]) -> None:
           f"{REFERENCE['params']:9d} {REFERENCE['ms_per_step']:8.1f}")
     kin = lambda exact: "exact" if exact else "learned"  # noqa: E731
     print(f"{'thermognn':12s} {mean['q']:9.2e} {mean['v']:9.2e} {mean['sigma']:9.2e} {params:9d} {ms:8.1f}"
-          f"   ({kin(model.exact_kinematics)} kinematics, integrator {model.integrator}"
-          f"{', ' + str(model.implicit_iterations) + ' sweeps' if model.integrator == 'midpoint' else ''}; "
-          f"{stepped or 'as trained'})")
+          f"   ({describe_step(step_settings(ckpt['hparams']))}; {stepped or 'as trained'})")
     print(f"{'':12s} {other['q']:9.2e} {other['v']:9.2e} {other['sigma']:9.2e} {'':9s} {'':8s}"
           f"   (the same weights, {kin(not model.exact_kinematics)} kinematics)")
     print(f"best checkpoint from epoch {ckpt.get('epoch')}; training wall time {train_s / 60:.1f} min (this run, "

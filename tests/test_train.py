@@ -145,7 +145,9 @@ def test_evaluate_writes_figures_tables_and_vtu(trained):
     assert set(res) == {"q", "v", "sigma", "ms_per_step", "energy_balance", "rest_drift", "rest_growth"}
     assert all(math.isfinite(v) for v in res.values())
     ev = out / "eval"
-    assert res["rest_growth"] > 0 and "- rest stability: one step multiplies" in (ev / "summary.md").read_text()
+    summary = (ev / "summary.md").read_text()
+    assert res["rest_growth"] > 0 and "- rest stability: one step multiplies" in summary
+    assert f"{res['rest_growth']:.4f} at " in summary and "at 30 typical steps' size" in summary   # the largest of 3
     for name in ("rrmse_vs_time.csv", "rrmse_vs_time.png", "rrmse_per_trajectory.csv", "rrmse_per_trajectory.png",
                  "energy_entropy.csv", "energy_entropy.png", "rest_drift.csv", "summary.md"):
         assert (ev / name).stat().st_size > 0, name
@@ -229,7 +231,7 @@ def test_changed_configuration_trains_from_scratch(tmp_path, capsys):
     # the later rest terms join the identity only when on: a run from before them resumes
     last = last_path(tmp_path / "model.ckpt")
     state = load_checkpoint(last)
-    assert "rest_stability" not in state["identity"] and "rest_rollout" not in state["identity"]
+    assert not {"rest_stability", "rest_rollout", "rest_stability_probe", "rest_stability_every"} & set(state["identity"])
     train(_cfg(tmp_path, "train.epochs=3", "train.lr=1e-4", "train.rest_stability=0", "train.rest_rollout=0"))
     assert "resuming from" in capsys.readouterr().out
     train(_cfg(tmp_path, "train.epochs=2", "train.lr=1e-4", "train.rest_stability=10"))
@@ -238,7 +240,8 @@ def test_changed_configuration_trains_from_scratch(tmp_path, capsys):
     assert "configuration changed (rest_stability)" in capsys.readouterr().out
     from thermognn.train.checkpoint import save_checkpoint      # stored as off: the same as absent
     state = load_checkpoint(last)
-    save_checkpoint({**state, "identity": {**state["identity"], "rest_rollout": 0, "rest_stability": 0.0}}, last)
+    save_checkpoint({**state, "identity": {**state["identity"], "rest_rollout": 0, "rest_stability": 0.0,
+                                           "rest_stability_probe": 0.3, "rest_stability_every": 1}}, last)
     train(_cfg(tmp_path, "train.epochs=3", "train.lr=1e-4"))
     assert "resuming from" in capsys.readouterr().out
 
@@ -501,14 +504,29 @@ def test_rest_stability_probes_the_deployed_step_at_rest(trained, tmp_path):
     assert float(growth) == pytest.approx(float(jd.norm() / d.norm()), rel=1e-9)
     assert float(nxt.norm()) == pytest.approx(1.0) and not (nxt * (1 - free)).any()
     assert growth.requires_grad and not nxt.requires_grad
+    # a larger probe: the secant growth over a disturbance of that size (RMS 30 typical steps per entry)
+    big, _ = rest_growth(model, rest, g, data.dt, direction, size=30.0)
+    d = d * (30.0 / STABILITY_PROBE)
+    assert float(d.norm()) / float(free.sum()) ** 0.5 == pytest.approx(30.0)
+    jd = (model.step(z0 + d * scale, f, g.edge_index, g.node_type, g.ref_pos, dt)
+          - model.step(z0, f, g.edge_index, g.node_type, g.ref_pos, dt)) / scale
+    assert float(big) == pytest.approx(float(jd.norm() / d.norm()), rel=1e-9)
 
     run = tmp_path / "stable"
     run.mkdir()
     (run / "dataset.h5").symlink_to(out / "dataset.h5")
-    train(_cfg(run, "train.epochs=1", "train.rest_stability=100"))
+    train(_cfg(run, "train.epochs=1", "train.rest_stability=100", "train.rest_stability_probe=[0.3,30]",
+               "train.rest_stability_every=2"))
     assert float(_rows(run)[0]["rest_growth"]) > 0
+    assert load_checkpoint(last_path(run / "model.ckpt"))["identity"]["rest_stability_probe"] == [0.3, 30]
     for extra, match in ((("train.rest_stability=-1",), r"train.rest_stability = -1.0, expected 0 \(off\) or a weight > 0"),
-                         (("train.rest_stability=1", "train.rest_samples=0"), "where there is a rest state")):
+                         (("train.rest_stability=1", "train.rest_samples=0"), "where there is a rest state"),
+                         (("train.rest_stability=1", "train.rest_stability_probe=[3,1]"),
+                          r"train.rest_stability_probe = \[3, 1\], expected a probe size > 0 or a range"),
+                         (("train.rest_stability=1", "train.rest_stability_probe=-1"),
+                          r"train.rest_stability_probe = -1, expected a probe size > 0"),
+                         (("train.rest_stability=1", "train.rest_stability_every=0"),
+                          r"train.rest_stability_every = 0, expected an integer >= 1")):
         with pytest.raises(ConfigError, match=match):
             train(_cfg(run / "bad", "train.epochs=1", *extra, f"paths.dataset={run / 'dataset.h5'}"))
 
@@ -527,7 +545,7 @@ def test_evaluate_steps_a_trained_model_another_way(trained, tmp_path):
     assert mid["energy_balance"] < 0.2 * euler["energy_balance"], (mid, euler)
     assert all(math.isfinite(mid[g]) for g in ("q", "v", "sigma"))
     summary = (tmp_path / "mid" / "summary.md").read_text()
-    assert "integrator midpoint with 6 sweeps" in summary and "integrator midpoint (trained: euler)" in summary
+    assert "CPU, midpoint (6 sweeps), learned kinematics" in summary and "integrator midpoint (trained: euler)" in summary
     assert "overrides" not in (tmp_path / "euler" / "summary.md").read_text()
     assert load_checkpoint(out / "model.ckpt")["hparams"]["integrator"] == "euler"     # the checkpoint is untouched
     for bad, msg in (("rollout.integrator=rk4", "rollout.integrator = 'rk4', expected euler | midpoint"),

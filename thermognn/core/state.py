@@ -84,3 +84,16 @@ def state_layout(effects, n_prony: int = 0, store_internal: bool = False) -> Sta
 def is_reversible(effects) -> bool:
     """Reversible (Hamiltonian) scenes have no dissipation: no viscous term."""
     return "viscous" not in tuple(effects)
+
+
+def describe_step(step) -> str:
+    """How a model steps, in one phrase used by evaluate, export's metadata readers, serve and the
+    benchmarks, from its step settings ({"integrator", "implicit_iterations", "kinematics"}, the
+    exported file's ``step`` metadata), e.g. "euler, learned kinematics" or "midpoint (3 sweeps),
+    exact kinematics"."""
+    if not isinstance(step, dict):
+        return "not recorded in the model file"
+    integrator = str(step.get("integrator", "?"))
+    if integrator == "midpoint":
+        integrator += f" ({step.get('implicit_iterations', '?')} sweeps)"
+    return f"{integrator}, {step.get('kinematics', '?')} kinematics"

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from thermognn.core.errors import DataError
-from thermognn.core.state import StateLayout
+from thermognn.core.state import StateLayout, describe_step
 
 from . import protocol as P
 from .contact import SurfaceContact, normal_compliance, series_stiffness
@@ -67,19 +67,7 @@ def model_geometry(buffers: dict, meta: dict) -> dict:
     X = buffers["reference_positions"].astype(float)
     return {"ok": True, "n_nodes": int(X.shape[0]), "lo": X.min(axis=0).tolist(), "hi": X.max(axis=0).tolist(),
             "dt": float(buffers["dt"]), "n_faces": int(len(buffers["surface_faces"])),
-            "scene": meta.get("scene"), "state_layout": meta.get("state_layout"), "step": describe_step(meta)}
-
-
-def describe_step(meta: dict) -> str:
-    """How the exported model steps, from its ``step`` metadata (``thermognn export``), e.g.
-    "euler, learned kinematics" or "midpoint (3 sweeps), exact kinematics"."""
-    step = meta.get("step")
-    if not isinstance(step, dict):
-        return "not recorded in the model file"
-    integrator = str(step.get("integrator", "?"))
-    if integrator == "midpoint":
-        integrator += f" ({step.get('implicit_iterations', '?')} sweeps)"
-    return f"{integrator}, {step.get('kinematics', '?')} kinematics"
+            "scene": meta.get("scene"), "state_layout": meta.get("state_layout"), "step": describe_step(meta.get("step"))}
 
 
 def physics_main(params: dict, conn) -> None:

@@ -25,6 +25,7 @@ from omegaconf import OmegaConf
 
 from thermognn.core.config import project_path
 from thermognn.core.errors import ConfigError
+from thermognn.core.state import describe_step
 from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
 
@@ -32,7 +33,7 @@ from .checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype, wit
 from .data import (Graph, LoadedData, TrajectoryTensors, check_fingerprint, load_data, rest_trajectory,
                    velocity_columns)
 from .loop import print_rrmse_table, rest_growth
-from .model import parameter_count
+from .model import parameter_count, step_settings
 from .rollout import rollout, rrmse_per_step, trajectory_error, trajectory_rrmse
 
 
@@ -136,18 +137,22 @@ def rest_drift(model, graph: Graph, rest: TrajectoryTensors, steps: int, velocit
 
 #: power iterations for the growth factor at rest
 REST_POWER_ITERATIONS = 40
+#: disturbances of the rest state evaluate probes, RMS per free entry in typical steps' changes:
+#: the linear step (0.3), and the sizes a drift reaches before it shows (3, 30)
+REST_PROBE_SIZES = (0.3, 3.0, 30.0)
 
 
 def rest_growth_factor(model, graph: Graph, rest: TrajectoryTensors, dt: float,
-                       iterations: int = REST_POWER_ITERATIONS) -> float:
-    """The factor by which one step of the model multiplies a small disturbance of the unloaded
-    rest state along its fastest-growing mode (power iteration of ``loop.rest_growth``, the probe
-    ``train.rest_stability`` trains against; seeded). Above 1 the rest state is unstable: the
-    drift grows geometrically from any rate bias; at or below 1 it stays bounded."""
+                       iterations: int = REST_POWER_ITERATIONS, size: float = REST_PROBE_SIZES[0]) -> float:
+    """The factor by which one step of the model multiplies a disturbance of the unloaded rest
+    state of RMS ``size`` typical steps per free entry, along its fastest-growing mode (power
+    iteration of ``loop.rest_growth``, the probe ``train.rest_stability`` trains against; seeded).
+    Above 1 the rest state is unstable at that size: the drift grows geometrically from any rate
+    bias; at or below 1 it stays bounded."""
     direction = torch.randn(rest.z.shape[1:], generator=torch.Generator().manual_seed(0), dtype=rest.z.dtype)
     growth = math.nan
     for _ in range(iterations):
-        g, direction = rest_growth(model, rest, graph, dt, direction, create_graph=False)
+        g, direction = rest_growth(model, rest, graph, dt, direction, create_graph=False, size=size)
         growth = float(g.detach())
     return growth
 
@@ -292,9 +297,11 @@ def evaluate(cfg) -> dict:
         drift_line = (f"- rest drift: unloaded and left at rest for {steps} steps ({REST_HORIZONS}x the horizon), "
                       f"the body moved at most {_fmt(float(np.nanmax(held[:, 0])))} m, {_fmt(drift)} of the "
                       f"largest displacement in the test data ({_fmt(reach)} m); `rest_drift.csv`")
-        growth = rest_growth_factor(model, data.graph, rest, data.dt)
-        drift_line += (f"\n- rest stability: one step multiplies a small disturbance of the rest state by "
-                       f"{growth:.4f} along its fastest mode (above 1: the drift grows geometrically)")
+        by_size = {size: rest_growth_factor(model, data.graph, rest, data.dt, size=size) for size in REST_PROBE_SIZES}
+        growth = max(by_size.values())
+        drift_line += ("\n- rest stability: one step multiplies a disturbance of the rest state along its fastest "
+                       "mode by " + ", ".join(f"{g:.4f} at {size:g}" for size, g in by_size.items())
+                       + " typical steps' size (above 1: a drift of that size grows geometrically)")
         for line in drift_line.splitlines():
             print(f"evaluate: {line[2:]}")
 
@@ -322,9 +329,7 @@ def evaluate(cfg) -> dict:
              f"trained {ckpt.get('epoch', '?')} epochs (validation error {ckpt.get('val_error', float('nan')):.3e})",
              f"- trajectories: {len(test)} test, {len(train_trajs)} train (of {len(data.split['train'])})",
              f"- speed: {ms:.2f} ms per step (forward + autograd, {torch.get_num_threads()} threads, CPU, "
-             f"integrator {model.integrator}"
-             + (f" with {model.implicit_iterations} sweeps" if model.integrator == "midpoint" else "")
-             + f", {'exact' if model.exact_kinematics else 'learned'} kinematics"
+             + describe_step(step_settings(ckpt["hparams"]))
              + (f"; `rollout` overrides: {stepped}" if stepped else "") + ")",
              f"- energy balance: {_fmt(balance)} = sum |E_s - E_(s-1) - dt P| / sum |E_s - E_(s-1)| over the "
              "test rollouts (the learned energy's change that the port's work P does not explain: the "

@@ -132,24 +132,27 @@ def drifted_states(model: TIGNN, graph, trajs: list, dt: float) -> list[torch.Te
     return out
 
 
-#: RMS size of the rest-stability probe per free entry, in typical steps' changes (dzdt_std * dt)
+#: RMS size of the rest-stability probe per free entry, in typical steps' changes (dzdt_std * dt):
+#: the default of ``train.rest_stability_probe``, small enough to measure the linear step at rest
 STABILITY_PROBE = 0.3
 
 
 def rest_growth(model: TIGNN, rest, graph, dt: float, direction: torch.Tensor,
-                create_graph: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
-    """How much one step of the model amplifies a small disturbance of the unloaded rest state
+                create_graph: bool = True, size: float = STABILITY_PROBE) -> tuple[torch.Tensor, torch.Tensor]:
+    """How much one step of the model amplifies a disturbance of the unloaded rest state
     ``rest.z[0]`` along ``direction`` [N, D] (in units of a typical step's change per column), by
-    a finite difference of the step map Phi (a probe of RMS ``STABILITY_PROBE`` per free entry):
+    a finite difference of the step map Phi (a probe of RMS ``size`` typical steps per free entry):
     g = |Phi(z0 + d) - Phi(z0)| / |d| (0-dim, differentiable in the weights), and the next
-    direction of the power iteration, J d / |J d| (detached). Iterated once per batch, d turns
-    toward the step's fastest-growing mode at rest, where a stable step has g <= 1
-    (``train.rest_stability`` penalises g above 1; ``create_graph=False`` to measure only)."""
+    direction of the power iteration, (Phi(z0 + d) - Phi(z0)) / |...| (detached). Iterated once per
+    batch, d turns toward the step's fastest-growing mode at rest, where a stable step has g <= 1
+    (``train.rest_stability`` penalises g above 1; ``create_graph=False`` to measure only). A small
+    probe measures the linear step (the Jacobian J); a larger one, the secant growth a drift of
+    that size meets."""
     z0, f = rest.z[0], rest.force[0]
     scale = dt * model.dzdt_std.detach()                                # [D]
     free = model.free_entries(graph.node_type, z0)                      # [N, D]
     d = direction * free
-    d = d * (STABILITY_PROBE * float(free.sum()) ** 0.5 / d.norm().clamp(min=1e-30))
+    d = d * (size * float(free.sum()) ** 0.5 / d.norm().clamp(min=1e-30))
     dt_t = torch.tensor(dt, dtype=z0.dtype)
     n, pair = z0.shape[0], graph.copies(2)          # both states in one pass
     z = torch.cat([z0, z0 + d * scale])                                 # [2N, D]
@@ -157,6 +160,21 @@ def rest_growth(model: TIGNN, rest, graph, dt: float, direction: torch.Tensor,
     stepped = model.advance(z, r, dt_t, pair.node_type, pair.ref_pos)   # [2N, D]
     jd = (stepped[n:] - stepped[:n]) / scale * free                     # J d [N, D], typical steps
     return jd.norm() / d.norm(), (jd / jd.norm().clamp(min=1e-30)).detach()
+
+
+def stability_probe_sizes(value) -> tuple[float, float]:
+    """``train.rest_stability_probe``: one probe size, or a range [smallest, largest] drawn from
+    log-uniformly per probe (RMS per free entry, typical steps' changes), as (lo, hi)."""
+    sizes = OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
+    sizes = list(sizes) if isinstance(sizes, (list, tuple)) else [sizes]
+    try:
+        lo, hi = (float(sizes[0]), float(sizes[-1])) if 1 <= len(sizes) <= 2 else (math.nan, math.nan)
+    except (TypeError, ValueError):
+        lo = hi = math.nan
+    if not (0 < lo <= hi < math.inf):
+        raise ConfigError(f"train.rest_stability_probe = {value}, expected a probe size > 0 or a range "
+                          f"[smallest, largest] of them, in typical steps' changes (e.g. 0.3 or [0.3, 30])")
+    return lo, hi
 
 
 #: hyperparameters that change how the model steps but not its weights
@@ -182,12 +200,15 @@ def warm_start(model: TIGNN, path: Path, ds, hparams: dict) -> dict:
 RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy", "noise", "split",
                "rollout_pairs", "start_repeats", "rest_samples", "init")
 #: later training terms, part of the identity only when on: a run interrupted before they existed resumes
-OPTIONAL_RESUME_KEYS = ("rest_rollout", "rest_stability")
+#: (with the value that leaves them as they were before: off, or the former fixed behaviour)
+OPTIONAL_RESUME_KEYS = {"rest_rollout": 0, "rest_stability": 0, "rest_stability_probe": STABILITY_PROBE,
+                        "rest_stability_every": 1}
 
 
 def _without_off_terms(identity: dict) -> dict:
-    """``identity`` without the OPTIONAL_RESUME_KEYS that are off (absent, None or 0)."""
-    return {k: v for k, v in identity.items() if not (k in OPTIONAL_RESUME_KEYS and v in (None, 0, 0.0))}
+    """``identity`` without the OPTIONAL_RESUME_KEYS that are absent (None) or at their former value."""
+    return {k: v for k, v in identity.items()
+            if not (k in OPTIONAL_RESUME_KEYS and (v is None or v == OPTIONAL_RESUME_KEYS[k]))}
 
 
 def training_identity(cfg, hparams: dict, dtype_name: str) -> dict:
@@ -195,7 +216,7 @@ def training_identity(cfg, hparams: dict, dtype_name: str) -> dict:
     return _without_off_terms(
         {"hparams": hparams, "dtype": dtype_name, "seed": int(_sel(cfg, "seed", 0)),
          **{k: OmegaConf.to_container(v) if OmegaConf.is_config(v) else v
-            for k in RESUME_KEYS + OPTIONAL_RESUME_KEYS for v in [_sel(cfg.train, k, None)]}})
+            for k in RESUME_KEYS + tuple(OPTIONAL_RESUME_KEYS) for v in [_sel(cfg.train, k, None)]}})
 
 
 def _fits(model: torch.nn.Module, state_dict: dict) -> bool:
@@ -332,6 +353,11 @@ def train(cfg) -> Path:
     if lam_s < 0 or (lam_s > 0 and rest is None):
         raise ConfigError(f"train.rest_stability = {lam_s}, expected 0 (off) or a weight > 0 where there is a "
                           f"rest state (train.rest_samples > 0)")
+    probe_sizes = stability_probe_sizes(_sel(tc, "rest_stability_probe", STABILITY_PROBE))
+    probe_every = _sel(tc, "rest_stability_every", 1)
+    if not isinstance(probe_every, int) or isinstance(probe_every, bool) or probe_every < 1:
+        raise ConfigError(f"train.rest_stability_every = {probe_every!r}, expected an integer >= 1 "
+                          f"(probe the rest state every k-th batch)")
     direction = resumed_direction                    # power iteration toward the fastest mode at rest
     if direction is None and lam_s > 0:
         direction = torch.randn(rest.z.shape[1:], generator=torch.Generator().manual_seed(seed), dtype=rest.z.dtype)
@@ -369,14 +395,16 @@ def train(cfg) -> Path:
             n_use = len(perm) // dist.world * dist.world if dist.world > 1 else len(perm)
             mine = perm[dist.rank:n_use:dist.world]
             tot = dat = dgn = grown = 0.0
-            n_batches = 0
+            n_batches = n_probes = 0
             for b in range(0, len(mine), batch_size):
                 batch = make_batch(batch_trajs, [items[i] for i in mine[b:b + batch_size]], data.graph, rolled)
                 loss, dl, dg = step_loss(model, batch, ds.dt, noise, gen, lam_d, lam_g)
-                if lam_s > 0:                        # the step must not amplify a disturbance at rest
-                    growth, direction = rest_growth(model, rest, data.graph, ds.dt, direction)
+                if lam_s > 0 and n_batches % probe_every == 0:   # a disturbance at rest must not grow
+                    lo, hi = probe_sizes                 # log-uniform between them, from the seeded stream
+                    size = lo if lo == hi else lo * (hi / lo) ** float(torch.rand((), generator=gen))
+                    growth, direction = rest_growth(model, rest, data.graph, ds.dt, direction, size=size)
                     loss = loss + lam_s * torch.relu(growth - 1.0).pow(2)
-                    grown += float(growth.detach())
+                    grown, n_probes = grown + float(growth.detach()), n_probes + 1
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 dist.average_gradients(model)
@@ -388,7 +416,7 @@ def train(cfg) -> Path:
             row = {"epoch": epoch + 1, "lr": opt.param_groups[0]["lr"], "loss": tot / max(n_batches, 1),
                    "data_loss": dat / max(n_batches, 1), "degeneracy_loss": dgn / max(n_batches, 1)}
             if lam_s > 0:
-                row["rest_growth"] = grown / max(n_batches, 1)
+                row["rest_growth"] = grown / max(n_probes, 1)
             sched.step()
             epoch += 1
             if epoch % val_every == 0 or epoch == epochs:
