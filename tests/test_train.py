@@ -479,10 +479,11 @@ def test_rest_rollout_takes_the_models_own_drift_at_rest_back(trained, tmp_path)
 
 
 def test_rest_stability_probes_the_deployed_step_at_rest(trained, tmp_path):
-    """rest_growth: the growth of a disturbance of the rest state over one step of the model's own
-    step map (``TIGNN.step``), and the power iteration's next direction (unit norm, free entries
-    only); train.rest_stability logs the mean growth per epoch; a negative weight, or no rest
-    state, is a one-line error."""
+    """rest_growth: the growth of disturbances of the rest state of two sizes over one step of the
+    model's own step map (``TIGNN.step``), and the power iterations' next directions (unit norm,
+    free entries only); train.rest_stability with a range of probe sizes logs the growth per epoch
+    and keeps a direction per size; bad weights, sizes and intervals, or no rest state, are
+    one-line errors."""
     from thermognn.core.errors import ConfigError
     from thermognn.train.data import rest_trajectory, velocity_columns
     from thermognn.train.loop import STABILITY_PROBE, rest_growth
@@ -494,23 +495,19 @@ def test_rest_stability_probes_the_deployed_step_at_rest(trained, tmp_path):
     rest = rest_trajectory(data.of("train"), data.dataset.effects, velocity_columns(data.layout))
     z0, f, dt = rest.z[0], rest.force[0], torch.tensor(data.dt, dtype=torch.float64)
     free = model.free_entries(g.node_type, z0)
-    direction = torch.randn(z0.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
-    growth, nxt = rest_growth(model, rest, g, data.dt, direction)
+    direction = torch.randn((2, *z0.shape), generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    growth, nxt = rest_growth(model, rest, g, data.dt, direction, [STABILITY_PROBE, 30.0])   # both in one pass
+    assert growth.shape == (2,) and nxt.shape == direction.shape
     scale = data.dt * model.dzdt_std
-    d = direction * free
-    d = d * STABILITY_PROBE * float(free.sum()) ** 0.5 / d.norm()
-    jd = (model.step(z0 + d * scale, f, g.edge_index, g.node_type, g.ref_pos, dt)
-          - model.step(z0, f, g.edge_index, g.node_type, g.ref_pos, dt)) / scale
-    assert float(growth) == pytest.approx(float(jd.norm() / d.norm()), rel=1e-9)
-    assert float(nxt.norm()) == pytest.approx(1.0) and not (nxt * (1 - free)).any()
+    for k, size in enumerate((STABILITY_PROBE, 30.0)):     # the small probe: the linear step; the large: a secant
+        d = direction[k] * free
+        d = d * size * float(free.sum()) ** 0.5 / d.norm()
+        jd = (model.step(z0 + d * scale, f, g.edge_index, g.node_type, g.ref_pos, dt)
+              - model.step(z0, f, g.edge_index, g.node_type, g.ref_pos, dt)) / scale
+        assert float(growth[k]) == pytest.approx(float(jd.norm() / d.norm()), rel=1e-9)
+        assert float(nxt[k].norm()) == pytest.approx(1.0) and not (nxt[k] * (1 - free)).any()
+        assert torch.allclose(nxt[k], jd * free / (jd * free).norm())
     assert growth.requires_grad and not nxt.requires_grad
-    # a larger probe: the secant growth over a disturbance of that size (RMS 30 typical steps per entry)
-    big, _ = rest_growth(model, rest, g, data.dt, direction, size=30.0)
-    d = d * (30.0 / STABILITY_PROBE)
-    assert float(d.norm()) / float(free.sum()) ** 0.5 == pytest.approx(30.0)
-    jd = (model.step(z0 + d * scale, f, g.edge_index, g.node_type, g.ref_pos, dt)
-          - model.step(z0, f, g.edge_index, g.node_type, g.ref_pos, dt)) / scale
-    assert float(big) == pytest.approx(float(jd.norm() / d.norm()), rel=1e-9)
 
     run = tmp_path / "stable"
     run.mkdir()
@@ -518,7 +515,9 @@ def test_rest_stability_probes_the_deployed_step_at_rest(trained, tmp_path):
     train(_cfg(run, "train.epochs=1", "train.rest_stability=100", "train.rest_stability_probe=[0.3,30]",
                "train.rest_stability_every=2"))
     assert float(_rows(run)[0]["rest_growth"]) > 0
-    assert load_checkpoint(last_path(run / "model.ckpt"))["identity"]["rest_stability_probe"] == [0.3, 30]
+    state = load_checkpoint(last_path(run / "model.ckpt"))
+    assert state["identity"]["rest_stability_probe"] == [0.3, 30]
+    assert state["rest_direction"].shape == (2, *z0.shape)          # the linear probe's and the drawn size's
     for extra, match in ((("train.rest_stability=-1",), r"train.rest_stability = -1.0, expected 0 \(off\) or a weight > 0"),
                          (("train.rest_stability=1", "train.rest_samples=0"), "where there is a rest state"),
                          (("train.rest_stability=1", "train.rest_stability_probe=[3,1]"),

@@ -149,11 +149,11 @@ def rest_growth_factor(model, graph: Graph, rest: TrajectoryTensors, dt: float,
     iteration of ``loop.rest_growth``, the probe ``train.rest_stability`` trains against; seeded).
     Above 1 the rest state is unstable at that size: the drift grows geometrically from any rate
     bias; at or below 1 it stays bounded."""
-    direction = torch.randn(rest.z.shape[1:], generator=torch.Generator().manual_seed(0), dtype=rest.z.dtype)
+    direction = torch.randn((1, *rest.z.shape[1:]), generator=torch.Generator().manual_seed(0), dtype=rest.z.dtype)
     growth = math.nan
     for _ in range(iterations):
-        g, direction = rest_growth(model, rest, graph, dt, direction, create_graph=False, size=size)
-        growth = float(g.detach())
+        g, direction = rest_growth(model, rest, graph, dt, direction, [size], create_graph=False)
+        growth = float(g.detach()[0])
     return growth
 
 

@@ -137,29 +137,33 @@ def drifted_states(model: TIGNN, graph, trajs: list, dt: float) -> list[torch.Te
 STABILITY_PROBE = 0.3
 
 
-def rest_growth(model: TIGNN, rest, graph, dt: float, direction: torch.Tensor,
-                create_graph: bool = True, size: float = STABILITY_PROBE) -> tuple[torch.Tensor, torch.Tensor]:
-    """How much one step of the model amplifies a disturbance of the unloaded rest state
-    ``rest.z[0]`` along ``direction`` [N, D] (in units of a typical step's change per column), by
-    a finite difference of the step map Phi (a probe of RMS ``size`` typical steps per free entry):
-    g = |Phi(z0 + d) - Phi(z0)| / |d| (0-dim, differentiable in the weights), and the next
-    direction of the power iteration, (Phi(z0 + d) - Phi(z0)) / |...| (detached). Iterated once per
-    batch, d turns toward the step's fastest-growing mode at rest, where a stable step has g <= 1
-    (``train.rest_stability`` penalises g above 1; ``create_graph=False`` to measure only). A small
-    probe measures the linear step (the Jacobian J); a larger one, the secant growth a drift of
-    that size meets."""
+def rest_growth(model: TIGNN, rest, graph, dt: float, directions: torch.Tensor, sizes,
+                create_graph: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """How much one step of the model amplifies disturbances of the unloaded rest state
+    ``rest.z[0]``: one along each of ``directions`` [K, N, D] (in units of a typical step's change
+    per column), of RMS ``sizes[k]`` typical steps per free entry, by finite differences of the
+    step map Phi: g_k = |Phi(z0 + d_k) - Phi(z0)| / |d_k| ([K], differentiable in the weights), and
+    the next directions of the power iterations, (Phi(z0 + d_k) - Phi(z0)) / |...| ([K, N, D],
+    detached). Iterated once per batch, each d_k turns toward the step's fastest-growing mode at
+    rest for its size, where a stable step has g <= 1 (``train.rest_stability`` penalises g above
+    1; ``create_graph=False`` to measure only). A small probe measures the linear step (the
+    Jacobian J); a larger one, the secant growth a drift of that size meets. All K + 1 states go
+    through the network in one pass, on disjoint copies of the mesh."""
     z0, f = rest.z[0], rest.force[0]
+    k, n = directions.shape[0], z0.shape[0]
     scale = dt * model.dzdt_std.detach()                                # [D]
     free = model.free_entries(graph.node_type, z0)                      # [N, D]
-    d = direction * free
-    d = d * (size * float(free.sum()) ** 0.5 / d.norm().clamp(min=1e-30))
+    d = directions * free                                               # [K, N, D]
+    size = torch.as_tensor([float(x) for x in sizes], dtype=z0.dtype).view(k, 1, 1)
+    d = d * (size * float(free.sum()) ** 0.5 / d.flatten(1).norm(dim=1).clamp(min=1e-30).view(k, 1, 1))
     dt_t = torch.tensor(dt, dtype=z0.dtype)
-    n, pair = z0.shape[0], graph.copies(2)          # both states in one pass
-    z = torch.cat([z0, z0 + d * scale])                                 # [2N, D]
-    r = model.rates(z, f.repeat(2, 1), pair.edge_index, pair.node_type, pair.ref_pos, create_graph)[0]
-    stepped = model.advance(z, r, dt_t, pair.node_type, pair.ref_pos)   # [2N, D]
-    jd = (stepped[n:] - stepped[:n]) / scale * free                     # J d [N, D], typical steps
-    return jd.norm() / d.norm(), (jd / jd.norm().clamp(min=1e-30)).detach()
+    copies = graph.copies(k + 1)
+    z = torch.cat([z0.unsqueeze(0), z0 + d * scale]).reshape((k + 1) * n, -1)    # [(K+1) N, D]
+    r = model.rates(z, f.repeat(k + 1, 1), copies.edge_index, copies.node_type, copies.ref_pos, create_graph)[0]
+    stepped = model.advance(z, r, dt_t, copies.node_type, copies.ref_pos).view(k + 1, n, -1)
+    jd = (stepped[1:] - stepped[:1]) / scale * free                     # [K, N, D], typical steps
+    norm = jd.flatten(1).norm(dim=1)                                    # [K]
+    return norm / d.flatten(1).norm(dim=1), (jd / norm.clamp(min=1e-30).view(k, 1, 1)).detach()
 
 
 def stability_probe_sizes(value) -> tuple[float, float]:
@@ -358,9 +362,15 @@ def train(cfg) -> Path:
     if not isinstance(probe_every, int) or isinstance(probe_every, bool) or probe_every < 1:
         raise ConfigError(f"train.rest_stability_every = {probe_every!r}, expected an integer >= 1 "
                           f"(probe the rest state every k-th batch)")
-    direction = resumed_direction                    # power iteration toward the fastest mode at rest
-    if direction is None and lam_s > 0:
-        direction = torch.randn(rest.z.shape[1:], generator=torch.Generator().manual_seed(seed), dtype=rest.z.dtype)
+    # power iterations toward the fastest mode at rest: one at the smallest probe size, and, where
+    # the sizes span a range, one more at a size drawn from it (each keeps its own direction)
+    direction = resumed_direction                    # [K, N, D]; [N, D] from a run before sizes
+    if direction is not None and direction.dim() == 2:
+        direction = direction.unsqueeze(0)
+    n_dirs = 1 if probe_sizes[0] == probe_sizes[1] else 2
+    if lam_s > 0 and (direction is None or direction.dim() != 3 or direction.shape[0] != n_dirs):
+        direction = torch.randn((n_dirs, *rest.z.shape[1:]), generator=torch.Generator().manual_seed(seed),
+                                dtype=rest.z.dtype)
     rollout_from = int(_sel(tc, "rollout_pairs", 0))
     rolled: list[torch.Tensor] | None = None
     batch_size = max(1, int(tc.batch_size))
@@ -401,10 +411,10 @@ def train(cfg) -> Path:
                 loss, dl, dg = step_loss(model, batch, ds.dt, noise, gen, lam_d, lam_g)
                 if lam_s > 0 and n_batches % probe_every == 0:   # a disturbance at rest must not grow
                     lo, hi = probe_sizes                 # log-uniform between them, from the seeded stream
-                    size = lo if lo == hi else lo * (hi / lo) ** float(torch.rand((), generator=gen))
-                    growth, direction = rest_growth(model, rest, data.graph, ds.dt, direction, size=size)
-                    loss = loss + lam_s * torch.relu(growth - 1.0).pow(2)
-                    grown, n_probes = grown + float(growth.detach()), n_probes + 1
+                    sizes = [lo] if n_dirs == 1 else [lo, lo * (hi / lo) ** float(torch.rand((), generator=gen))]
+                    growth, direction = rest_growth(model, rest, data.graph, ds.dt, direction, sizes)
+                    loss = loss + lam_s * torch.relu(growth - 1.0).pow(2).sum()
+                    grown, n_probes = grown + float(growth.detach().max()), n_probes + 1
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 dist.average_gradients(model)
