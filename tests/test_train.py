@@ -481,8 +481,8 @@ def test_rest_rollout_takes_the_models_own_drift_at_rest_back(trained, tmp_path)
 def test_rest_stability_probes_the_deployed_step_at_rest(trained, tmp_path):
     """rest_growth: the growth of disturbances of the rest state of two sizes over one step of the
     model's own step map (``TIGNN.step``), and the power iterations' next directions (unit norm,
-    free entries only); train.rest_stability with a range of probe sizes logs the growth per epoch
-    and keeps a direction per size; bad weights, sizes and intervals, or no rest state, are
+    free entries only); train.rest_stability with two probe sizes logs the growth per epoch and
+    keeps a direction per size; bad weights, sizes and intervals, or no rest state, are
     one-line errors."""
     from thermognn.core.errors import ConfigError
     from thermognn.train.data import rest_trajectory, velocity_columns
@@ -517,11 +517,11 @@ def test_rest_stability_probes_the_deployed_step_at_rest(trained, tmp_path):
     assert float(_rows(run)[0]["rest_growth"]) > 0
     state = load_checkpoint(last_path(run / "model.ckpt"))
     assert state["identity"]["rest_stability_probe"] == [0.3, 30]
-    assert state["rest_direction"].shape == (2, *z0.shape)          # the linear probe's and the drawn size's
+    assert state["rest_direction"].shape == (2, *z0.shape)          # a power iteration per size
     for extra, match in ((("train.rest_stability=-1",), r"train.rest_stability = -1.0, expected 0 \(off\) or a weight > 0"),
                          (("train.rest_stability=1", "train.rest_samples=0"), "where there is a rest state"),
-                         (("train.rest_stability=1", "train.rest_stability_probe=[3,1]"),
-                          r"train.rest_stability_probe = \[3, 1\], expected a probe size > 0 or a range"),
+                         (("train.rest_stability=1", "train.rest_stability_probe=[3,0]"),
+                          r"train.rest_stability_probe = \[3, 0\], expected a probe size > 0 or a list of up to 8"),
                          (("train.rest_stability=1", "train.rest_stability_probe=-1"),
                           r"train.rest_stability_probe = -1, expected a probe size > 0"),
                          (("train.rest_stability=1", "train.rest_stability_every=0"),

@@ -135,6 +135,8 @@ def drifted_states(model: TIGNN, graph, trajs: list, dt: float) -> list[torch.Te
 #: RMS size of the rest-stability probe per free entry, in typical steps' changes (dzdt_std * dt):
 #: the default of ``train.rest_stability_probe``, small enough to measure the linear step at rest
 STABILITY_PROBE = 0.3
+#: at most this many probe sizes (each costs one more copy of the mesh in the probe's pass)
+MAX_PROBES = 8
 
 
 def rest_growth(model: TIGNN, rest, graph, dt: float, directions: torch.Tensor, sizes,
@@ -166,19 +168,19 @@ def rest_growth(model: TIGNN, rest, graph, dt: float, directions: torch.Tensor, 
     return norm / d.flatten(1).norm(dim=1), (jd / norm.clamp(min=1e-30).view(k, 1, 1)).detach()
 
 
-def stability_probe_sizes(value) -> tuple[float, float]:
-    """``train.rest_stability_probe``: one probe size, or a range [smallest, largest] drawn from
-    log-uniformly per probe (RMS per free entry, typical steps' changes), as (lo, hi)."""
+def stability_probe_sizes(value) -> tuple[float, ...]:
+    """``train.rest_stability_probe``: the probe sizes (RMS per free entry, in typical steps'
+    changes), one number or a list of up to MAX_PROBES; each size keeps its own power iteration."""
     sizes = OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
     sizes = list(sizes) if isinstance(sizes, (list, tuple)) else [sizes]
     try:
-        lo, hi = (float(sizes[0]), float(sizes[-1])) if 1 <= len(sizes) <= 2 else (math.nan, math.nan)
+        out = tuple(float(x) for x in sizes)
     except (TypeError, ValueError):
-        lo = hi = math.nan
-    if not (0 < lo <= hi < math.inf):
-        raise ConfigError(f"train.rest_stability_probe = {value}, expected a probe size > 0 or a range "
-                          f"[smallest, largest] of them, in typical steps' changes (e.g. 0.3 or [0.3, 30])")
-    return lo, hi
+        out = ()
+    if not (1 <= len(out) <= MAX_PROBES and all(0 < x < math.inf for x in out)):
+        raise ConfigError(f"train.rest_stability_probe = {value}, expected a probe size > 0 or a list of up to "
+                          f"{MAX_PROBES}, in typical steps' changes (e.g. 0.3 or [0.3, 3, 30])")
+    return out
 
 
 #: hyperparameters that change how the model steps but not its weights
@@ -362,13 +364,12 @@ def train(cfg) -> Path:
     if not isinstance(probe_every, int) or isinstance(probe_every, bool) or probe_every < 1:
         raise ConfigError(f"train.rest_stability_every = {probe_every!r}, expected an integer >= 1 "
                           f"(probe the rest state every k-th batch)")
-    # power iterations toward the fastest mode at rest: one at the smallest probe size, and, where
-    # the sizes span a range, one more at a size drawn from it (each keeps its own direction)
+    # power iterations toward the fastest mode at rest, one per probe size
     direction = resumed_direction                    # [K, N, D]; [N, D] from a run before sizes
     if direction is not None and direction.dim() == 2:
         direction = direction.unsqueeze(0)
-    n_dirs = 1 if probe_sizes[0] == probe_sizes[1] else 2
-    if lam_s > 0 and (direction is None or direction.dim() != 3 or direction.shape[0] != n_dirs):
+    n_dirs = len(probe_sizes)
+    if lam_s > 0 and (direction is None or direction.shape[0] != n_dirs):
         direction = torch.randn((n_dirs, *rest.z.shape[1:]), generator=torch.Generator().manual_seed(seed),
                                 dtype=rest.z.dtype)
     rollout_from = int(_sel(tc, "rollout_pairs", 0))
@@ -410,9 +411,7 @@ def train(cfg) -> Path:
                 batch = make_batch(batch_trajs, [items[i] for i in mine[b:b + batch_size]], data.graph, rolled)
                 loss, dl, dg = step_loss(model, batch, ds.dt, noise, gen, lam_d, lam_g)
                 if lam_s > 0 and n_batches % probe_every == 0:   # a disturbance at rest must not grow
-                    lo, hi = probe_sizes                 # log-uniform between them, from the seeded stream
-                    sizes = [lo] if n_dirs == 1 else [lo, lo * (hi / lo) ** float(torch.rand((), generator=gen))]
-                    growth, direction = rest_growth(model, rest, data.graph, ds.dt, direction, sizes)
+                    growth, direction = rest_growth(model, rest, data.graph, ds.dt, direction, probe_sizes)
                     loss = loss + lam_s * torch.relu(growth - 1.0).pow(2).sum()
                     grown, n_probes = grown + float(growth.detach().max()), n_probes + 1
                 opt.zero_grad(set_to_none=True)
