@@ -235,15 +235,18 @@ def test_changed_configuration_trains_from_scratch(tmp_path, capsys):
     train(_cfg(tmp_path, "train.epochs=3", "train.lr=1e-4", "train.rest_stability=0", "train.rest_rollout=0"))
     assert "resuming from" in capsys.readouterr().out
     train(_cfg(tmp_path, "train.epochs=2", "train.lr=1e-4", "train.rest_stability=10"))
-    assert "configuration changed (rest_stability)" in capsys.readouterr().out
+    assert "configuration changed (rest_stability, rest_stability_probe)" in capsys.readouterr().out
     train(_cfg(tmp_path, "train.epochs=2", "train.lr=1e-4"))   # a key only the stored run had is named too
-    assert "configuration changed (rest_stability)" in capsys.readouterr().out
+    assert "configuration changed (rest_stability, rest_stability_probe)" in capsys.readouterr().out
     from thermognn.train.checkpoint import save_checkpoint      # stored as off: the same as absent
     state = load_checkpoint(last)
     save_checkpoint({**state, "identity": {**state["identity"], "rest_rollout": 0, "rest_stability": 0.0,
                                            "rest_stability_probe": 0.3, "rest_stability_every": 1}}, last)
     train(_cfg(tmp_path, "train.epochs=3", "train.lr=1e-4"))
     assert "resuming from" in capsys.readouterr().out
+    from thermognn.train.loop import _without_off_terms    # the penalty's settings count only while it is on
+    assert _without_off_terms({"rest_stability": 0, "rest_stability_probe": [0.3, 30], "rest_stability_every": 2}) == {}
+    assert _without_off_terms({"rest_stability": 10, "rest_stability_probe": 0.3}) == {"rest_stability": 10}
 
 
 def test_structure_auto_follows_effects_and_damping():

@@ -209,12 +209,17 @@ RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy
 #: (with the value that leaves them as they were before: off, or the former fixed behaviour)
 OPTIONAL_RESUME_KEYS = {"rest_rollout": 0, "rest_stability": 0, "rest_stability_probe": STABILITY_PROBE,
                         "rest_stability_every": 1}
+#: settings of the rest-stability penalty, which matter only while it is on
+STABILITY_SETTINGS = ("rest_stability_probe", "rest_stability_every")
 
 
 def _without_off_terms(identity: dict) -> dict:
-    """``identity`` without the OPTIONAL_RESUME_KEYS that are absent (None) or at their former value."""
-    return {k: v for k, v in identity.items()
-            if not (k in OPTIONAL_RESUME_KEYS and (v is None or v == OPTIONAL_RESUME_KEYS[k]))}
+    """``identity`` without the OPTIONAL_RESUME_KEYS that are absent (None) or at their former
+    value, nor the penalty's settings while it is off."""
+    def off(k):
+        return identity.get(k) is None or identity.get(k) == OPTIONAL_RESUME_KEYS[k]
+    drop = {k for k in OPTIONAL_RESUME_KEYS if off(k)} | (set(STABILITY_SETTINGS) if off("rest_stability") else set())
+    return {k: v for k, v in identity.items() if k not in drop}
 
 
 def training_identity(cfg, hparams: dict, dtype_name: str) -> dict:
