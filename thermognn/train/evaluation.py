@@ -25,9 +25,9 @@ from omegaconf import OmegaConf
 
 from thermognn.core.config import project_path
 from thermognn.core.errors import ConfigError
-from thermognn.core.state import describe_step
 from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
+from thermognn.core.state import describe_step
 
 from .checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype, with_rollout
 from .data import (Graph, LoadedData, TrajectoryTensors, check_fingerprint, load_data, rest_trajectory,

@@ -132,8 +132,9 @@ def drifted_states(model: TIGNN, graph, trajs: list, dt: float) -> list[torch.Te
     return out
 
 
-#: RMS size of the rest-stability probe per free entry, in typical steps' changes (dzdt_std * dt):
-#: the default of ``train.rest_stability_probe``, small enough to measure the linear step at rest
+#: RMS size of a rest-stability probe per free entry, in typical steps' changes (dzdt_std * dt),
+#: small enough to measure the linear step at rest: the smallest of the default
+#: ``train.rest_stability_probe`` sizes, and the only one before that key existed
 STABILITY_PROBE = 0.3
 #: at most this many probe sizes (each costs one more copy of the mesh in the probe's pass)
 MAX_PROBES = 8
