@@ -142,19 +142,20 @@ REST_POWER_ITERATIONS = 40
 REST_PROBE_SIZES = (0.3, 3.0, 30.0)
 
 
-def rest_growth_factor(model, graph: Graph, rest: TrajectoryTensors, dt: float,
-                       iterations: int = REST_POWER_ITERATIONS, size: float = REST_PROBE_SIZES[0]) -> float:
+def rest_growth_factors(model, graph: Graph, rest: TrajectoryTensors, dt: float,
+                        sizes=REST_PROBE_SIZES, iterations: int = REST_POWER_ITERATIONS) -> dict[float, float]:
     """The factor by which one step of the model multiplies a disturbance of the unloaded rest
-    state of RMS ``size`` typical steps per free entry, along its fastest-growing mode (power
-    iteration of ``loop.rest_growth``, the probe ``train.rest_stability`` trains against; seeded).
-    Above 1 the rest state is unstable at that size: the drift grows geometrically from any rate
-    bias; at or below 1 it stays bounded."""
-    direction = torch.randn((1, *rest.z.shape[1:]), generator=torch.Generator().manual_seed(0), dtype=rest.z.dtype)
-    growth = math.nan
+    state of RMS ``size`` typical steps per free entry, along its fastest-growing mode, for each
+    of ``sizes`` ({size: g}): the power iterations of ``loop.rest_growth``, the probe
+    ``train.rest_stability`` trains against, all sizes in one pass per iteration, each started
+    from the same seeded direction. Above 1 the rest state is unstable at that size: the drift
+    grows geometrically from any rate bias; at or below 1 it stays bounded."""
+    start = torch.randn((1, *rest.z.shape[1:]), generator=torch.Generator().manual_seed(0), dtype=rest.z.dtype)
+    direction = start.repeat(len(sizes), 1, 1)                          # [K, N, D]
+    growth = torch.full((len(sizes),), math.nan)
     for _ in range(iterations):
-        g, direction = rest_growth(model, rest, graph, dt, direction, [size], create_graph=False)
-        growth = float(g.detach()[0])
-    return growth
+        growth, direction = rest_growth(model, rest, graph, dt, direction, sizes, create_graph=False)
+    return {size: float(g) for size, g in zip(sizes, growth.detach())}
 
 
 def _rollouts(model, data: LoadedData, trajs: list[TrajectoryTensors]):
@@ -297,7 +298,7 @@ def evaluate(cfg) -> dict:
         drift_line = (f"- rest drift: unloaded and left at rest for {steps} steps ({REST_HORIZONS}x the horizon), "
                       f"the body moved at most {_fmt(float(np.nanmax(held[:, 0])))} m, {_fmt(drift)} of the "
                       f"largest displacement in the test data ({_fmt(reach)} m); `rest_drift.csv`")
-        by_size = {size: rest_growth_factor(model, data.graph, rest, data.dt, size=size) for size in REST_PROBE_SIZES}
+        by_size = rest_growth_factors(model, data.graph, rest, data.dt)
         growth = max(by_size.values())
         drift_line += ("\n- rest stability: one step multiplies a disturbance of the rest state along its fastest "
                        "mode by " + ", ".join(f"{g:.4f} at {size:g}" for size, g in by_size.items())
