@@ -5,6 +5,8 @@ Files written (all atomically)::
 
     rrmse_vs_time.csv / .png        mean RRMSE over the test trajectories per step and group (paper Fig. 8)
     rrmse_per_trajectory.csv / .png box plots of per-trajectory RRMSE, train vs test, per group
+    one_step_vs_time.csv            one step from each true state: error of its change per step and group
+                                    (what the network learned, apart from the rollout's drift)
     energy_entropy.csv / .png       learned E, S and the degeneracy residual along each test rollout
     rest_drift.csv                  the unloaded body left at rest for 10x the horizon: how far it drifts
                                     (the summary adds the growth factor of a disturbance at rest)
@@ -34,7 +36,7 @@ from .data import (Graph, LoadedData, TrajectoryTensors, check_fingerprint, load
                    velocity_columns)
 from .loop import print_rrmse_table, rest_growth
 from .model import parameter_count, step_settings
-from .rollout import rollout, rrmse_per_step, trajectory_error, trajectory_rrmse
+from .rollout import one_step_errors, rollout, rrmse_per_step, trajectory_error, trajectory_rrmse
 
 
 def _write_csv(path: Path, header: list[str], rows: list[list]) -> None:
@@ -187,7 +189,8 @@ def evaluate(cfg) -> dict:
     """Roll out the test trajectories with the checkpoint's model; print and write the errors.
 
     Returns {group: mean test RRMSE, ..., "ms_per_step": wall time of one step [ms],
-    "energy_balance": see :func:`energy_balance`}."""
+    "energy_balance": see :func:`energy_balance`, "rest_drift", "rest_growth",
+    "one_step_<group>": the test one-step error of :func:`one_step_errors`}."""
     torch.set_num_threads(int(OmegaConf.select(cfg, "train.threads", default=2)))
     ckpt_path = project_path(cfg.paths.checkpoint)
     ckpt = load_checkpoint(ckpt_path)
@@ -258,6 +261,16 @@ def evaluate(cfg) -> dict:
     _save_fig(fig, out / "rrmse_per_trajectory.png")
     files += ["rrmse_per_trajectory.csv", "rrmse_per_trajectory.png"]
 
+    # one step from every true state: what the network learned, apart from the rollout's drift
+    step_test, step_curve = one_step_errors(model, data.graph, test, data.layout, data.dt)
+    step_train, _ = one_step_errors(model, data.graph, train_trajs, data.layout, data.dt)
+    _write_csv(out / "one_step_vs_time.csv", ["step", "time_s", *groups],
+               [[s + 1, times[s + 1], *[step_curve[g][s] for g in groups]]
+                for s in range(len(step_curve[groups[0]]))])
+    files.append("one_step_vs_time.csv")
+    print("evaluate: one step from the true state, error of its change (test): "
+          + ", ".join(f"{g} {_fmt(step_test[g])}" for g in groups))
+
     # energy, entropy and degeneracy along each test rollout
     rows, along = [], []
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.5))
@@ -318,6 +331,7 @@ def evaluate(cfg) -> dict:
     mean_test["energy_balance"] = balance
     mean_test["rest_drift"] = drift
     mean_test["rest_growth"] = growth
+    mean_test.update({f"one_step_{g}": step_test[g] for g in groups})
     print_rrmse_table(f"rollout RRMSE ({len(test)} test, {len(train_trajs)} train trajectories)",
                       {"test": {g: mean_test[g] for g in groups}, "train": mean_train})
     print(f"evaluate: {ms:.2f} ms per step ({data.graph.n_nodes} nodes, {torch.get_num_threads()} threads); "
@@ -347,6 +361,14 @@ def evaluate(cfg) -> dict:
              "comes to rest):", "",
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
              "| test | " + " | ".join(_fmt(whole[g]) for g in groups) + " |", "",
+             "One step from every true state z[s] (the model's own step), error of its change "
+             "||dz_pred - dz_gt|| / ||dz_gt|| over all steps and nodes, dz = z[s+1] - z[s]: what "
+             "the network has learned, apart from any drift of its rollouts (near 1: the step is "
+             "not learned; far below the rollout error: the rollout drifts off the data); per step "
+             "in `one_step_vs_time.csv`:", "",
+             "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
+             "| test | " + " | ".join(_fmt(step_test[g]) for g in groups) + " |",
+             "| train | " + " | ".join(_fmt(step_train[g]) for g in groups) + " |", "",
              "Files: " + ", ".join(f"`{f}`" for f in files), ""]
     with atomic_path(out / "summary.md") as tmp:
         tmp.write_text("\n".join(lines))
