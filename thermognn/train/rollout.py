@@ -110,15 +110,18 @@ def one_step_errors(model, graph: Graph, trajs: list[TrajectoryTensors], layout:
     num = {g: np.zeros(steps) for g in layout.names}
     den = {g: np.zeros(steps) for g in layout.names}
     N = graph.n_nodes
+    copies: dict[int, Graph] = {}                  # k -> k mesh copies (a full chunk, a short tail)
     with torch.enable_grad():                      # the model differentiates E and S
         for t in trajs:
             S = t.z.shape[0] - 1
+            dt_t = torch.tensor(dt, dtype=t.z.dtype)
             for s0 in range(0, S, ONE_STEP_CHUNK):
                 k = min(ONE_STEP_CHUNK, S - s0)
-                many = graph.copies(k)
+                if k not in copies:
+                    copies[k] = graph.copies(k)
+                many = copies[k]
                 z = t.z[s0: s0 + k]                                                     # [k, N, D]
                 f = t.force[s0 + 1: s0 + k + 1]                                         # [k, N, 3]
-                dt_t = torch.tensor(dt, dtype=z.dtype)
                 z_next = model.step(z.reshape(k * N, -1), f.reshape(k * N, -1), many.edge_index,
                                     many.node_type, many.ref_pos, dt_t).detach().reshape(k, N, -1)
                 miss = (z_next - t.z[s0 + 1: s0 + k + 1]).double()                      # [k, N, D]
