@@ -48,6 +48,22 @@ def test_generate_tiny_block_writes_valid_dataset(tmp_path):
         moved = t.z[-1, t.load_nodes, 2] - d.mesh.nodes[t.load_nodes, 2]
         assert np.all(moved < 0)  # pressed in
         assert np.abs(t.z[-1, :, 6:]).max() > 100.0  # stresses of order 1 N / (1 cm)^2
+    # the solid linearised at rest (/linear), the physics baseline evaluate reports
+    lin = d.linear_solid()
+    free = np.repeat(d.mesh.node_type != NODE_CLAMPED, 3)
+    assert np.array_equal(lin.free, free) and lin.stiffness.shape == (free.sum(), free.sum())
+    assert lin.stress.shape == (6 * n, free.sum()) and lin.integrator == "newmark"
+    assert lin.rayleigh == (0.0, 0.002) and (lin.beta, lin.gamma) == (0.25, 0.5)
+    K, M = lin.stiffness.toarray(), lin.mass.toarray()
+    assert np.allclose(K, K.T, atol=1e-9 * abs(K).max()) and np.allclose(M, M.T)
+    assert np.linalg.eigvalsh(K).min() > 0 and np.linalg.eigvalsh(M).min() > 0   # clamped: positive definite
+    # it re-simulates the data as generate's report says (the same stepper, from the stored operators)
+    from thermognn.generate.modes import linear_rollout_error
+
+    report = d.time_resolution
+    again = linear_rollout_error(lin, d.mesh.nodes, [d.read(name) for name in d.ok_names], d.layout, d.dt)
+    assert again["u"] == pytest.approx(report["linear_rollout_error"]["u"], rel=1e-9)
+    assert 0 < again["u"] < 0.5 and 0 < again["v"] < 1.0
 
 
 def test_effects_decide_state_layout(tmp_path):

@@ -6,13 +6,25 @@ Layout (units SI)::
                                    versions (JSON str), state_layout (JSON str), dt [s],
                                    effects (JSON list), config_hash (str),
                                    split (optional JSON {"train": [names], "val": [...], "test": [...]}:
-                                   a fixed reference split that training must use)
+                                   a fixed reference split that training must use),
+                                   time_resolution (optional JSON: how well dt resolves the
+                                   solid's vibration modes, from ``generate``; see
+                                   thermognn/generate/modes.py ``diagnose``)
     /mesh/nodes             (N, 3) float64  reference positions X [m]
     /mesh/tets              (T, 4) int64    tetrahedra (node indices)
     /mesh/node_type         (N,)   int8     0 free, 1 clamped (Dirichlet), 2 loadable surface
     /mesh/edges             (2, E) int64    optional: graph edges (both directions); when absent
                                             they are the tetrahedra's edges (imported datasets
                                             such as the TIGNN beam have edges but no tets)
+    /linear/                optional (``generate``): the solid linearised at rest over its n free
+                            DOFs (node-blocked, 3 i + c), scipy CSR matrices stored as
+                            <name>/data, <name>/indices, <name>/indptr with attrs shape:
+        stiffness           (n, n)   K [N/m]          mass (n, n) M [kg]
+        stress              (6N, n)  Σ [Pa/m] nodal Cauchy stress of a displacement (optional)
+        free                (3N,)    bool             the DOFs K and M act on
+        body_force          (n,)     [N]              gravity load (optional)
+                            attrs: rayleigh (αM [1/s], βK [s]), integrator, beta, gamma
+                            (``thermognn.core.linear.LinearSolid``: the physics baseline)
     /trajectories/<name>/   attrs: status ('ok' | 'failed'), reason (str), load_point (3,) [m]
         time                (S,)        float64  [s]
         z                   (S, N, D)   float64  state per node, columns as in state_layout
@@ -38,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import DataError
+from .linear import LinearSolid
 from .state import StateLayout
 
 SCHEMA_VERSION = 1
@@ -142,8 +155,35 @@ class DatasetWriter:
         """Fix the train/val/test split (trajectory names), e.g. a published reference split."""
         self._f.attrs["split"] = json.dumps({k: list(v) for k, v in split.items()})
 
+    def set_linear(self, linear: LinearSolid) -> None:
+        """Store the solid linearised at rest (group ``/linear``, module docstring); replaces an
+        earlier one (a resumed run); finalised with the file."""
+        if "linear" in self._f:
+            del self._f["linear"]
+        g = self._f.create_group("linear")
+        for name in ("stiffness", "mass", "stress"):
+            matrix = getattr(linear, name)
+            if matrix is not None:
+                _write_csr(g, name, matrix)
+        g.create_dataset("free", data=np.asarray(linear.free, dtype=bool))
+        if linear.body_force is not None:
+            g.create_dataset("body_force", data=np.asarray(linear.body_force, dtype=np.float64))
+        g.attrs.update({"rayleigh": np.asarray(linear.rayleigh, dtype=np.float64), "integrator": linear.integrator,
+                        "beta": float(linear.beta), "gamma": float(linear.gamma)})
+
+    def set_time_resolution(self, report: dict) -> None:
+        """Store generate's time-resolution diagnostic (JSON) on the root; finalised with the file."""
+        self._f.attrs["time_resolution"] = json.dumps(report)
+
     def has(self, name: str) -> bool:
         return name in self._f["trajectories"]
+
+    def ok_trajectories(self):
+        """Yield the trajectories written so far with status 'ok' (read back, in natural order)."""
+        grp = self._f["trajectories"]
+        for name in sorted(grp.keys(), key=_natural_key):
+            if str(grp[name].attrs.get("status", "ok")) == "ok":
+                yield _trajectory_from_group(grp[name], name)
 
     def write(self, traj: Trajectory) -> None:
         """Write one trajectory (flushed at once, so an interruption keeps it)."""
@@ -212,6 +252,34 @@ class Dataset:
         self.versions = str(attrs.get("versions", "{}"))
         #: fixed split {"train": [...], "val": [...], "test": [...]} or None (then split at random)
         self.split = json.loads(str(attrs["split"])) if "split" in attrs else None
+        #: generate's time-resolution diagnostic (dict), None in files written before it existed
+        self.time_resolution = (json.loads(str(attrs["time_resolution"])) if "time_resolution" in attrs
+                                else None)
+
+    def linear_solid(self) -> LinearSolid | None:
+        """The solid linearised at rest (``/linear``), or None in files written before it existed
+        (or by an importer, which has no FE model). DataError if the group is incomplete."""
+        import h5py
+
+        with h5py.File(self.path, "r") as f:
+            if "linear" not in f:
+                return None
+            g = f["linear"]
+            try:
+                free = g["free"][()].astype(bool)
+                linear = LinearSolid(
+                    stiffness=_read_csr(g, "stiffness"), mass=_read_csr(g, "mass"), free=free,
+                    stress=_read_csr(g, "stress") if "stress" in g else None,
+                    rayleigh=tuple(float(r) for r in g.attrs["rayleigh"]), integrator=str(g.attrs["integrator"]),
+                    beta=float(g.attrs["beta"]), gamma=float(g.attrs["gamma"]),
+                    body_force=g["body_force"][()] if "body_force" in g else None)
+            except KeyError as exc:
+                raise DataError(f"{self.path}: /linear lacks {exc}") from None
+        n = int(free.sum())
+        if linear.stiffness.shape != (n, n) or free.shape != (3 * len(self.mesh.nodes),):
+            raise DataError(f"{self.path}: /linear stiffness {linear.stiffness.shape} does not fit "
+                            f"{n} free DOFs of {len(self.mesh.nodes)} nodes")
+        return linear
 
     @property
     def ok_names(self) -> list[str]:
@@ -223,13 +291,8 @@ class Dataset:
         with h5py.File(self.path, "r") as f:
             if name not in f["trajectories"]:
                 raise DataError(f"{self.path}: no trajectory '{name}'")
-            g = f["trajectories"][name]
             try:
-                traj = Trajectory(name=name, time=g["time"][()], z=g["z"][()], force=g["force"][()],
-                                  load_nodes=g["load_nodes"][()],
-                                  load_point=np.asarray(g.attrs.get("load_point", np.zeros(3))),
-                                  status=str(g.attrs.get("status", "ok")),
-                                  reason=str(g.attrs.get("reason", "")))
+                traj = _trajectory_from_group(f["trajectories"][name], name)
             except KeyError as exc:
                 raise DataError(f"{self.path}: trajectory '{name}' lacks {exc}") from None
         n = self.mesh.nodes.shape[0]
@@ -237,6 +300,33 @@ class Dataset:
             raise DataError(f"{self.path}: trajectory '{name}' z has shape {traj.z.shape}, "
                             f"expected (S, {n}, {self.layout.dim})")
         return traj
+
+
+def _write_csr(group, name: str, matrix) -> None:
+    """A dense or scipy.sparse matrix as CSR arrays data / indices / indptr (gzip) + attrs shape."""
+    import scipy.sparse as sp
+
+    A = sp.csr_matrix(matrix)
+    g = group.create_group(name)
+    g.attrs["shape"] = np.asarray(A.shape, dtype=np.int64)
+    for key in ("data", "indices", "indptr"):
+        g.create_dataset(key, data=getattr(A, key), compression="gzip")
+
+
+def _read_csr(group, name: str):
+    import scipy.sparse as sp
+
+    g = group[name]
+    return sp.csr_matrix((g["data"][()], g["indices"][()], g["indptr"][()]), shape=tuple(g.attrs["shape"]))
+
+
+def _trajectory_from_group(g, name: str) -> Trajectory:
+    """A trajectory from its HDF5 group (KeyError when a dataset is missing)."""
+    return Trajectory(name=name, time=g["time"][()], z=g["z"][()], force=g["force"][()],
+                      load_nodes=g["load_nodes"][()],
+                      load_point=np.asarray(g.attrs.get("load_point", np.zeros(3))),
+                      status=str(g.attrs.get("status", "ok")),
+                      reason=str(g.attrs.get("reason", "")))
 
 
 def _natural_key(s: str):

@@ -115,6 +115,29 @@ def _stale_partial_mesh(out: Path, nodes: np.ndarray) -> bool:
     return old.shape != nodes.shape or not np.allclose(old, nodes, rtol=0, atol=1e-12)
 
 
+def _linearised(solid, spec: SceneSpec, layout: StateLayout, writer: DatasetWriter, console) -> None:
+    """Store the solid linearised at rest (``/linear``: the physics baseline ``evaluate`` reports,
+    ``modes.linear_solid``), then print and store (root attribute ``time_resolution``) how well dt
+    resolves its modes over the ok trajectories (``modes.diagnose``). A diagnostic: a failure here
+    only prints a warning."""
+    try:
+        from .modes import describe, diagnose, linear_solid
+
+        solid.reset()                                       # at rest: no committed viscous stress
+        linear = linear_solid(solid)
+        writer.set_linear(linear)
+        report = diagnose(solid, writer.ok_trajectories, layout, spec.dt, linear=linear)
+        if "skipped" not in report and not report["trajectories"]:
+            return
+        for line in describe(report, spec.name):
+            console.print(line, soft_wrap=True)
+        writer.set_time_resolution(report)
+    except Exception as exc:  # a diagnostic: never fails generate
+        msg = str(exc).splitlines()[0] if str(exc) else ""
+        console.print(f"[yellow]warning[/]: time-resolution diagnostic failed ({type(exc).__name__}: {msg})",
+                      soft_wrap=True)
+
+
 def generate(cfg) -> Path:
     """Build ``cfg.scene``, solve its load cases, write ``cfg.paths.dataset``; return the path.
 
@@ -156,6 +179,7 @@ def generate(cfg) -> Path:
                 if traj.status != "ok":
                     console.print(f"[yellow]{traj.name} failed[/]: {traj.reason}")
                 progress.advance(task)
+        _linearised(solid, spec, layout, w, console)
     if costs:
         total_steps = sum(c.steps for c in costs)
         secs = sum(c.seconds for c in costs)

@@ -1,0 +1,223 @@
+"""The time-resolution diagnostic (thermognn/generate/modes.py): linearised operators at rest
+against analytic values and invariants, the linearised re-simulation, and generate's hook."""
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("dolfinx")
+
+from thermognn.core.schema import Trajectory  # noqa: E402
+from thermognn.core.state import state_layout  # noqa: E402
+from thermognn.generate import cases, modes  # noqa: E402
+from thermognn.generate.materials import Material  # noqa: E402
+from thermognn.generate.solid import Solid, SolverOptions  # noqa: E402
+
+LENGTHS = (0.02, 0.03, 0.01)                     # box [m]
+VOLUME = float(np.prod(LENGTHS))                 # [m^3]
+NEO_HOOKEAN = Material("neo_hookean", {"C10": 1.0e4, "D1": 1.0e-5}, density=1100.0)
+OGDEN_LIVER = Material("ogden", {"mu": [2.0e3], "alpha": [16.19], "D": [1.0e-4]}, density=1000.0)
+
+
+def _free_box(mat):
+    """Unclamped box (2 x 2 x 1 hexahedra, 6 P1 tets each): every DOF free. Quasi-static elastic,
+    as in test_fe_materials, so that the (slow to compile) Ogden forms come from the JIT cache."""
+    return Solid(cases.box_mesh(LENGTHS, (2, 2, 1)), mat, ("elastic",),
+                 SolverOptions(integrator="quasi_static", rtol=1e-12, atol=1e-9))
+
+
+def test_mass_of_rigid_translation():
+    """tᵀ M t = ρ V |t|² for a rigid translation t (consistent mass), to 1e-10."""
+    s = _free_box(NEO_HOOKEAN)
+    K, M, free = modes.rest_operators(s)
+    assert free.all() and M.shape == (3 * len(s.nodes),) * 2
+    t = np.tile([0.3, -1.2, 0.7], len(s.nodes))
+    assert t @ M @ t == pytest.approx(1100.0 * VOLUME * (0.3**2 + 1.2**2 + 0.7**2), rel=1e-10)
+
+
+@pytest.mark.parametrize("mat", [NEO_HOOKEAN, OGDEN_LIVER], ids=["neo_hookean", "ogden"])
+def test_stiffness_at_rest_rigid_modes_and_uniform_strain(mat):
+    """Unclamped: K annihilates the 6 rigid modes (translations, rotations e_k × X), and for the
+    uniform strain u = (x, 0, 0), which P1 represents exactly, uᵀ K u = V (λ + 2μ) with the law's
+    moduli at rest: μ = 2 C10 (neo-Hookean) or Σ μi (Ogden), bulk K0 = 2/D1, λ = K0 − 2μ/3.
+    The solid's own tangent is used, so this checks the laws' linearisation, not a separate form.
+    (Ogden's regularised eigenvalues change the tangent at rest by O(ε²) ~ 1e-12 only.)"""
+    s = _free_box(mat)
+    saved = np.linspace(0.0, 1e-3, s.u.x.array.size)
+    s.u.x.array[:] = saved                                   # rest_operators must restore it
+    K, M, free = modes.rest_operators(s)
+    assert np.array_equal(s.u.x.array, saved)
+    assert np.allclose(K, K.T, rtol=0, atol=1e-12 * np.abs(K).max())
+    X = s.nodes
+    norm_K = np.linalg.norm(K, 2)
+    for k in range(3):
+        e = np.eye(3)[k]
+        for r in (np.tile(e, len(X)), np.cross(e, X).ravel()):
+            assert np.linalg.norm(K @ r) / (norm_K * np.linalg.norm(r)) < 1e-8
+    mu, K0 = mat.shear_modulus, mat.bulk_modulus
+    u = np.zeros_like(X)
+    u[:, 0] = X[:, 0]
+    u = u.ravel()
+    assert u @ K @ u == pytest.approx(VOLUME * (K0 - 2 * mu / 3 + 2 * mu), rel=1e-8)
+    # the linear stress operator: the same uniform strain gives sigma = (λ + 2μ, λ, λ, 0, 0, 0) at every node
+    sigma = (modes.linear_stress(s, free) @ u).reshape(-1, 6)
+    lam = K0 - 2 * mu / 3
+    assert np.allclose(sigma, [lam + 2 * mu, lam, lam, 0, 0, 0], rtol=0, atol=1e-9 * (lam + 2 * mu))
+
+
+def test_cantilever_first_bending_frequency_matches_euler_bernoulli():
+    """Clamped beam L/h = 20, square section, ν = 0, P2 tets (10 x 1 x 1 boxes): the first two
+    (degenerate, y and z) bending frequencies within 1 % of Euler–Bernoulli
+    ω1 = 1.8751² sqrt(E I / (ρ A L⁴)). (The converged 3-D value lies ~0.15 % below it: shear
+    deformation and rotary inertia, O((h/L)²); this mesh is 0.07 % below.)"""
+    mu, rho, L, h = 1.0e6, 1000.0, 1.0, 0.05
+    mat = Material("neo_hookean", {"C10": mu / 2, "D1": 2 / (2 * mu / 3)}, density=rho)
+    s = Solid(cases.box_mesh((L, h, h), (10, 1, 1)), mat, ("elastic",),
+              SolverOptions(degree=2, quadrature_degree=4))
+    s.clamp(cases.nodes_where(s, lambda x: x[:, 0] < 1e-10))
+    K, M, free = modes.rest_operators(s)
+    assert free.sum() == 3 * (len(s.nodes) - 9)                  # 9 P2 nodes on the clamped face
+    omega = modes.natural_frequencies(K, M)
+    assert np.all(np.diff(omega) >= 0)
+    exact = 1.8751**2 * np.sqrt(2 * mu * h**4 / 12 / (rho * h * h * L**4))
+    assert omega[0] == pytest.approx(exact, rel=0.01) and omega[1] == pytest.approx(exact, rel=0.01)
+    r = modes.resolution(omega, 2.0 / exact)                     # ω1 dt = 2: at the limit
+    assert r["modes"] == len(omega) and r["omega_1_dt"] == pytest.approx(2 * omega[0] / exact)
+    assert r["unresolved"] == np.count_nonzero(omega * 2.0 / exact > 2.0) and 0 < r["unresolved"] < len(omega)
+
+
+def _bent_block(load: float, integrator: str = "newmark", steps: int = 8, dt: float = 2e-3):
+    """Block 0.02 x 0.02 x 0.04 m (48 P1 tets) clamped at z = 0, top face pushed sideways by a
+    total force ``load`` [N] (x), linearly ramped over 4 steps, Rayleigh (αM, βK) = (5 1/s, 1e-3 s);
+    returns (solid, layout, trajectory) with z = (q, v, σ) as generate stores it."""
+    mat = Material("neo_hookean", {"C10": 1.0e4, "D1": 1.0e-5}, density=1000.0)
+    effects = ("elastic", "inertia") if integrator != "quasi_static" else ("elastic",)
+    s = Solid(cases.box_mesh((0.02, 0.02, 0.04), (2, 2, 4)), mat, effects,
+              SolverOptions(integrator=integrator, rayleigh=(5.0, 1e-3), rtol=1e-13, atol=1e-18))
+    s.clamp(cases.nodes_where(s, lambda x: x[:, 2] < 1e-10))
+    top = cases.nodes_where(s, lambda x: x[:, 2] > 0.04 - 1e-10)
+    full = np.zeros_like(s.nodes)
+    full[top, 0] = load / len(top)
+    layout = state_layout(effects)
+    ramp = lambda t: min(1.0, t / (4 * dt))  # noqa: E731
+
+    def state():
+        z = np.zeros((len(s.nodes), layout.dim))
+        z[:, 0:3] = s.nodes + s.displacement()
+        if "v" in layout.names:
+            z[:, layout.slice("v")] = s.velocity()
+        z[:, layout.slice("sigma")] = s.cauchy_stress_nodes()
+        return z
+
+    s.set_nodal_force(0.0 * full)
+    s.initial_acceleration()
+    zs, forces = [state()], [0.0 * full]
+    for k in range(1, steps + 1):
+        assert s.step(dt, lambda t: s.set_nodal_force(ramp(t) * full)).ok
+        zs.append(state())
+        forces.append(ramp(k * dt) * full)
+    traj = Trajectory("traj_0", dt * np.arange(steps + 1), np.stack(zs), np.stack(forces), top)
+    return s, layout, traj
+
+
+@pytest.mark.parametrize("integrator", ["newmark", "quasi_static"])
+def test_linear_rollout_error_vanishes_with_the_load(integrator):
+    """The linearised model (``linear_solid``: K, M, stress operator, the solid's Rayleigh damping
+    and integrator) re-simulates the solid's own data with an error that is the nonlinearity
+    only, so it scales with the load: at 1 mN (1.3e-5 m, error ~1e-4) at least 100x smaller than
+    at 1 N (12 mm, ~0.1), in u, v and the nodal Cauchy stress sigma."""
+    errors, stress_errors = {}, {}
+    for load in (1e-3, 1.0):
+        s, layout, traj = _bent_block(load, integrator)
+        linear = modes.linear_solid(s)
+        assert linear.integrator == integrator and linear.rayleigh == (5.0, 1e-3)
+        errors[load] = modes.linear_rollout_error(linear, s.nodes, [traj], layout, 2e-3)
+        pred = linear.rollout_states(traj.z, traj.force, s.nodes, layout, 2e-3)     # [S, N, D]
+        sl = layout.slice("sigma")
+        stress_errors[load] = np.linalg.norm(pred[..., sl] - traj.z[..., sl]) / np.linalg.norm(traj.z[..., sl])
+        assert np.allclose(pred[0], traj.z[0])
+    small, large = errors[1e-3], errors[1.0]
+    assert small["u"] * 100 < large["u"] and large["u"] > 1e-2
+    assert stress_errors[1e-3] < 1e-3 and stress_errors[1e-3] * 100 < stress_errors[1.0]
+    if integrator == "newmark":
+        assert small["v"] * 100 < large["v"]
+    else:
+        assert small["v"] is None
+    linear.integrator = "generalized_alpha"
+    assert modes.linear_rollout_error(linear, s.nodes, [traj], layout, 2e-3) is None
+    with pytest.raises(ValueError, match="generalized_alpha"):
+        linear.rollout(np.zeros(linear.n_free), np.zeros(linear.n_free), np.zeros((2, linear.n_free)), 2e-3)
+
+
+def test_energy_shares_and_sparse_modes_match_the_complete_modal_sums():
+    """At a step that leaves some modes on either side of ω dt = 2: the shares of strain and
+    kinetic energy in the unresolved modes equal the direct sums ω² ξ² / 2, η² / 2 over those
+    modes of the complete dense eigenbasis (ξ = Φᵀ M u, Φᵀ M Φ = I), to 1e-8, and lie in [0, 1]
+    with their complements summing to 1. The sparse path generate uses (Lanczos for the resolved
+    modes and ω_max) gives the same frequencies, resolution and shares. Without v in the layout
+    the kinetic share is None."""
+    s, layout, traj = _bent_block(0.1)
+    K, M, free = modes.rest_operators(s)
+    omega, phi = modes.modal_basis(K, M)
+    assert np.allclose(phi.T @ M @ phi, np.eye(len(omega)), atol=1e-8)
+    assert np.allclose(omega, modes.natural_frequencies(K, M), rtol=1e-8)
+    dt = 2.0 / np.sqrt(omega[1] * omega[2])                      # two modes resolved
+    hi = omega * dt > 2.0
+    U = (traj.z[:, :, 0:3] - s.nodes).reshape(len(traj.z), -1)[:, free]
+    V = traj.z[:, :, 3:6].reshape(len(traj.z), -1)[:, free]
+    strain = (omega**2 * (U @ M @ phi) ** 2).sum(0)              # per mode (x 2) [J]
+    kinetic = ((V @ M @ phi) ** 2).sum(0)
+    expected = {"strain": strain[hi].sum() / strain.sum(), "kinetic": kinetic[hi].sum() / kinetic.sum()}
+    assert 0.1 < expected["strain"] < 0.9 and 0.001 < expected["kinetic"] < 0.9
+
+    Ks, Ms, free_s = modes.rest_operators(s, sparse=True)
+    assert np.array_equal(free_s, free) and np.allclose(Ks.toarray(), K, rtol=0, atol=1e-12 * np.abs(K).max())
+    low, phi_low = modes.lowest_modes(Ks, Ms, 2.0 / dt)
+    assert len(low) == np.count_nonzero(~hi) and np.allclose(low, omega[~hi], rtol=1e-8)
+    assert modes.highest_frequency(Ks, Ms) == pytest.approx(omega[-1], rel=1e-6)
+    many, _ = modes.lowest_modes(Ks, Ms, np.sqrt(omega[19] * omega[20]))   # > 12: Lanczos restarts
+    assert np.allclose(many, omega[:20], rtol=1e-8)
+    full = modes.resolution(omega, dt)
+    assert full["unresolved"] == hi.sum() and full["modes"] == len(omega)
+    part = modes.resolution(low, dt, modes=len(omega), omega_max=modes.highest_frequency(Ks, Ms))
+    assert part == pytest.approx(full, rel=1e-6)
+    for e in (modes.energy_shares(K, M, free, s.nodes, [traj], layout, dt, modes=(omega, phi)),
+              modes.energy_shares(K, M, free, s.nodes, [traj], layout, dt),
+              modes.energy_shares(Ks, Ms, free, s.nodes, [traj], layout, dt)):
+        for kind in ("strain", "kinetic"):
+            hi_share, lo_share = e[f"{kind}_unresolved"], e[f"{kind}_resolved"]
+            assert hi_share == pytest.approx(expected[kind], abs=1e-8)
+            assert 0 <= hi_share <= 1 and 0 <= lo_share <= 1 and hi_share + lo_share == pytest.approx(1, abs=1e-12)
+    e = modes.energy_shares(K, M, free, s.nodes, [traj], state_layout(("elastic",)), dt)
+    assert e["kinetic_unresolved"] is None and e["strain_unresolved"] == pytest.approx(expected["strain"], abs=1e-8)
+
+
+def test_generate_stores_time_resolution(tmp_path, monkeypatch):
+    """generate writes the diagnostic as the root attribute ``time_resolution`` (JSON); when the
+    diagnostic fails, generate still succeeds, without the attribute."""
+    from thermognn.core.config import load_config
+    from thermognn.core.schema import Dataset
+    from thermognn.generate import generate
+
+    tiny = ["scene.loads.n_trajectories=2", "scene.time.steps=4", "scene.loads.ramp_steps=2",
+            "scene.mesh.cell_size=0.01"]
+    d = Dataset(generate(load_config([f"out={tmp_path / 'a'}", *tiny])))
+    import h5py
+
+    with h5py.File(d.path, "r") as f:
+        report = json.loads(f.attrs["time_resolution"])
+    assert report == d.time_resolution
+    for key in ("omega_1_dt", "omega_max_dt", "modes", "unresolved", "strain_unresolved",
+                "kinetic_unresolved", "linear_rollout_error"):
+        assert key in report
+    assert report["modes"] == report["free_dofs"] == 3 * int((d.mesh.node_type != 1).sum())
+    assert report["trajectories"] == 2 and report["dt"] == pytest.approx(0.01)
+    assert 0 <= report["strain_unresolved"] <= 1 and set(report["linear_rollout_error"]) == {"u", "v"}
+
+    def broken(*a, **k):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(modes, "diagnose", broken)
+    d = Dataset(generate(load_config([f"out={tmp_path / 'b'}", *tiny[1:], "scene.loads.n_trajectories=1"])))
+    assert d.ok_names == ["traj_0"] and d.time_resolution is None

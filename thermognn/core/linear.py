@@ -1,0 +1,135 @@
+"""The FE solid linearised at its rest state: the physics baseline a learned model must beat.
+
+Linearised about the undeformed rest state, the discrete solid obeys::
+
+    M ü + C u̇ + K u = f(t),    K = ∂f_int/∂u at u = 0 [N/m],   M = ∫ ρ N_i N_j dX [kg],
+    σ(u) ≈ Σ u                 (nodal Cauchy stress [Pa], Voigt 11 22 33 12 13 23)
+
+over the free (not clamped) DOFs, node-blocked (node i, component c at 3 i + c). ``generate``
+assembles K, M and Σ from its own solid (``thermognn/generate/modes.py``) and stores them in the
+dataset (``/linear``, ``thermognn/core/schema.py``); :class:`LinearSolid` steps them with the
+data's own time integrator, so that ``evaluate`` can report, beside every learned model, what
+the linearised FE model scores on the same trajectories (no training, one dense solve a step).
+
+numpy only (no torch, no dolfinx): the FE side and the learning side both use it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: integrators :meth:`LinearSolid.rollout` reproduces (generalized-α: not yet)
+INTEGRATORS = ("newmark", "quasi_static")
+
+
+def lu_solver(A):
+    """x = solve(b) for a dense or scipy.sparse square matrix A (LU, factorised once)."""
+    import scipy.sparse as sp
+
+    if sp.issparse(A):
+        import scipy.sparse.linalg as sla
+
+        return sla.splu(A.tocsc()).solve
+    import scipy.linalg as sl
+
+    lu = sl.lu_factor(A)
+    return lambda b: sl.lu_solve(lu, b)
+
+
+@dataclass
+class LinearSolid:
+    """Linearised FE operators over the n free DOFs of an N-node mesh.
+
+    stiffness [n, n] N/m and mass [n, n] kg (symmetric; numpy or scipy.sparse), free [3N] bool
+    (the DOFs they act on), stress [6N, n] Pa/m (nodal Cauchy stress of a free-DOF displacement,
+    numpy or scipy.sparse; None if not available),
+    rayleigh (αM [1/s], βK [s]) damping written as the FE solid writes it, integrator
+    ('newmark' | 'quasi_static' | another name, which :meth:`rollout` refuses), Newmark β, γ,
+    body_force [n] N (gravity, or None)."""
+
+    stiffness: np.ndarray
+    mass: np.ndarray
+    free: np.ndarray
+    stress: np.ndarray | None = None
+    rayleigh: tuple[float, float] = (0.0, 0.0)
+    integrator: str = "newmark"
+    beta: float = 0.25
+    gamma: float = 0.5
+    body_force: np.ndarray | None = None
+
+    @property
+    def n_free(self) -> int:
+        return int(self.stiffness.shape[0])
+
+    def free_rows(self, a: np.ndarray) -> np.ndarray:
+        """[S, N, 3] nodal vectors -> [S, n] over the free DOFs."""
+        a = np.asarray(a, dtype=float)
+        return a.reshape(a.shape[0], -1)[:, self.free]
+
+    def rollout(self, u0: np.ndarray, v0: np.ndarray | None, forces: np.ndarray,
+                dt: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """Displacements U [S, n] [m] and velocities V [S, n] [m/s] (None for quasi-static) from
+        u0 [n], v0 [n] under the free-DOF forces [S, n] [N] (forces[s] acts at t_s, s = 0 the
+        start), with the data's own integrator applied to the linear system:
+
+        * ``newmark``: M a_{n+1} + αM M v_{n+1} + βK K (u_{n+1} − u_n)/dt + K u_{n+1} = f_{n+1}
+          with Newmark (β, γ), and M a_0 = f_0 − K u_0 − αM M v_0 (balance at the start);
+        * ``quasi_static``: K u_s = f_s at every snapshot.
+        """
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"linearised FE: integrator {self.integrator!r} is not reproduced "
+                             f"(expected {' or '.join(INTEGRATORS)})")
+        K, M = self.stiffness, self.mass
+        F = np.asarray(forces, dtype=float)                            # [S, n]
+        if self.body_force is not None:
+            F = F + np.asarray(self.body_force, dtype=float)[None]
+        if self.integrator == "quasi_static":
+            solve = lu_solver(K)
+            return np.stack([solve(f) for f in F]), None
+        if v0 is None:
+            raise ValueError("linearised FE: newmark needs the velocity v0")
+        alpha_m, beta_k = (float(r) for r in self.rayleigh)
+        b, g = float(self.beta), float(self.gamma)
+        c0, c1 = 1.0 / (b * dt**2), 1.0 / (2.0 * b) - 1.0
+        solve = lu_solver(c0 * (1.0 + alpha_m * g * dt) * M + (1.0 + beta_k / dt) * K)
+        u, v = np.array(u0, dtype=float), np.array(v0, dtype=float)
+        a = lu_solver(M)(F[0] - K @ u - alpha_m * (M @ v))
+        U, V = [u], [v]
+        for s in range(1, F.shape[0]):
+            pred = c0 * (u + dt * v) + c1 * a                          # a_{n+1} = c0 u_{n+1} − pred
+            rhs = (F[s] + M @ pred + beta_k / dt * (K @ u)
+                   + alpha_m * (M @ (g * dt * pred - v - dt * (1 - g) * a)))
+            u_new = solve(rhs)
+            a_new = c0 * u_new - pred
+            v = v + dt * ((1 - g) * a + g * a_new)
+            u, a = u_new, a_new
+            U.append(u)
+            V.append(v)
+        return np.asarray(U), np.asarray(V)
+
+    def rollout_states(self, z: np.ndarray, forces: np.ndarray, X: np.ndarray, layout,
+                       dt: float) -> np.ndarray:
+        """The linearised model's states [S, N, D] from the first of the data states z [S, N, D]
+        under the stored nodal forces [S, N, 3] [N]: q = X + u [m], v [m/s] (with inertia),
+        sigma = Σ u [Pa] when the stress operator is known; clamped entries and any other
+        column (e.g. Prony internal variables) are held at z[0]. X: reference positions [N, 3]."""
+        z = np.asarray(z, dtype=float)
+        S, N = z.shape[0], z.shape[1]
+        X = np.asarray(X, dtype=float)
+        has_v = "v" in layout.names and self.integrator == "newmark"
+        u0 = self.free_rows(z[:1, :, 0:3] - X[None])[0]
+        v0 = self.free_rows(z[:1, :, layout.slice("v")])[0] if has_v else None
+        U, V = self.rollout(u0, v0, self.free_rows(forces), dt)
+        out = np.repeat(z[:1], S, axis=0)                              # [S, N, D]
+        u_all = np.zeros((S, 3 * N))
+        u_all[:, self.free] = U
+        out[..., 0:3] = X[None] + u_all.reshape(S, N, 3)
+        if V is not None:
+            v_all = np.zeros((S, 3 * N))
+            v_all[:, self.free] = V
+            out[..., layout.slice("v")] = v_all.reshape(S, N, 3)
+        if self.stress is not None and "sigma" in layout.names:
+            out[..., layout.slice("sigma")] = np.asarray(self.stress @ U.T).T.reshape(S, N, 6)
+        return out

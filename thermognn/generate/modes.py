@@ -1,0 +1,419 @@
+"""Does a dataset's time step resolve the solid's vibration modes? (linearised FE at rest; SI units)
+
+Linearised about the undeformed rest state, the discrete solid obeys
+
+    M ü + C u̇ + K u = f(t),   K = ∂f_int/∂u at u = 0 [N/m],   M = ∫ ρ N_i N_j dX [kg],
+
+with the free-vibration modes K φ_k = ω_k² M φ_k, φ_kᵀ M φ_l = δ_kl (ω in rad/s). A mode with
+ω dt > 2 (:data:`UNRESOLVED`) lies beyond the stability limit of any explicit step of size dt:
+the data's implicit step follows it quasi-statically, its load and elastic force nearly cancel,
+and an explicit learned step would have to produce that tiny remainder. Datasets whose strain
+energy sits mostly in such modes are hard to learn; :func:`diagnose` measures this for
+``generate``, which prints it and stores it as the dataset's ``time_resolution`` root attribute.
+
+DOFs are node-blocked (node i, component c at 3 i + c, nodes in the order of ``solid.nodes``);
+``free`` masks the DOFs that the solid's Dirichlet conditions leave free, and K, M are restricted
+to them. :func:`rest_operators` gives dense arrays (meshes up to ~2,000 nodes: 16 n² bytes per
+matrix for n DOFs) or, with ``sparse=True``, scipy CSR matrices. :func:`modal_basis` and
+:func:`natural_frequencies` are dense and complete (O(n³): about 5 s for n = 1,500 on two cores,
+minutes for 5,000); :func:`lowest_modes`, :func:`highest_frequency`, :func:`energy_shares` and
+:func:`linear_rollout_error` take either kind, and :func:`diagnose` (what ``generate`` runs) uses
+sparse matrices and only the resolved modes, which gives the same figures in seconds; it is
+skipped above :data:`MAX_DENSE_DOFS` free DOFs all the same.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Iterable
+
+import numpy as np
+
+from thermognn.core.linear import INTEGRATORS as LINEAR_INTEGRATORS
+from thermognn.core.linear import LinearSolid
+
+#: ω dt above which a mode is unresolved (beyond the explicit, central-difference stability limit)
+UNRESOLVED = 2.0
+#: the diagnostic in ``generate`` is skipped above this many free DOFs
+MAX_DENSE_DOFS = 6000
+
+
+def _is_sparse(A) -> bool:
+    import scipy.sparse as sp
+
+    return sp.issparse(A)
+
+
+# -- operators at rest --------------------------------------------------------------------------
+
+
+def _assemble(form, sparse: bool):
+    """Assemble a bilinear form (no boundary conditions): scipy CSR or dense array [n, n]."""
+    import scipy.sparse as sp
+    from dolfinx import fem
+    from dolfinx.fem import petsc as fem_petsc
+
+    A = fem_petsc.assemble_matrix(fem.form(form))
+    A.assemble()
+    try:
+        indptr, indices, data = A.getValuesCSR()
+        out = sp.csr_matrix((data.copy(), indices.copy(), indptr.copy()), shape=A.getSize())
+    finally:
+        A.destroy()
+    return out if sparse else out.toarray()
+
+
+def constrained_dofs(solid) -> np.ndarray:
+    """Boolean mask [3N] of the DOFs held by the solid's Dirichlet conditions (``solid.bcs``)."""
+    fixed = np.zeros(solid.u.x.array.size, dtype=bool)
+    for bc in solid.bcs:
+        dofs, n_owned = bc.dof_indices()          # unrolled (blocked) DOF indices, owned first
+        fixed[np.asarray(dofs[:n_owned], dtype=np.int64)] = True
+    return fixed
+
+
+def rest_operators(solid, sparse: bool = False):
+    """The solid's stiffness and mass at rest over its free DOFs: (K [N/m], M [kg], free).
+
+    K is the tangent ∂f_int/∂u at u = 0 of the solid's *own* elastic internal force
+    f_int = ∫ P : Grad w dX, P = F S_el(F) (S_el: the law's isochoric + volumetric 2nd
+    Piola–Kirchhoff stress, the instantaneous elastic response, without Prony relaxation,
+    Rayleigh damping or the generalized-α blend), so it holds for every material law. M is the
+    consistent mass ∫ ρ δu·w dX. Both use ``solid.dx`` (explicit quadrature degree). ``solid.u``
+    is zeroed for the assembly and restored afterwards.
+
+    Returns K [n, n], M [n, n] (n = free.sum(), symmetric; dense arrays, or scipy CSR matrices
+    with ``sparse``) and ``free`` [3N] bool.
+    """
+    import ufl
+
+    w = ufl.TestFunction(solid.V)
+    du = ufl.TrialFunction(solid.V)
+    P = solid._F * solid._S_el                     # elastic first Piola stress of solid.u [Pa]
+    stiffness = ufl.derivative(ufl.inner(P, ufl.grad(w)) * solid.dx, solid.u, du)
+    mass = solid.rho * ufl.inner(du, w) * solid.dx
+    saved = solid.u.x.array.copy()
+    try:
+        solid.u.x.array[:] = 0.0
+        K = _assemble(stiffness, sparse=True)      # [3N, 3N]
+    finally:
+        solid.u.x.array[:] = saved
+    M = _assemble(mass, sparse=True)               # [3N, 3N]
+    free = ~constrained_dofs(solid)                # [3N]
+    idx = np.flatnonzero(free)
+    K = K[idx][:, idx]
+    K = 0.5 * (K + K.T)                            # symmetric up to round-off already
+    M = M[idx][:, idx]
+    return (K.tocsr(), M.tocsr(), free) if sparse else (K.toarray(), M.toarray(), free)
+
+
+# -- modes ------------------------------------------------------------------------------------
+
+
+def modal_basis(K: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """All modes, dense: (ω [n] rad/s ascending, Φ [n, n]) with K Φ = M Φ diag(ω²), Φᵀ M Φ = I
+    (negative round-off eigenvalues, e.g. rigid modes of an unclamped body, give ω = 0)."""
+    import scipy.linalg as sl
+
+    w2, phi = sl.eigh(K, M)
+    return np.sqrt(np.maximum(w2, 0.0)), phi
+
+
+def natural_frequencies(K: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """All natural angular frequencies ω [rad/s] of K φ = ω² M φ, ascending [n] (dense)."""
+    import scipy.linalg as sl
+
+    return np.sqrt(np.maximum(sl.eigh(K, M, eigvals_only=True), 0.0))
+
+
+def lowest_modes(K, M, omega_limit: float, dense_fraction: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """The modes with ω ≤ ``omega_limit`` [rad/s] and always the lowest one: (ω [m] ascending,
+    Φ [n, m], Φᵀ M Φ = I). Dense K, M: LAPACK on that subset. Sparse: shift-invert Lanczos
+    (ARPACK) below the spectrum, doubling the number of modes until one exceeds the limit, then
+    a Rayleigh–Ritz step on them; dense instead once more than ``dense_fraction`` n are needed
+    (or when ARPACK does not converge)."""
+    import scipy.linalg as sl
+
+    n = K.shape[0]
+    lam_limit = float(omega_limit) ** 2
+    if not _is_sparse(K) or n < 50:
+        Kd = K.toarray() if _is_sparse(K) else K
+        Md = M.toarray() if _is_sparse(M) else M
+        w2, phi = sl.eigh(Kd, Md, subset_by_value=(-np.inf, lam_limit))
+        if w2.size == 0:
+            w2, phi = sl.eigh(Kd, Md, subset_by_index=(0, 0))
+        return np.sqrt(np.maximum(w2, 0.0)), phi
+    import scipy.sparse.linalg as sla
+
+    Kc, Mc = K.tocsc(), M.tocsc()
+    sigma = -0.01 * lam_limit               # below the spectrum: K − σM is SPD even if K is singular
+    lu = sla.splu((Kc - sigma * Mc).tocsc())
+    opinv = sla.LinearOperator((n, n), matvec=lu.solve, dtype=float)
+    k = min(12, n - 2)
+    while True:
+        try:
+            w2, phi = sla.eigsh(Kc, k=k, M=Mc, sigma=sigma, which="LM", OPinv=opinv)
+        except sla.ArpackNoConvergence:
+            return lowest_modes(K.toarray(), M.toarray(), omega_limit)
+        if w2.max() > lam_limit or k >= n - 2:
+            break
+        if 2 * k > dense_fraction * n:
+            return lowest_modes(K.toarray(), M.toarray(), omega_limit)
+        k = min(2 * k, n - 2)
+    # Rayleigh–Ritz on the Lanczos vectors: M-orthonormal, clusters included
+    w2, c = sl.eigh(phi.T @ (K @ phi), phi.T @ (M @ phi))
+    phi = phi @ c
+    keep = w2 <= lam_limit
+    keep[0] = True
+    return np.sqrt(np.maximum(w2[keep], 0.0)), phi[:, keep]
+
+
+def highest_frequency(K, M) -> float:
+    """ω_max [rad/s], the largest natural frequency (dense: LAPACK; sparse: Lanczos, to 1e-6,
+    dense if it does not converge)."""
+    import scipy.linalg as sl
+
+    n = K.shape[0]
+    if _is_sparse(K) and n >= 50:
+        import scipy.sparse.linalg as sla
+
+        lu = sla.splu(M.tocsc())
+        minv = sla.LinearOperator((n, n), matvec=lu.solve, dtype=float)
+        try:
+            w2 = sla.eigsh(K.tocsc(), k=1, M=M.tocsc(), Minv=minv, which="LA", tol=1e-6,
+                           return_eigenvectors=False)
+            return float(np.sqrt(max(w2[0], 0.0)))
+        except sla.ArpackNoConvergence:
+            pass
+    Kd = K.toarray() if _is_sparse(K) else K
+    Md = M.toarray() if _is_sparse(M) else M
+    return float(np.sqrt(max(sl.eigh(Kd, Md, subset_by_index=(n - 1, n - 1), eigvals_only=True)[0], 0.0)))
+
+
+def resolution(omega: np.ndarray, dt: float, *, modes: int | None = None,
+               omega_max: float | None = None) -> dict:
+    """How many modes a step dt [s] resolves: ω_1 dt, ω_max dt, number of modes, and how many
+    have ω dt > :data:`UNRESOLVED` (= 2). ``omega`` [rad/s]: all frequencies, or only the
+    lowest ones (every ω dt <= 2 among them), with ``modes`` the total count and ``omega_max``."""
+    wdt = np.asarray(omega, dtype=float) * float(dt)
+    n = int(wdt.size if modes is None else modes)
+    top = float(wdt.max() if omega_max is None else omega_max * dt)
+    return {"omega_1_dt": float(wdt.min()), "omega_max_dt": top, "modes": n,
+            "unresolved": n - int(np.count_nonzero(wdt <= UNRESOLVED))}
+
+
+# -- what the data put into those modes ---------------------------------------------------------
+
+
+def _free_rows(a: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """[S, N, 3] nodal vectors -> [S, n] over the free DOFs."""
+    return a.reshape(a.shape[0], -1)[:, free]
+
+
+def energy_shares(K, M, free: np.ndarray, nodes: np.ndarray, trajectories: Iterable, layout,
+                  dt: float, *, modes=None) -> dict:
+    """Share of the data's strain and kinetic energy carried by the unresolved modes (ω dt > 2).
+
+    trajectories: iterable of schema ``Trajectory`` (z [S, N, D]; q = z[..., 0:3] [m] and, when
+    ``layout`` has it, v = z[..., layout.slice('v')] [m/s]); nodes: reference positions X [N, 3] [m].
+    Each snapshot's u = q − X and v over the free DOFs are projected on the M-orthonormal modes,
+    ξ = Φᵀ M u, η = Φᵀ M v; per mode the strain energy ω² ξ² / 2 and kinetic η² / 2 [J], summed
+    over all snapshots and trajectories. Since the modes are complete, the sum over all of them
+    is uᵀ K u / 2 and vᵀ M v / 2, so only the resolved modes (ω dt <= 2) are needed: the
+    unresolved share is 1 − resolved / total. ``modes``: (ω, Φ) holding at least every resolved
+    mode (others are ignored), e.g. from :func:`modal_basis`; default :func:`lowest_modes`.
+    K, M dense or sparse.
+
+    Returns ``strain_unresolved``, ``kinetic_unresolved`` (None without v) in [0, 1] and the
+    resolved shares ``strain_resolved``, ``kinetic_resolved`` (0 where the data hold no energy).
+    """
+    omega, phi = modes if modes is not None else lowest_modes(K, M, UNRESOLVED / dt)
+    lo = omega * dt <= UNRESOLVED                                  # [m] resolved modes
+    omega, MPhi = omega[lo], np.asarray(M @ phi[:, lo])            # [r], [n, r]
+    X = np.asarray(nodes, dtype=float)[None]                       # [1, N, 3]
+    has_v = "v" in layout.names
+    strain = kinetic = strain_lo = kinetic_lo = 0.0                # [J] summed over snapshots
+    for traj in trajectories:
+        z = np.asarray(traj.z)                                     # [S, N, D]
+        U = _free_rows(z[..., 0:3] - X, free)                      # [S, n] [m]
+        strain += 0.5 * float(np.sum(U * np.asarray(K @ U.T).T))
+        strain_lo += 0.5 * float(np.sum(omega**2 * (U @ MPhi) ** 2))
+        if has_v:
+            V = _free_rows(z[..., layout.slice("v")], free)        # [S, n] [m/s]
+            kinetic += 0.5 * float(np.sum(V * np.asarray(M @ V.T).T))
+            kinetic_lo += 0.5 * float(np.sum((V @ MPhi) ** 2))
+
+    def share(part, total):
+        return float(np.clip(part / total, 0.0, 1.0)) if total > 0 else 0.0
+
+    out = {"strain_unresolved": share(strain - strain_lo, strain), "strain_resolved": share(strain_lo, strain),
+           "kinetic_unresolved": None, "kinetic_resolved": None}
+    if has_v:
+        out.update(kinetic_unresolved=share(kinetic - kinetic_lo, kinetic),
+                   kinetic_resolved=share(kinetic_lo, kinetic))
+    return out
+
+
+def linear_stress(solid, free: np.ndarray):
+    """Σ [6N, n] Pa/m (scipy CSR): the nodal Cauchy stress (Voigt 11 22 33 12 13 23, volume-averaged
+    cell values as the dataset stores them, ``Solid.node_average``) of a small displacement of the
+    n free DOFs, σ = λ tr(ε) I + 2 μ ε with ε = sym(Grad u) and the law's moduli at rest
+    (μ = ``shear_modulus``, λ = K − 2μ/3; every isotropic hyperelastic law, and the unrelaxed
+    Prony response, linearise to this at rest). P1 tets only (None for higher degrees, whose
+    nodes are not the cells' vertices alone)."""
+    import scipy.sparse as sp
+
+    cells = solid.cells
+    if cells.shape[1] != 4:
+        return None
+    mu = solid.mat.shear_modulus
+    lam = solid.mat.bulk_modulus - 2.0 * mu / 3.0
+    x = solid.nodes[cells]                                          # [T, 4, 3]
+    G = np.linalg.inv(x[:, 1:] - x[:, :1])                          # [T, 3, 3]: columns are grad phi_1..3
+    grad = np.concatenate([-G.sum(2, keepdims=True), G], 2).transpose(0, 2, 1)   # [T, 4, 3] grad phi_a
+    voigt = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+    B = np.zeros((len(cells), 6, 4, 3))                             # d sigma_r / d u_(a, c) per cell
+    for r, (i, j) in enumerate(voigt):
+        for c in range(3):
+            B[:, r, :, c] = (lam * grad[:, :, c] * (i == j) + mu * grad[:, :, j] * (c == i)
+                             + mu * grad[:, :, i] * (c == j))
+    weight = solid.cell_volume[:, None, None, None, None] / solid._node_weight[cells][:, :, None, None, None]  # [T, 4, 1, 1, 1]
+    # every cell's stress goes, volume-weighted, to each of its 4 nodes: rows 6 node + r, cols 3 node' + c
+    rows = (6 * cells[:, :, None, None, None] + np.arange(6)[None, None, :, None, None])
+    cols = (3 * cells[:, None, None, :, None] + np.arange(3)[None, None, None, None, :])
+    rows, cols, vals = np.broadcast_arrays(rows, cols, weight * B[:, None])    # [T, 4, 6, 4, 3] each
+    n = len(solid.nodes)
+    full = sp.coo_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(6 * n, 3 * n)).tocsr()
+    return full[:, np.flatnonzero(free)]
+
+
+def linear_solid(solid, sparse: bool = True) -> LinearSolid:
+    """The solid linearised at rest (``thermognn.core.linear.LinearSolid``): K, M over the free
+    DOFs (:func:`rest_operators`), the stress operator (:func:`linear_stress`), the solid's
+    Rayleigh damping, Newmark β, γ and integrator ('quasi_static' without inertia), and the
+    gravity load (:func:`body_force`) over the free DOFs."""
+    K, M, free = rest_operators(solid, sparse=sparse)
+    opt = solid.opt
+    gravity = body_force(solid)
+    return LinearSolid(stiffness=K, mass=M, free=free, stress=linear_stress(solid, free),
+                       rayleigh=tuple(float(r) for r in opt.rayleigh),
+                       integrator=opt.integrator if solid.inertia else "quasi_static",
+                       beta=float(opt.beta), gamma=float(opt.gamma),
+                       body_force=None if gravity is None else gravity.ravel()[free])
+
+
+def linear_rollout_error(linear: LinearSolid, nodes: np.ndarray, trajectories: Iterable, layout,
+                         dt: float) -> dict | None:
+    """How far the linearised FE model is from the data: re-simulate each trajectory with it
+    (:meth:`LinearSolid.rollout`: from each trajectory's own first state u_0 = q_0 − X, v_0,
+    under its stored nodal forces, force[s] at t_s, with the data's own integrator applied to
+    the linear system; generalized-α is not reproduced: None).
+
+    Returns {"u": ||U_lin − U|| / ||U||, "v": same for the velocities (None for quasi-static)},
+    norms over all snapshots and free DOFs of a trajectory at once, averaged over trajectories
+    (those that never move are left out); None when there is nothing to compare."""
+    if linear.integrator not in LINEAR_INTEGRATORS:
+        return None
+    dynamic = linear.integrator == "newmark"
+    if dynamic and "v" not in layout.names:
+        return None
+    X = np.asarray(nodes, dtype=float)[None]                       # [1, N, 3]
+    errs_u, errs_v = [], []
+    for traj in trajectories:
+        z = np.asarray(traj.z)                                     # [S, N, D]
+        U = _free_rows(z[..., 0:3] - X, linear.free)               # [S, n] [m]
+        V = _free_rows(z[..., layout.slice("v")], linear.free) if dynamic else None   # [S, n] [m/s]
+        U_lin, V_lin = linear.rollout(U[0], None if V is None else V[0],
+                                      _free_rows(np.asarray(traj.force), linear.free), dt)
+        nu = np.linalg.norm(U)
+        if nu == 0:
+            continue
+        errs_u.append(np.linalg.norm(U_lin - U) / nu)
+        if V is not None and np.linalg.norm(V) > 0:
+            errs_v.append(np.linalg.norm(V_lin - V) / np.linalg.norm(V))
+    if not errs_u:
+        return None
+    return {"u": float(np.mean(errs_u)), "v": float(np.mean(errs_v)) if errs_v else None}
+
+
+def body_force(solid) -> np.ndarray | None:
+    """Consistent nodal gravity load ∫ ρ g·w dX [N] as [N, 3] when the solid has gravity, else None."""
+    if not solid.gravity:
+        return None
+    import ufl
+    from dolfinx import fem
+    from dolfinx.fem import petsc as fem_petsc
+    from petsc4py import PETSc
+
+    w = ufl.TestFunction(solid.V)
+    b = fem_petsc.assemble_vector(fem.form(solid.rho * ufl.inner(ufl.as_vector(solid.opt.gravity), w) * solid.dx))
+    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    out = b.array.copy().reshape(-1, 3)
+    b.destroy()
+    return out
+
+
+# -- the diagnostic generate runs -------------------------------------------------------------
+
+
+def diagnose(solid, trajectories, layout, dt: float, max_dofs: int | None = None,
+             linear: LinearSolid | None = None) -> dict:
+    """Resolution, energy shares and linearised re-simulation error of a dataset's trajectories.
+
+    trajectories: a callable returning a fresh iterable of (ok) schema ``Trajectory`` each time
+    (the data are read twice). Sparse operators, the resolved modes only (:func:`lowest_modes`)
+    and :func:`highest_frequency`: the same figures as the dense, complete eigenproblem at a
+    fraction of its cost. Returns a JSON-ready dict: dt [s], free_dofs, the keys of
+    :func:`resolution` and :func:`energy_shares`, ``linear_rollout_error`` ({"u", "v"} or None:
+    generalized-α, or nothing to compare), ``trajectories`` (count) and ``seconds`` (its cost); or
+    {"skipped": reason} above ``max_dofs`` (default :data:`MAX_DENSE_DOFS`) free DOFs.
+    ``linear``: the solid's :func:`linear_solid`, when the caller has built it already.
+    """
+    t0 = time.perf_counter()
+    max_dofs = MAX_DENSE_DOFS if max_dofs is None else max_dofs
+    n_free = int((~constrained_dofs(solid)).sum())
+    if n_free > max_dofs:
+        return {"skipped": f"{n_free} free DOFs > {max_dofs}", "free_dofs": n_free, "dt": dt}
+    linear = linear_solid(solid) if linear is None else linear
+    K, M, free = linear.stiffness, linear.mass, linear.free
+    omega, phi = lowest_modes(K, M, UNRESOLVED / dt)
+    out: dict = {"dt": float(dt), "free_dofs": n_free,
+                 **resolution(omega, dt, modes=n_free, omega_max=highest_frequency(K, M))}
+    count = 0
+
+    def counted():
+        nonlocal count
+        for traj in trajectories():
+            count += 1
+            yield traj
+
+    out.update(energy_shares(K, M, free, solid.nodes, counted(), layout, dt, modes=(omega, phi)))
+    out["linear_rollout_error"] = linear_rollout_error(linear, solid.nodes, trajectories(), layout, dt)
+    out["trajectories"] = count
+    out["seconds"] = round(time.perf_counter() - t0, 3)
+    return out
+
+
+def describe(report: dict, scene: str = "") -> list[str]:
+    """One or two console lines (rich markup) that summarise :func:`diagnose`'s report."""
+    where = f" ({scene})" if scene else ""
+    if "skipped" in report:
+        return [f"time resolution{where}: not computed, {report['skipped']}"]
+    pct = lambda x: f"{100 * x:.0f} %"  # noqa: E731
+    text = (f"time resolution{where}: dt {report['dt']:g} s resolves {report['modes'] - report['unresolved']} "
+            f"of {report['modes']} modes (omega_1 dt {report['omega_1_dt']:.3g}, omega_max dt "
+            f"{report['omega_max_dt']:.3g}); unresolved modes carry {pct(report['strain_unresolved'])} of the "
+            f"strain energy")
+    if report.get("kinetic_unresolved") is not None:
+        text += f", {pct(report['kinetic_unresolved'])} of the kinetic energy"
+    lin = report.get("linear_rollout_error")
+    if lin is not None:
+        text += f"; linearised FE re-simulates it to u {100 * lin['u']:.1f} %"
+        if lin.get("v") is not None:
+            text += f", v {100 * lin['v']:.1f} %"
+    lines = [text]
+    if report["strain_unresolved"] > 0.5:
+        lines.append("[yellow]hint[/]: most of this data's strain energy is in modes dt does not resolve: it "
+                     "responds quasi-statically, and explicit learned steps reproduce such data poorly "
+                     "(see docs/accuracy.md)")
+    return lines
