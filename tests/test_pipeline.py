@@ -32,6 +32,11 @@ def test_demo_runs_every_stage_end_to_end(tmp_path):
     assert (tmp_path / "model.ckpt").exists() and (tmp_path / "model.pt").exists()
     errors = json.loads((tmp_path / "eval" / "rrmse.json").read_text())
     assert {"q", "v", "sigma", "ms_per_step", "energy_balance"} <= set(errors)
+    # the linearised FE model on the same test trajectories (generate stored its operators)
+    for g in ("q", "v", "sigma"):
+        assert 0 < errors[f"linear_fe_{g}"] < 1 and 0 < errors[f"linear_fe_whole_{g}"] < 1, g
+    assert errors["linear_fe_ms_per_step"] > 0
+    assert "| linearised FE, test |" in (tmp_path / "eval" / "summary.md").read_text()
     summary = json.loads((tmp_path / "serve_summary.json").read_text())
     assert summary["final_force_N"] == 0.0
     assert summary["max_force_N"] > 0.0

@@ -148,6 +148,7 @@ def test_evaluate_writes_figures_tables_and_vtu(trained):
     ev = out / "eval"
     summary = (ev / "summary.md").read_text()
     assert "One step from every true state" in summary and f"| test | {res['one_step_q']:.3g}" in summary
+    assert "Linearised FE baseline: not computed, the dataset holds no linearised FE operators" in summary
     with open(ev / "one_step_vs_time.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert int(rows[0]["step"]) == 1 and len(rows) == sum(1 for _ in open(ev / "rrmse_vs_time.csv")) - 2

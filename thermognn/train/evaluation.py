@@ -185,12 +185,46 @@ def _mean_groups(per_traj: list[dict[str, float]], groups: list[str]) -> dict[st
     return out
 
 
+def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors]) -> dict:
+    """The linearised FE model (the dataset's ``/linear`` operators, ``thermognn.core.linear``; no
+    learning) rolled out over the same trajectories, from the same first states under the same
+    loads. Returns {"snapshot": {group: mean per-snapshot RRMSE}, "whole": {group: mean
+    whole-rollout error}, "ms_per_step": wall time of one linear step [ms], "note": ""}; groups the
+    linear model does not predict (Prony internal variables; sigma without a stress operator) are
+    NaN. Without operators (datasets written before them, or too large for dense operators), or
+    for an integrator it does not reproduce: {"note": why} alone."""
+    lin = data.dataset.linear_solid()
+    if lin is None:
+        return {"note": "the dataset holds no linearised FE operators (regenerate it to add them)"}
+    groups = data.layout.names
+    predicted = {"q"} | ({"v"} if lin.integrator == "newmark" else set()) \
+        | ({"sigma"} if lin.stress is not None else set())
+    X = data.graph.ref_pos.double().numpy()
+    per_traj, whole, elapsed, steps = [], [], 0.0, 0
+    try:
+        for t in trajs:
+            t0 = time.perf_counter()
+            pred = lin.rollout_states(t.z.double().numpy(), t.force.double().numpy(), X, data.layout, data.dt)
+            elapsed += time.perf_counter() - t0
+            steps += pred.shape[0] - 1
+            pred_t, truth = torch.as_tensor(pred), t.z.double()
+            per_traj.append(trajectory_rrmse(rrmse_per_step(pred_t, truth, data.layout)))
+            whole.append(trajectory_error(pred_t, truth, data.layout))
+    except ValueError as exc:                                       # e.g. generalized-alpha data
+        return {"note": str(exc)}
+    hide = lambda d: {g: (d[g] if g in predicted else math.nan) for g in groups}  # noqa: E731
+    return {"snapshot": hide(_mean_groups(per_traj, groups)), "whole": hide(_mean_groups(whole, groups)),
+            "ms_per_step": 1e3 * elapsed / max(steps, 1), "note": ""}
+
+
 def evaluate(cfg) -> dict:
     """Roll out the test trajectories with the checkpoint's model; print and write the errors.
 
     Returns {group: mean test RRMSE, ..., "ms_per_step": wall time of one step [ms],
     "energy_balance": see :func:`energy_balance`, "rest_drift", "rest_growth",
-    "one_step_<group>": the test one-step error of :func:`one_step_errors`}."""
+    "one_step_<group>": the test one-step error of :func:`one_step_errors`, and for datasets with
+    linearised FE operators "linear_fe_<group>" / "linear_fe_whole_<group>" (per-snapshot and
+    whole-rollout test errors of :func:`linear_baseline`) and "linear_fe_ms_per_step"}."""
     torch.set_num_threads(int(OmegaConf.select(cfg, "train.threads", default=2)))
     ckpt_path = project_path(cfg.paths.checkpoint)
     ckpt = load_checkpoint(ckpt_path)
@@ -220,6 +254,7 @@ def evaluate(cfg) -> dict:
     _, _, per_traj_train, _ = _rollouts(model, data, train_trajs)
     mean_test, mean_train = _mean_groups(per_traj, groups), _mean_groups(per_traj_train, groups)
     whole = _mean_groups([trajectory_error(p, t.z, data.layout) for p, t in zip(preds, test)], groups)
+    linear = linear_baseline(data, test)
 
     out = project_path(cfg.paths.eval_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -332,11 +367,26 @@ def evaluate(cfg) -> dict:
     mean_test["rest_drift"] = drift
     mean_test["rest_growth"] = growth
     mean_test.update({f"one_step_{g}": step_test[g] for g in groups})
-    print_rrmse_table(f"rollout RRMSE ({len(test)} test, {len(train_trajs)} train trajectories)",
-                      {"test": {g: mean_test[g] for g in groups}, "train": mean_train})
+    rows = {"test": {g: mean_test[g] for g in groups}, "train": mean_train}
+    if "snapshot" in linear:
+        mean_test.update({f"linear_fe_{g}": linear["snapshot"][g] for g in groups})
+        mean_test.update({f"linear_fe_whole_{g}": linear["whole"][g] for g in groups})
+        mean_test["linear_fe_ms_per_step"] = linear["ms_per_step"]
+        rows["linearised FE, test"] = linear["snapshot"]
+    print_rrmse_table(f"rollout RRMSE ({len(test)} test, {len(train_trajs)} train trajectories)", rows)
     print(f"evaluate: {ms:.2f} ms per step ({data.graph.n_nodes} nodes, {torch.get_num_threads()} threads); "
           f"wrote {out}")
 
+    def linear_rows(kind: str) -> list[str]:
+        if kind not in linear:
+            return []
+        return ["| linearised FE, test | " + " | ".join(_fmt(linear[kind][g]) for g in groups) + " |"]
+
+    linear_line = ("The linearised FE model (the dataset's own K, M and stress operator at rest, stepped by "
+                   "the data's integrator; no learning; rows `linearised FE` above; nan: a group it does not "
+                   f"predict) steps in {linear['ms_per_step']:.3f} ms (numpy, dense): the physics baseline a "
+                   "learned model has to beat." if "snapshot" in linear
+                   else f"Linearised FE baseline: not computed, {linear['note']}.")
     lines = [f"# Evaluation of `{ckpt_path}`", "",
              f"- dataset: `{ds_path}` (scene `{data.dataset.scene}`, {data.graph.n_nodes} nodes, "
              f"D = {data.layout.dim}, dt = {data.dt} s)",
@@ -355,12 +405,13 @@ def evaluate(cfg) -> dict:
              "averaged over the rollout steps (clamped nodes imposed) and trajectories.", "",
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
              "| test | " + " | ".join(_fmt(mean_test[g]) for g in groups) + " |",
-             "| train | " + " | ".join(_fmt(mean_train[g]) for g in groups) + " |", "",
+             "| train | " + " | ".join(_fmt(mean_train[g]) for g in groups) + " |", *linear_rows("snapshot"), "",
              "Whole-rollout relative error ||z_pred - z_gt|| / ||z_gt|| over all steps and nodes (the "
              "model-selection metric; unlike the per-snapshot mean it does not blow up where a group "
              "comes to rest):", "",
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
-             "| test | " + " | ".join(_fmt(whole[g]) for g in groups) + " |", "",
+             "| test | " + " | ".join(_fmt(whole[g]) for g in groups) + " |", *linear_rows("whole"), "",
+             linear_line, "",
              "One step from every true state z[s] (the model's own step), error of its change "
              "||dz_pred - dz_gt|| / ||dz_gt|| over all steps and nodes, dz = z[s+1] - z[s]: what "
              "the network has learned, apart from any drift of its rollouts (near 1: the step is "
