@@ -384,7 +384,7 @@ def evaluate(cfg) -> dict:
 
     linear_line = ("The linearised FE model (the dataset's own K, M and stress operator at rest, stepped by "
                    "the data's integrator; no learning; rows `linearised FE` above; nan: a group it does not "
-                   f"predict) steps in {linear['ms_per_step']:.3f} ms (numpy, dense): the physics baseline a "
+                   f"predict) steps in {linear['ms_per_step']:.3f} ms (scipy, one sparse LU solve): the physics baseline a "
                    "learned model has to beat." if "snapshot" in linear
                    else f"Linearised FE baseline: not computed, {linear['note']}.")
     lines = [f"# Evaluation of `{ckpt_path}`", "",
