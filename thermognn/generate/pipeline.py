@@ -123,7 +123,6 @@ def _linearised(solid, spec: SceneSpec, layout: StateLayout, writer: DatasetWrit
     try:
         from .modes import describe, diagnose, linear_solid
 
-        solid.reset()                                       # at rest: no committed viscous stress
         linear = linear_solid(solid)
         writer.set_linear(linear)
         report = diagnose(solid, writer.ok_trajectories, layout, spec.dt, linear=linear)
