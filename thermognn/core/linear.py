@@ -16,7 +16,7 @@ numpy only (no torch, no dolfinx): the FE side and the learning side both use it
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -58,6 +58,22 @@ class LinearSolid:
     beta: float = 0.25
     gamma: float = 0.5
     body_force: np.ndarray | None = None
+    #: LU factorisations by (integrator, dt), made on the first rollout that needs them
+    _factors: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def _solvers(self, dt: float, alpha_m: float, beta_k: float):
+        """(solve with the step's effective stiffness, solve with M) for newmark; (solve with K,
+        None) for quasi-static; factorised once per integrator and dt."""
+        key = (self.integrator, float(dt), alpha_m, beta_k, float(self.beta), float(self.gamma))
+        if key not in self._factors:
+            K, M = self.stiffness, self.mass
+            if self.integrator == "quasi_static":
+                self._factors[key] = (lu_solver(K), None)
+            else:
+                c0 = 1.0 / (self.beta * dt**2)
+                self._factors[key] = (lu_solver(c0 * (1.0 + alpha_m * self.gamma * dt) * M + (1.0 + beta_k / dt) * K),
+                                      lu_solver(M))
+        return self._factors[key]
 
     @property
     def n_free(self) -> int:
@@ -85,17 +101,16 @@ class LinearSolid:
         F = np.asarray(forces, dtype=float)                            # [S, n]
         if self.body_force is not None:
             F = F + np.asarray(self.body_force, dtype=float)[None]
+        alpha_m, beta_k = (float(r) for r in self.rayleigh)
+        solve, solve_m = self._solvers(dt, alpha_m, beta_k)
         if self.integrator == "quasi_static":
-            solve = lu_solver(K)
             return np.stack([solve(f) for f in F]), None
         if v0 is None:
             raise ValueError("linearised FE: newmark needs the velocity v0")
-        alpha_m, beta_k = (float(r) for r in self.rayleigh)
         b, g = float(self.beta), float(self.gamma)
         c0, c1 = 1.0 / (b * dt**2), 1.0 / (2.0 * b) - 1.0
-        solve = lu_solver(c0 * (1.0 + alpha_m * g * dt) * M + (1.0 + beta_k / dt) * K)
         u, v = np.array(u0, dtype=float), np.array(v0, dtype=float)
-        a = lu_solver(M)(F[0] - K @ u - alpha_m * (M @ v))
+        a = solve_m(F[0] - K @ u - alpha_m * (M @ v))
         U, V = [u], [v]
         for s in range(1, F.shape[0]):
             pred = c0 * (u + dt * v) + c1 * a                          # a_{n+1} = c0 u_{n+1} − pred
