@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 
 from thermognn.core.errors import DataError
 from thermognn.core.io import atomic_path
@@ -113,7 +114,6 @@ def main() -> None:
     prior = LinearPrior(linear, N, dt).to(torch.float32)
     train, val, test = data.of("train"), data.of("val"), data.of("test")
 
-    from omegaconf import OmegaConf
     hp = hyperparameters(OmegaConf.create({"kinematics": "exact"}), D, velocity_columns(layout), False)
     model = TIGNN(**hp)
     stats = compute_stats(train, g, dt, hp)
@@ -122,8 +122,7 @@ def main() -> None:
     F = torch.stack([t.force for t in train]).double()
     z0, z1 = Z[:, :-1].reshape(-1, N, D), Z[:, 1:].reshape(-1, N, D)
     f0, f1 = F[:, :-1].reshape(-1, N, 3), F[:, 1:].reshape(-1, N, 3)
-    zero = torch.zeros_like(z0)
-    lin = prior64.step(z0, f0, f1, zero, g.ref_pos.double())                         # the prior alone
+    lin = prior64.step(z0, f0, f1, torch.zeros_like(z0), g.ref_pos.double())         # the prior alone
     fr = prior64.free
     g_ideal = torch.linalg.solve(prior64.P_g, (z1 - lin)[..., 3:6].reshape(len(z0), -1)[:, fr].T).T
     r_sigma = (z1 - lin)[..., 6:12] / dt
