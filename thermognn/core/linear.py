@@ -9,7 +9,7 @@ over the free (not clamped) DOFs, node-blocked (node i, component c at 3 i + c).
 assembles K, M and Σ from its own solid (``thermognn/generate/modes.py``) and stores them in the
 dataset (``/linear``, ``thermognn/core/schema.py``); :class:`LinearSolid` steps them with the
 data's own time integrator, so that ``evaluate`` can report, beside every learned model, what
-the linearised FE model scores on the same trajectories (no training, one dense solve a step).
+the linearised FE model scores on the same trajectories (no training, one sparse LU solve a step).
 
 numpy only (no torch, no dolfinx): the FE side and the learning side both use it.
 """
@@ -22,6 +22,12 @@ import numpy as np
 
 #: integrators :meth:`LinearSolid.rollout` reproduces (generalized-α: not yet)
 INTEGRATORS = ("newmark", "quasi_static")
+
+
+def free_rows(a: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """[S, N, 3] nodal vectors -> [S, n] over the DOFs where ``free`` [3N] is True."""
+    a = np.asarray(a, dtype=float)
+    return a.reshape(a.shape[0], -1)[:, free]
 
 
 def lu_solver(A):
@@ -81,8 +87,7 @@ class LinearSolid:
 
     def free_rows(self, a: np.ndarray) -> np.ndarray:
         """[S, N, 3] nodal vectors -> [S, n] over the free DOFs."""
-        a = np.asarray(a, dtype=float)
-        return a.reshape(a.shape[0], -1)[:, self.free]
+        return free_rows(a, self.free)
 
     def rollout(self, u0: np.ndarray, v0: np.ndarray | None, forces: np.ndarray,
                 dt: float) -> tuple[np.ndarray, np.ndarray | None]:

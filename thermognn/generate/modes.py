@@ -16,8 +16,8 @@ DOFs are node-blocked (node i, component c at 3 i + c, nodes in the order of ``s
 to them. :func:`rest_operators` gives dense arrays (meshes up to ~2,000 nodes: 16 n² bytes per
 matrix for n DOFs) or, with ``sparse=True``, scipy CSR matrices. :func:`modal_basis` and
 :func:`natural_frequencies` are dense and complete (O(n³): about 5 s for n = 1,500 on two cores,
-minutes for 5,000); :func:`lowest_modes`, :func:`highest_frequency`, :func:`energy_shares` and
-:func:`linear_rollout_error` take either kind, and :func:`diagnose` (what ``generate`` runs) uses
+minutes for 5,000); :func:`lowest_modes`, :func:`highest_frequency` and :func:`energy_shares`
+take either kind, :func:`linear_rollout_error` the :func:`linear_solid` (sparse), and :func:`diagnose` (what ``generate`` runs) uses
 sparse matrices and only the resolved modes, which gives the same figures in seconds; it is
 skipped above :data:`MAX_DENSE_DOFS` free DOFs all the same.
 """
@@ -30,7 +30,7 @@ from typing import Iterable
 import numpy as np
 
 from thermognn.core.linear import INTEGRATORS as LINEAR_INTEGRATORS
-from thermognn.core.linear import LinearSolid
+from thermognn.core.linear import LinearSolid, free_rows
 
 #: ω dt above which a mode is unresolved (beyond the explicit, central-difference stability limit)
 UNRESOLVED = 2.0
@@ -205,11 +205,6 @@ def resolution(omega: np.ndarray, dt: float, *, modes: int | None = None,
 # -- what the data put into those modes ---------------------------------------------------------
 
 
-def _free_rows(a: np.ndarray, free: np.ndarray) -> np.ndarray:
-    """[S, N, 3] nodal vectors -> [S, n] over the free DOFs."""
-    return a.reshape(a.shape[0], -1)[:, free]
-
-
 def energy_shares(K, M, free: np.ndarray, nodes: np.ndarray, trajectories: Iterable, layout,
                   dt: float, *, modes=None) -> dict:
     """Share of the data's strain and kinetic energy carried by the unresolved modes (ω dt > 2).
@@ -235,11 +230,11 @@ def energy_shares(K, M, free: np.ndarray, nodes: np.ndarray, trajectories: Itera
     strain = kinetic = strain_lo = kinetic_lo = 0.0                # [J] summed over snapshots
     for traj in trajectories:
         z = np.asarray(traj.z)                                     # [S, N, D]
-        U = _free_rows(z[..., 0:3] - X, free)                      # [S, n] [m]
+        U = free_rows(z[..., 0:3] - X, free)                      # [S, n] [m]
         strain += 0.5 * float(np.sum(U * np.asarray(K @ U.T).T))
         strain_lo += 0.5 * float(np.sum(omega**2 * (U @ MPhi) ** 2))
         if has_v:
-            V = _free_rows(z[..., layout.slice("v")], free)        # [S, n] [m/s]
+            V = free_rows(z[..., layout.slice("v")], free)        # [S, n] [m/s]
             kinetic += 0.5 * float(np.sum(V * np.asarray(M @ V.T).T))
             kinetic_lo += 0.5 * float(np.sum((V @ MPhi) ** 2))
 
@@ -321,10 +316,9 @@ def linear_rollout_error(linear: LinearSolid, nodes: np.ndarray, trajectories: I
     errs_u, errs_v = [], []
     for traj in trajectories:
         z = np.asarray(traj.z)                                     # [S, N, D]
-        U = _free_rows(z[..., 0:3] - X, linear.free)               # [S, n] [m]
-        V = _free_rows(z[..., layout.slice("v")], linear.free) if dynamic else None   # [S, n] [m/s]
-        U_lin, V_lin = linear.rollout(U[0], None if V is None else V[0],
-                                      _free_rows(np.asarray(traj.force), linear.free), dt)
+        U = linear.free_rows(z[..., 0:3] - X)                      # [S, n] [m]
+        V = linear.free_rows(z[..., layout.slice("v")]) if dynamic else None   # [S, n] [m/s]
+        U_lin, V_lin = linear.rollout(U[0], None if V is None else V[0], linear.free_rows(traj.force), dt)
         nu = np.linalg.norm(U)
         if nu == 0:
             continue
