@@ -221,3 +221,47 @@ def test_generate_stores_time_resolution(tmp_path, monkeypatch):
     monkeypatch.setattr(modes, "diagnose", broken)
     d = Dataset(generate(load_config([f"out={tmp_path / 'b'}", *tiny[1:], "scene.loads.n_trajectories=1"])))
     assert d.ok_names == ["traj_0"] and d.time_resolution is None
+
+
+def test_newmark_prior_with_the_exact_remainders_is_the_fe_step():
+    """thermognn/train/prior.py: the data's Newmark step on the linearised solid, plus the
+    internal-force remainder G = K u − f_int(u) and the stress remainder H = σ − Σ u. With
+    G = H = 0 it is the linearised FE model (LinearSolid.rollout); with the remainders
+    ``remainders`` recovers from an FE trajectory (12 mm bend, mass and stiffness damping) it
+    reproduces that trajectory to round-off in u, v and σ. G vanishes at rest and is a sizeable
+    share of the load here (the nonlinearity a hybrid model learns)."""
+    torch = pytest.importorskip("torch")
+    from thermognn.train.prior import NewmarkPrior
+
+    s, layout, traj = _bent_block(1.0, "newmark")
+    dt, X = 2e-3, s.nodes
+    linear = modes.linear_solid(s)
+    prior = NewmarkPrior(linear, len(X), dt)
+    z, f = torch.as_tensor(traj.z), torch.as_tensor(traj.force)
+    u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., layout.slice("sigma")]
+    G, H = prior.remainders(u, v, sigma, f)
+    assert float(G[0].abs().max()) == 0.0
+    assert float(G.norm() / prior.gather(f).norm()) > 0.05
+
+    def rollout(G, H):
+        uf, vf = prior.gather(u[:1]), prior.gather(v[:1])
+        a = prior.initial_acceleration(uf, vf, prior.gather(f[:1]), G[:1])
+        us, vs = [uf], [vf]
+        for k in range(1, len(f)):
+            uf, vf, a = prior.step(uf, vf, a, prior.gather(f[k:k + 1]), G[k - 1:k], G[k:k + 1])
+            us.append(uf)
+            vs.append(vf)
+        U = prior.scatter(torch.cat(us))
+        return U, prior.scatter(torch.cat(vs)), prior.stress(U, H)
+
+    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
+    U, V, Sig = rollout(G, H)
+    assert rel(U, u) < 1e-9 and rel(V, v) < 1e-9 and rel(Sig, sigma) < 1e-9
+    U, V, Sig = rollout(torch.zeros_like(G), 0.0)
+    lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
+    assert rel(U, lin[..., 0:3] - torch.as_tensor(X)) < 1e-10 and rel(V, lin[..., 3:6]) < 1e-10
+    assert rel(Sig, lin[..., layout.slice("sigma")]) < 1e-10
+    assert rel(U, u) > 1e-2                                   # the remainders are what it lacked
+    with pytest.raises(ValueError, match="quasi_static"):
+        linear.integrator = "quasi_static"
+        NewmarkPrior(linear, len(X), dt)

@@ -1,0 +1,134 @@
+"""The linearised FE step as a prior for a learned model: the data's own Newmark step applied to
+the solid linearised at rest (``/linear`` in the dataset, :class:`thermognn.core.linear.LinearSolid`),
+with the nonlinear part of the solid left as two remainders a network can learn.
+
+The FE solid (``thermognn/generate/solid.py``) steps, over its free DOFs::
+
+    M a1 + αM M v1 + βK (f_int(u1) − f_int(u0)) / dt + f_int(u1) = f1          [N]
+    u1 = u0 + dt v0 + dt² ((1/2 − β) a0 + β a1),   v1 = v0 + dt ((1 − γ) a0 + γ a1)
+
+(stiffness damping written as βK times the internal force's change over the step). With the
+internal force split as f_int(u) = K u − G(u), K the stiffness at rest, this is exactly::
+
+    M a1 + αM M v1 + c K (u1 − u0) + K u1 = f1 + (1 + c) G(u1) − c G(u0),      c = βK / dt
+
+and the nodal Cauchy stress [Pa] is σ = Σ u + H. G [N] (the internal force's nonlinear
+remainder) and H [Pa] (the stress's) vanish for small displacements: with G = H = 0 the step is
+the linearised FE model ``evaluate`` reports, and with the exact remainders of a trajectory
+(:meth:`NewmarkPrior.remainders`) it reproduces that trajectory to round-off. A hybrid model
+learns G and H; the linear solve spreads G over the body, so a local correction suffices.
+
+torch only (dense operators, for meshes of a few thousand free DOFs).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from thermognn.core.linear import LinearSolid
+
+
+def _dense(A) -> Tensor:
+    return torch.as_tensor(A.toarray() if hasattr(A, "toarray") else np.asarray(A), dtype=torch.float64)
+
+
+class NewmarkPrior:
+    """The Newmark step above over the n free DOFs of an N-node mesh, as dense matrices.
+
+    Displacements u, velocities v [m/s], accelerations a [m/s²], forces and remainders G [N] are
+    [B, n] rows over the free DOFs (node-blocked, as ``LinearSolid``); stresses [B, N, 6] Pa."""
+
+    def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, dtype: torch.dtype = torch.float64) -> None:
+        if linear.integrator != "newmark":
+            raise ValueError(f"linear prior: integrator {linear.integrator!r}, only newmark is reproduced")
+        if linear.stress is None:
+            raise ValueError("linear prior: the dataset's /linear has no stress operator (P1 meshes only)")
+        K, M = _dense(linear.stiffness), _dense(linear.mass)                      # [n, n]
+        self.alpha_m, beta_k = (float(r) for r in linear.rayleigh)
+        self.beta, self.gamma, self.dt = float(linear.beta), float(linear.gamma), float(dt)
+        self.c = beta_k / self.dt                                                  # stiffness damping / dt
+        self.c0 = 1.0 / (self.beta * self.dt**2)                                   # a1 = c0 u1 − predictor
+        self.c1 = 1.0 / (2.0 * self.beta) - 1.0
+        mass_factor = 1.0 + self.alpha_m * self.gamma * self.dt
+        S_inv = torch.linalg.inv(self.c0 * mass_factor * M + (1.0 + self.c) * K)   # effective stiffness⁻¹
+        # u1 = S⁻¹ (mass_factor M p + c K u0 − αM M v0 − αM dt (1 − γ) M a0 + f1 + (1 + c) G1 − c G0)
+        self.from_predictor = S_inv @ (mass_factor * M)
+        self.from_u = self.c * S_inv @ K
+        self.from_v = -self.alpha_m * S_inv @ M
+        self.from_a = -self.alpha_m * self.dt * (1.0 - self.gamma) * S_inv @ M
+        self.from_force = S_inv
+        self.stiffness, self.mass, self.mass_inv = K, M, torch.linalg.inv(M)
+        self.free = torch.as_tensor(np.asarray(linear.free, dtype=bool))          # [3N]
+        self.free_index = torch.nonzero(self.free).flatten()                       # [n]
+        self.n_nodes = int(n_nodes)
+        n = K.shape[0]
+        self.body_force = (torch.zeros(n, dtype=torch.float64) if linear.body_force is None
+                           else torch.as_tensor(np.asarray(linear.body_force), dtype=torch.float64))
+        self.stress_operator = torch.zeros(6 * n_nodes, 3 * n_nodes, dtype=torch.float64)  # [6N, 3N]
+        self.stress_operator[:, self.free] = _dense(linear.stress)
+        self.to(dtype)
+
+    _TENSORS = ("from_predictor", "from_u", "from_v", "from_a", "from_force", "stiffness", "mass",
+                "mass_inv", "body_force", "stress_operator")
+
+    def to(self, dtype: torch.dtype) -> "NewmarkPrior":
+        for k in self._TENSORS:
+            setattr(self, k, getattr(self, k).to(dtype))
+        return self
+
+    # --- free DOFs <-> nodal fields ---------------------------------------------------------
+    def gather(self, nodal: Tensor) -> Tensor:
+        """[B, N, 3] nodal vectors -> [B, n] over the free DOFs."""
+        return nodal.reshape(nodal.shape[0], -1).index_select(1, self.free_index)
+
+    def scatter(self, rows: Tensor) -> Tensor:
+        """[B, n] free-DOF rows -> [B, N, 3] nodal vectors (zero at clamped DOFs)."""
+        B = rows.shape[0]
+        full = rows.new_zeros(B, 3 * self.n_nodes).index_copy(1, self.free_index, rows)  # [B, 3N]
+        return full.reshape(B, self.n_nodes, 3)
+
+    # --- the step ---------------------------------------------------------------------------
+    def initial_acceleration(self, u0: Tensor, v0: Tensor, f0: Tensor, G0: Tensor) -> Tensor:
+        """a0 [B, n] from the equation of motion at the start, M a0 = f0 − K u0 + G0 − αM M v0
+        (the FE starts from its own balance too)."""
+        rhs = f0 + self.body_force - u0 @ self.stiffness.T + G0 - self.alpha_m * v0 @ self.mass.T
+        return rhs @ self.mass_inv.T
+
+    def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
+             G1: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(u1, v1, a1) [B, n] from (u0, v0, a0), the external force f1 at the step's end and the
+        internal-force remainders G0, G1 at its start and end (all [B, n])."""
+        predictor = self.c0 * (u0 + self.dt * v0) + self.c1 * a0
+        u1 = (predictor @ self.from_predictor.T + u0 @ self.from_u.T + v0 @ self.from_v.T + a0 @ self.from_a.T
+              + (f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0) @ self.from_force.T)
+        a1 = self.c0 * u1 - predictor
+        v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
+        return u1, v1, a1
+
+    def stress(self, u: Tensor, H: Tensor | float = 0.0) -> Tensor:
+        """Nodal Cauchy stress σ = Σ u + H [B, N, 6] Pa (Voigt 11 22 33 12 13 23) of the nodal
+        displacements u [B, N, 3] m."""
+        B = u.shape[0]
+        return (u.reshape(B, -1) @ self.stress_operator.T).reshape(B, self.n_nodes, 6) + H
+
+    # --- what a learned model must supply ---------------------------------------------------
+    def remainders(self, u: Tensor, v: Tensor, sigma: Tensor, f: Tensor) -> tuple[Tensor, Tensor]:
+        """The exact remainders along one FE trajectory: G [S, n] N and H [S, N, 6] Pa, from its
+        displacements u [S, N, 3], velocities v [S, N, 3], stresses [S, N, 6] and nodal forces
+        f [S, N, 3]. Assumes G = 0 at the first state (an unloaded start at rest, as generate's)."""
+        uf, vf, ff = self.gather(u), self.gather(v), self.gather(f) + self.body_force
+        S = uf.shape[0]
+        K, M, dt, g, c = self.stiffness, self.mass, self.dt, self.gamma, self.c
+        a = torch.zeros_like(uf)                                                   # Newmark's accelerations
+        a[0] = self.initial_acceleration(uf[:1], vf[:1], ff[:1] - self.body_force, torch.zeros_like(uf[:1]))[0]
+        for s in range(S - 1):
+            a[s + 1] = (vf[s + 1] - vf[s] - dt * (1.0 - g) * a[s]) / (g * dt)
+        # (1 + c) G1 − c G0 = M a1 + αM M v1 + c K (u1 − u0) + K u1 − f1 at every step's end
+        lumped = (a[1:] @ M.T + self.alpha_m * vf[1:] @ M.T + c * (uf[1:] - uf[:-1]) @ K.T + uf[1:] @ K.T
+                  - ff[1:])                                                        # [S - 1, n]
+        G = torch.zeros_like(uf)
+        for s in range(S - 1):
+            G[s + 1] = (lumped[s] + c * G[s]) / (1.0 + c)
+        return G, sigma - self.stress(u)
