@@ -1,36 +1,49 @@
-"""Experiment (not yet a model option): the linearised FE step with a learned GENERIC correction
-inside its solve, trained on whole rollouts. Prints test errors beside the linearised FE model.
+"""Experiment (not yet a model option): the data's own Newmark step of the linearised solid with a
+learned nonlinear remainder, trained on whole rollouts. Prints test errors beside the linearised
+FE model.
 
-Why (docs/accuracy.md, session 11): where a dataset's strain energy sits in modes its time step
+Why (docs/accuracy.md, sessions 11-12): where a dataset's strain energy sits in modes its time step
 does not resolve (the block: all of them), an explicit learned step must produce the tiny
-remainder of a load and an elastic force that cancel; the linearised FE model alone
-(``/linear`` in the dataset, ``thermognn.core.linear``) is then 10x more accurate than the learned
-models. Here the step is the linear model's implicit trapezoidal (Crank-Nicolson) solve over the
-free DOFs, C = alpha_M M + beta_K K, S = M + dt/2 C + dt^2/4 K::
+remainder of a load and an elastic force that cancel; the linearised FE model alone is then 10x
+more accurate than the learned models. Here the step is ``thermognn.train.prior.NewmarkPrior``:
+the FE's Newmark step with the internal force split as f_int(u) = K u - G(u),
 
-    S v1 = (M - dt/2 C - dt^2/4 K) v0 - dt K u0 + dt (f0 + f1)/2 + dt g        [m/s]
-    u1 = u0 + dt (v0 + v1)/2,   sigma1 = sigma0 + Sigma (u1 - u0) + dt r_sigma
+    M a1 + aM M v1 + c K (u1 - u0) + K u1 = f1 + (1 + c) G1 - c G0,   c = bK / dt
+    sigma1 = Sigma u1 + H1
 
-with the network's GENERIC rates r = L dE/dz + M dS/dz at (z0, f1) read as a corrective nodal
-force g [N] (v columns) and a stress rate r_sigma [Pa/s]; its q rate is unused. The solve spreads
-the correction over the body, so the network only has to learn a local one (on the block 99.5 %
-of the ideal g lies within 2 hops of the load). Trained on one step at a time it fails (the
-linear step meets, from the data's nonlinear states, an imbalance it never meets in its own
-rollout), so the loss is the whole rollout's, back-propagated through the linear solves.
+which is the FE step itself with the exact remainders G [N] and H [Pa] and the linearised FE
+model with G = H = 0. The TIGNN network's GENERIC rates at a state are read as the remainders
+(v columns: G, sigma columns: H, scaled by their RMS in the training data), so a network whose
+outputs start at zero starts at the linearised FE model. Per step: the linear step with the
+previous G predicts the state, the network gives G1, H1 there (``--sweeps`` times), the linear
+step with them gives the state. With ``--inputs q`` the network sees the positions only (G and H
+of a hyperelastic solid are functions of the displacement), with ``all`` the whole state.
+
+Training: ``--fit-minutes`` of one-step regression on the exact remainders (the prior's
+``remainders`` of each training trajectory), then ``--rollout-minutes`` on whole rollouts
+(back-propagation through the linear solves). The fit alone leaves v far off (block: G 10-14 %
+off per step gives v 8-10 % off, worse than no G): the solve amplifies whatever part of the
+error reaches the soft, global modes, a small share of G's norm, and the trapezoidal rule
+carries a velocity error in the stiff modes undamped (white noise of 10 % of G: v 135 % off; a
+smooth 10 % scale error: v 0.3 %). Whole rollouts fix that. Two further fit terms, measured over
+one epoch only so far: ``--compliance`` weighs G's error by the displacement it causes,
+(1 + c) S^-1 (G - G*); ``--increments`` adds the error of the outputs' change between
+consecutive snapshots.
 
 Needs a dataset written by ``thermognn generate`` (with ``/linear``); torch and numpy only::
 
-    .venv/bin/python benchmarks/hybrid_prior.py /tmp/b3/dataset.h5 --minutes 20 --out /tmp/hyb
+    .venv/bin/python benchmarks/hybrid_prior.py /tmp/b3/dataset.h5 --fit-minutes 20 \
+        --rollout-minutes 20 --out /tmp/hyb
 
 The split is the one ``thermognn train`` uses (``train.split`` fractions, seed 0). The best
-weights by validation go to ``<out>/hybrid.pt`` (state dict), the figures to ``<out>/result.json``.
+weights by validation go to ``<out>/hybrid.pt`` (state dict), the fit's last to ``fit.pt``, the
+figures to ``<out>/result.json``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import time
 from pathlib import Path
 
@@ -42,58 +55,89 @@ from thermognn.core.errors import DataError
 from thermognn.core.io import atomic_path
 from thermognn.train.data import compute_stats, load_data, velocity_columns
 from thermognn.train.model import TIGNN, hyperparameters
+from thermognn.train.prior import NewmarkPrior
 from thermognn.train.rollout import rrmse_per_step, trajectory_error, trajectory_rrmse
 
 
-class LinearPrior:
-    """The Crank-Nicolson step of the linearised solid over its n free DOFs, as dense matrices
-    in float64: v1 = P_v v0 + P_u u0 + P_f (f0 + f1) + P_g g [n], and the stress operator
-    Sigma [6N, 3N] (zero columns at clamped DOFs)."""
+class Hybrid:
+    """The prior stepped with the network's remainders. Graph tensors in float32 (the network),
+    the prior in float64."""
 
-    def __init__(self, linear, n_nodes: int, dt: float) -> None:
-        dense = lambda A: torch.as_tensor(A.toarray() if hasattr(A, "toarray") else np.asarray(A))  # noqa: E731
-        K, M = dense(linear.stiffness), dense(linear.mass)                               # [n, n]
-        alpha_m, beta_k = linear.rayleigh
-        C = alpha_m * M + beta_k * K
-        S_inv = torch.linalg.inv(M + dt / 2 * C + dt**2 / 4 * K)
-        self.P_v = S_inv @ (M - dt / 2 * C - dt**2 / 4 * K)
-        self.P_u, self.P_f, self.P_g = -dt * S_inv @ K, dt / 2 * S_inv, dt * S_inv
-        self.free = torch.as_tensor(linear.free)                                         # [3N] bool
-        self.stress = torch.zeros(6 * n_nodes, 3 * n_nodes, dtype=torch.float64)
-        if linear.stress is None:
-            raise DataError("the dataset's /linear has no stress operator (P1 meshes only)")
-        self.stress[:, self.free] = dense(linear.stress)
-        self.dt = dt
+    def __init__(self, net: TIGNN, prior: NewmarkPrior, graph, inputs: str) -> None:
+        self.net, self.prior, self.graph = net, prior, graph
+        self.X = graph.ref_pos.double()                                          # [N, 3] m
+        D = net.dim
+        self.seen = torch.ones(D, dtype=torch.float64)
+        if inputs == "q":
+            self.seen[3:] = 0.0                                                  # positions only
 
-    def to(self, dtype: torch.dtype) -> "LinearPrior":
-        for k in ("P_v", "P_u", "P_f", "P_g", "stress"):
-            setattr(self, k, getattr(self, k).to(dtype))
-        return self
+    def remainders(self, z, f, train: bool):
+        """Network remainders at states z [B, N, D] under f [B, N, 3]: G [B, n] N, H [B, N, 6] Pa."""
+        B, N, D = z.shape
+        g = self.graph.copies(B) if B > 1 else self.graph
+        r = self.net.rates((z * self.seen).float().reshape(B * N, D), f.float().reshape(B * N, 3), g.edge_index,
+                           g.node_type, g.ref_pos.float(), train)[0]
+        r = (r if train else r.detach()).reshape(B, N, D).double() * self.net.dzdt_std.double()
+        return self.prior.gather(r[..., 3:6]), r[..., 6:12]
 
-    def step(self, z0, f0, f1, rate, ref_pos):
-        """z0 [B, N, D] (q, v, sigma), f0, f1 [B, N, 3] [N], rate [B, N, D] (SI: g in the v
-        columns, r_sigma in sigma's) -> z1 [B, N, D]; clamped nodes keep q = X, v = 0."""
-        B, N, D = z0.shape
-        fr, dt = self.free, self.dt
-        u0 = (z0[..., 0:3] - ref_pos).reshape(B, -1)[:, fr]                                 # [B, n]
-        v0 = z0[..., 3:6].reshape(B, -1)[:, fr]
-        v1 = (v0 @ self.P_v.T + u0 @ self.P_u.T + (f0 + f1).reshape(B, -1)[:, fr] @ self.P_f.T
-              + rate[..., 3:6].reshape(B, -1)[:, fr] @ self.P_g.T)
-        du = z0.new_zeros(B, 3 * N)                                                        # [B, 3N]
-        du[:, fr] = dt / 2 * (v0 + v1)
-        v = z0.new_zeros(B, 3 * N)
-        v[:, fr] = v1
-        sigma = z0[..., 6:12] + (du @ self.stress.T).reshape(B, N, 6) + dt * rate[..., 6:12]
-        return torch.cat([z0[..., 0:3] + du.reshape(B, N, 3), v.reshape(B, N, 3), sigma], -1)
+    def state(self, u, v, H):
+        """[B, N, D] from free-DOF u, v [B, n] and the stress remainder H [B, N, 6]."""
+        U = self.prior.scatter(u)
+        return torch.cat([self.X + U, self.prior.scatter(v), self.prior.stress(U, H)], -1)
+
+    def rollout(self, z0, forces, sweeps: int = 1, train: bool = False):
+        """States [B, S, N, D] from z0 [B, N, D] under forces [B, S, N, 3] (forces[:, s] at t_s)."""
+        P = self.prior
+        z0, forces = z0.double(), forces.double()
+        U0 = z0[..., 0:3] - self.X
+        u, v = P.gather(U0), P.gather(z0[..., 3:6])
+        G, _ = self.remainders(z0, forces[:, 0], train)
+        H = z0[..., 6:12] - P.stress(U0)
+        a = P.initial_acceleration(u, v, P.gather(forces[:, 0]), G)
+        out = [z0]
+        for s in range(1, forces.shape[1]):
+            f1 = P.gather(forces[:, s])
+            G1 = G
+            for _ in range(sweeps):                      # predict with the last G, evaluate there
+                u1, v1, _ = P.step(u, v, a, f1, G, G1)
+                G1, H = self.remainders(self.state(u1, v1, H), forces[:, s], train)
+            u, v, a = P.step(u, v, a, f1, G, G1)
+            G = G1
+            out.append(self.state(u, v, H))
+        return torch.stack(out, 1)
+
+
+def errors(hybrid: Hybrid, trajs, layout, sweeps: int):
+    """(per-snapshot, whole-rollout) mean test metrics over trajs."""
+    per, whole = [], []
+    with torch.enable_grad():                            # the rates differentiate the energy
+        for t in trajs:
+            pred = hybrid.rollout(t.z[:1], t.force.unsqueeze(0), sweeps)[0].float()
+            per.append(trajectory_rrmse(rrmse_per_step(pred, t.z.float(), layout)))
+            whole.append(trajectory_error(pred, t.z.float(), layout))
+    mean = lambda rows: {k: float(np.mean([r[k] for r in rows])) for k in layout.names}  # noqa: E731
+    return mean(per), mean(whole)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("dataset")
     ap.add_argument("--out", default="runs/hybrid")
-    ap.add_argument("--minutes", type=float, default=20.0, help="training wall time")
-    ap.add_argument("--lr", type=float, default=1e-3, help="Adam's rate, decayed 10x over the run")
-    ap.add_argument("--batch", type=int, default=4, help="trajectories rolled out together")
+    ap.add_argument("--fit-minutes", type=float, default=0.0, help="one-step regression on the exact remainders")
+    ap.add_argument("--rollout-minutes", type=float, default=20.0, help="then training on whole rollouts")
+    ap.add_argument("--lr", type=float, default=1e-3, help="Adam's rate, decayed 10x over each phase")
+    ap.add_argument("--batch", type=int, default=4, help="snapshots (fit) or trajectories (rollouts) per step")
+    ap.add_argument("--noise", type=float, default=0.1, help="fit: input noise in typical steps' changes")
+    ap.add_argument("--increments", type=float, default=0.0,
+                    help="fit: weight of the outputs' change between consecutive snapshots (0: values only)")
+    ap.add_argument("--compliance", type=float, default=0.0,
+                    help="fit: weight of G's error measured by the displacement it causes, (1 + c) S^-1 (G - G*)")
+    ap.add_argument("--sweeps", type=int, default=1, help="network evaluations per step")
+    ap.add_argument("--inputs", default="q", choices=["q", "all"], help="state columns the network sees")
+    ap.add_argument("--start-scale", type=float, default=0.01, help="output layers scaled by this at the start")
+    ap.add_argument("--init", default=None, help="start from these weights (a hybrid.pt)")
+    ap.add_argument("--hidden", type=int, default=64)
+    ap.add_argument("--message-passing", type=int, default=4)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
@@ -102,7 +146,7 @@ def main() -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    data = load_data(args.dataset, [0.8, 0.1, 0.1], args.seed, torch.float32)
+    data = load_data(args.dataset, [0.8, 0.1, 0.1], args.seed, torch.float64)
     ds, g, dt, layout = data.dataset, data.graph, data.dt, data.layout
     if layout.names != ["q", "v", "sigma"]:
         raise DataError(f"{ds.path}: state_layout {layout.names}, this experiment needs q, v, sigma")
@@ -110,127 +154,167 @@ def main() -> None:
     if linear is None:
         raise DataError(f"{ds.path}: no /linear operators (regenerate it with thermognn generate)")
     N, D = g.n_nodes, layout.dim
-    prior64 = LinearPrior(linear, N, dt)
-    prior = LinearPrior(linear, N, dt).to(torch.float32)
+    prior = NewmarkPrior(linear, N, dt)
     train, val, test = data.of("train"), data.of("val"), data.of("test")
+    Z = torch.stack([t.z for t in train])                                       # [T, S, N, D] float64
+    F = torch.stack([t.force for t in train])                                   # [T, S, N, 3]
+    T, S = Z.shape[:2]
+    X = g.ref_pos
 
-    hp = hyperparameters(OmegaConf.create({"kinematics": "exact"}), D, velocity_columns(layout), False)
-    model = TIGNN(**hp)
-    stats = compute_stats(train, g, dt, hp)
-    # the network's outputs are corrections: scale them by the ideal corrections from true states
-    Z = torch.stack([t.z for t in train]).double()                                   # [T, S, N, D]
-    F = torch.stack([t.force for t in train]).double()
-    z0, z1 = Z[:, :-1].reshape(-1, N, D), Z[:, 1:].reshape(-1, N, D)
-    f0, f1 = F[:, :-1].reshape(-1, N, 3), F[:, 1:].reshape(-1, N, 3)
-    lin = prior64.step(z0, f0, f1, torch.zeros_like(z0), g.ref_pos.double())         # the prior alone
-    fr = prior64.free
-    g_ideal = torch.linalg.solve(prior64.P_g, (z1 - lin)[..., 3:6].reshape(len(z0), -1)[:, fr].T).T
-    r_sigma = (z1 - lin)[..., 6:12] / dt
+    # the exact remainders of the training data, and the network's output scale from them
+    G_true, H_true = zip(*(prior.remainders(t.z[..., 0:3] - X, t.z[..., 3:6], t.z[..., 6:12], t.force)
+                           for t in train))
+    G_true = torch.stack([prior.scatter(G) for G in G_true])                    # [T, S, N, 3]
+    H_true = torch.stack(H_true)                                                # [T, S, N, 6]
+    free_nodes = prior.free.reshape(N, 3).all(1)                                # [N]
+    hp = hyperparameters(OmegaConf.create({"kinematics": "exact", "hidden": args.hidden,
+                                           "message_passing": args.message_passing}),
+                         D, velocity_columns(layout), False)
+    net = TIGNN(**hp)
+    stats = compute_stats([type(t)(t.name, t.z.float(), t.force.float(), t.time) for t in train], g, dt, hp)
     scale = stats["dzdt_std"].clone()
-    scale[3:6] = g_ideal.pow(2).mean().sqrt()
-    scale[6:12] = r_sigma.reshape(-1, 6).pow(2).mean(0).sqrt()
+    scale[3:6] = G_true[:, :, free_nodes].pow(2).mean().sqrt()
+    scale[6:12] = H_true.reshape(-1, 6).pow(2).mean(0).sqrt()
     stats["dzdt_std"] = scale
-    model.set_stats(stats)
-    with torch.no_grad():                                   # start at the prior: small corrections
-        for p in [*model.decoder.net[-1].parameters(), *model.port.parameters(),
-                  *(p for dec in model.edge_decoders for p in dec.net[-1].parameters())]:
-            p.mul_(0.01)
+    net.set_stats(stats)
+    with torch.no_grad():                                       # start near the linearised model
+        for p in [*net.decoder.net[-1].parameters(), *net.port.parameters(),
+                  *(p for dec in net.edge_decoders for p in dec.net[-1].parameters())]:
+            p.mul_(args.start_scale)
+    if args.init:
+        net.load_state_dict(torch.load(args.init, weights_only=True))
+    hybrid = Hybrid(net, prior, g, args.inputs)
 
-    def rollout(net, traj, pr, dtype):
-        """The hybrid's rollout [S, N, D] from traj.z[0] under traj.force."""
-        z = traj.z[0].to(dtype).unsqueeze(0)
-        out = [z[0]]
-        for s in range(1, traj.z.shape[0]):
-            f = traj.force[s].to(dtype)
-            rate = net.rates(z[0].float(), f.float(), g.edge_index, g.node_type, g.ref_pos, False)[0]
-            rate = (rate.detach() * net.dzdt_std).to(dtype).unsqueeze(0)
-            z = pr.step(z, traj.force[s - 1].to(dtype).unsqueeze(0), f.unsqueeze(0), rate, g.ref_pos.to(dtype))
-            out.append(z[0])
-        return torch.stack(out)
+    log, t_start, epoch = [], time.perf_counter(), 0
+    best = float(np.mean(list(errors(hybrid, val, layout, args.sweeps)[1].values())))
+    with atomic_path(out / "hybrid.pt") as tmp:
+        torch.save(net.state_dict(), tmp)
+    print(f"start: val {best:.4f}", flush=True)
 
-    def errors(net, trajs):
-        per, whole = [], []
-        with torch.enable_grad():
-            for t in trajs:
-                pred = rollout(net, t, prior64, torch.float64).float()
-                per.append(trajectory_rrmse(rrmse_per_step(pred, t.z, layout)))
-                whole.append(trajectory_error(pred, t.z, layout))
-        mean = lambda rows: {k: float(np.mean([r[k] for r in rows])) for k in layout.names}  # noqa: E731
-        return mean(per), mean(whole)
-
-    # whole-rollout training: back-propagation through the linear solves
-    group_scale = [(slice(0, 3), (Z[..., 0:3] - g.ref_pos.double()).pow(2).mean().sqrt().float()),
-                   (slice(3, 6), Z[..., 3:6].pow(2).mean().sqrt().float()),
-                   (slice(6, 12), Z[..., 6:12].pow(2).mean().sqrt().float())]
-    Zf, Ff = Z.float(), F.float()
-    B = min(args.batch, len(train))
-    gb = g.copies(B)
-    opt = torch.optim.Adam(model.parameters(), lr=args.lr)
-    gen = torch.Generator().manual_seed(args.seed)
-    best, log, t0, epoch = math.inf, [], time.perf_counter(), 0
-    while time.perf_counter() - t0 < 60 * args.minutes:
-        epoch += 1
-        for group in opt.param_groups:
-            group["lr"] = args.lr * 0.1 ** min((time.perf_counter() - t0) / (60 * args.minutes), 1.0)
-        perm = torch.randperm(len(train), generator=gen)
-        total, batches = 0.0, 0
-        for i in range(0, len(train) - B + 1, B):
-            idx = perm[i:i + B]
-            z, loss = Zf[idx, 0], 0.0
-            for s in range(1, Zf.shape[1]):
-                r = model.rates(z.reshape(B * N, D), Ff[idx, s].reshape(B * N, 3), gb.edge_index, gb.node_type,
-                                gb.ref_pos, True)[0]
-                z = prior.step(z, Ff[idx, s - 1], Ff[idx, s], (r * model.dzdt_std).reshape(B, N, D), g.ref_pos)
-                loss = loss + sum(((z[..., sl] - Zf[idx, s][..., sl]) / sc).pow(2).mean() for sl, sc in group_scale)
-            loss = loss / (Zf.shape[1] - 1)
-            opt.zero_grad()
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-            opt.step()
-            total, batches = total + float(loss.detach()), batches + 1
-        v_whole = errors(model, val)[1]
+    def validate(phase, loss):
+        nonlocal best
+        v_whole = errors(hybrid, val, layout, args.sweeps)[1]
         val_error = float(np.mean(list(v_whole.values())))
         if val_error < best:
             best = val_error
             with atomic_path(out / "hybrid.pt") as tmp:
-                torch.save(model.state_dict(), tmp)
-        log.append({"epoch": epoch, "seconds": time.perf_counter() - t0, "loss": total / batches, "val": val_error,
-                    **v_whole})
-        print(f"epoch {epoch:3d} {log[-1]['seconds']:6.0f} s  loss {total / batches:.3e}  val {val_error:.4f}  "
+                torch.save(net.state_dict(), tmp)
+        log.append({"phase": phase, "epoch": epoch, "seconds": time.perf_counter() - t_start, "loss": loss,
+                    "val": val_error, **v_whole})
+        print(f"{phase:7s} {epoch:3d} {log[-1]['seconds']:6.0f} s  loss {loss:.3e}  val {val_error:.4f}  "
               + " ".join(f"{k} {v:.3g}" for k, v in v_whole.items()), flush=True)
 
-    model.load_state_dict(torch.load(out / "hybrid.pt", weights_only=True))
-    hybrid = errors(model, test)
-    X = g.ref_pos.double().numpy()
-    lin_rows = []
+    def decay(opt, t_phase: float, minutes: float) -> None:
+        """Adam's rate: args.lr decayed 10x exponentially over the phase's wall time."""
+        for group in opt.param_groups:
+            group["lr"] = args.lr * 0.1 ** min((time.perf_counter() - t_phase) / (60 * minutes), 1.0)
+
+    def descend(opt, loss) -> float:
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        opt.step()
+        return float(loss.detach())
+
+    gen = torch.Generator().manual_seed(args.seed)
+    # phase 1: one-step regression of the network's outputs on the exact remainders
+    target = torch.cat([torch.zeros_like(G_true), G_true, H_true], -1) / scale.double()   # [T, S, N, D]
+    weight = torch.zeros(N, D)
+    weight[:, 3:] = 1.0
+    weight[~free_nodes, 3:6] = 0.0
+    noise = (Z.diff(dim=1).reshape(-1, D).pow(2).mean(0).sqrt() * args.noise).float()     # [D]
+    # with --increments, each sample is a pair of consecutive snapshots (the same input noise on
+    # both), and the change of the outputs between them is fitted too, relative to its own scale
+    stride = 2 if args.increments > 0 else 1
+    pairs = [(i, s) for i in range(T) for s in range(stride - 1, S)]
+    increment_scale = target.diff(dim=1).pow(2).mean((0, 1, 2)).sqrt().clamp(min=1e-12).float()   # [D]
+    # G's effect on the step's displacement, u1 = ... + (1 + c) S^-1 G1, and its scale in the data
+    prior32 = NewmarkPrior(linear, N, dt, torch.float32)
+    compliance = (1.0 + prior32.c) * prior32.from_force                                   # [n, n] m/N
+    scale32 = scale.float()
+    du_true = prior32.gather(G_true.reshape(T * S, N, 3).float()) @ compliance.T           # [T S, n]
+    du_scale = du_true.pow(2).mean().sqrt()
+    inc_du = (du_true.reshape(T, S, -1).diff(dim=1).pow(2).mean() / du_scale**2).clamp(min=1e-12)
+    B = min(args.batch, len(pairs))
+    opt = torch.optim.Adam(net.parameters(), lr=args.lr)
+    t_phase = time.perf_counter()
+    while time.perf_counter() - t_phase < 60 * args.fit_minutes:
+        epoch += 1
+        perm, total, batches = torch.randperm(len(pairs), generator=gen), 0.0, 0
+        gb = g.copies(B * stride)
+        for k in range(0, len(pairs) - B + 1, B):
+            decay(opt, t_phase, args.fit_minutes)
+            i, s = zip(*(pairs[int(j)] for j in perm[k:k + B]))
+            i, s = list(i) * stride, list(s) if stride == 1 else [x - 1 for x in s] + list(s)
+            eps = torch.randn(B, N, D, generator=gen) * noise * free_nodes.float().view(1, N, 1)
+            z = Z[i, s].float() + eps.repeat(stride, 1, 1)                       # [stride * B, N, D]
+            r, _, _, _, _, degeneracy = net.rates((z * hybrid.seen.float()).reshape(-1, D),
+                                                  F[i, s].float().reshape(-1, 3), gb.edge_index,
+                                                  gb.node_type, gb.ref_pos.float(), True)
+            r, y = r.reshape(-1, N, D), target[i, s].float()
+            loss = 100.0 * ((r - y).pow(2) * weight).sum() / (weight.sum() * len(i)) + degeneracy
+            if args.compliance > 0:              # the displacement the error in G causes [stride * B, n]
+                du = prior32.gather((r[..., 3:6] - y[..., 3:6]) * scale32[3:6]) @ compliance.T / du_scale
+                loss = loss + 100.0 * args.compliance * du.pow(2).mean()
+                if stride == 2:
+                    du_change = (du[B:] - du[:B]).pow(2).mean() / inc_du
+                    loss = loss + 100.0 * args.compliance * args.increments * du_change
+            if stride == 2:                                                       # increments [B, N, D]
+                dr, dy = (r[B:] - r[:B]) / increment_scale, (y[B:] - y[:B]) / increment_scale
+                loss = loss + 100.0 * args.increments * ((dr - dy).pow(2) * weight).sum() / (weight.sum() * B)
+            total, batches = total + descend(opt, loss), batches + 1
+        validate("fit", total / batches)
+
+    if args.fit_minutes > 0:                 # the fit's last weights (phase 2 goes on from them)
+        with atomic_path(out / "fit.pt") as tmp:
+            torch.save(net.state_dict(), tmp)
+
+    # phase 2: whole rollouts, back-propagated through the linear solves
+    group_scale = [(slice(0, 3), (Z[..., 0:3] - X).pow(2).mean().sqrt()),
+                   (slice(3, 6), Z[..., 3:6].pow(2).mean().sqrt()),
+                   (slice(6, 12), Z[..., 6:12].pow(2).mean().sqrt())]
+    Bt = min(args.batch, T)
+    opt = torch.optim.Adam(net.parameters(), lr=args.lr)
+    t_phase = time.perf_counter()
+    while time.perf_counter() - t_phase < 60 * args.rollout_minutes:
+        epoch += 1
+        perm, total, batches = torch.randperm(T, generator=gen), 0.0, 0
+        for k in range(0, T - Bt + 1, Bt):
+            decay(opt, t_phase, args.rollout_minutes)
+            idx = perm[k:k + Bt]
+            pred = hybrid.rollout(Z[idx, 0], F[idx], args.sweeps, train=True)   # [B, S, N, D]
+            loss = sum(((pred[:, 1:, :, sl] - Z[idx, 1:, :, sl]) / sc).pow(2).mean() for sl, sc in group_scale)
+            total, batches = total + descend(opt, loss), batches + 1
+        validate("rollout", total / batches)
+
+    net.load_state_dict(torch.load(out / "hybrid.pt", weights_only=True))
+    results, ms = {}, {}
+    for sweeps in sorted({1, 2, args.sweeps}):
+        results[sweeps] = errors(hybrid, test, layout, sweeps)
+        t = test[0]
+        with torch.enable_grad():
+            hybrid.rollout(t.z[:1], t.force[:3].unsqueeze(0), sweeps)
+            t1 = time.perf_counter()
+            hybrid.rollout(t.z[:1], t.force[:21].unsqueeze(0), sweeps)
+            ms[sweeps] = 1e3 * (time.perf_counter() - t1) / (min(21, len(t.force)) - 1)
+    lin = []
     for t in test:
-        pred = torch.as_tensor(linear.rollout_states(t.z.double().numpy(), t.force.double().numpy(), X, layout, dt))
-        lin_rows.append((trajectory_rrmse(rrmse_per_step(pred.float(), t.z, layout)), trajectory_error(pred.float(), t.z, layout)))
-    lin_mean = [{k: float(np.mean([r[j][k] for r in lin_rows])) for k in layout.names} for j in (0, 1)]
-    t = test[0]
-    z5, f4, f5 = t.z[5].double().unsqueeze(0), t.force[4].double().unsqueeze(0), t.force[5].double().unsqueeze(0)
-
-    def one_step():                                     # one hybrid step as a rollout takes it
-        rate = model.rates(t.z[5], t.force[5], g.edge_index, g.node_type, g.ref_pos, False)[0]
-        return prior64.step(z5, f4, f5, (rate.detach() * model.dzdt_std).double().unsqueeze(0), g.ref_pos.double())
-
-    with torch.enable_grad():
-        for _ in range(3):
-            one_step()
-        t1 = time.perf_counter()
-        for _ in range(20):
-            one_step()
-    ms = 1e3 * (time.perf_counter() - t1) / 20
-    result = {"hybrid": {"snapshot": hybrid[0], "whole": hybrid[1]},
+        pred = torch.as_tensor(linear.rollout_states(t.z.numpy(), t.force.numpy(), X.numpy(), layout, dt)).float()
+        truth = t.z.float()
+        lin.append((trajectory_rrmse(rrmse_per_step(pred, truth, layout)), trajectory_error(pred, truth, layout)))
+    lin_mean = [{k: float(np.mean([r[j][k] for r in lin])) for k in layout.names} for j in (0, 1)]
+    result = {"hybrid": {str(k): {"snapshot": v[0], "whole": v[1], "ms_per_step": ms[k]} for k, v in results.items()},
               "linearised_fe": {"snapshot": lin_mean[0], "whole": lin_mean[1]},
-              "ms_per_step": ms, "epochs": epoch, "minutes": args.minutes, "best_val": best, "log": log}
+              "epochs": epoch, "best_val": best, "args": vars(args), "log": log}
     with atomic_path(out / "result.json") as tmp:
         tmp.write_text(json.dumps(result, indent=1))
-    print(f"\ntest ({len(test)} trajectories)          per snapshot q / v / sigma        whole rollout q / v / sigma")
-    for name, (ps, wh) in (("linearised FE", lin_mean), ("hybrid", hybrid)):
+    print(f"\ntest ({len(test)} trajectories)   per snapshot q / v / sigma      whole rollout q / v / sigma")
+    rows = [("linearised FE", lin_mean, "")] + [(f"hybrid, {k} sweep(s)", v, f"   {ms[k]:.1f} ms/step")
+                                                for k, v in results.items()]
+    for name, (ps, wh), extra in rows:
         print(f"{name:24s} " + " / ".join(f"{ps[k]:.3g}" for k in layout.names) + "      "
-              + " / ".join(f"{wh[k]:.3g}" for k in layout.names))
-    print(f"hybrid: {ms:.1f} ms per step ({args.threads} threads), {epoch} epochs in {args.minutes:g} min")
+              + " / ".join(f"{wh[k]:.3g}" for k in layout.names) + extra)
+    print(f"{epoch} epochs ({args.threads} threads)")
 
 
 if __name__ == "__main__":
