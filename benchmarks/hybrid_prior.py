@@ -26,9 +26,9 @@ off per step gives v 8-10 % off, worse than no G): the solve amplifies whatever 
 error reaches the soft, global modes, a small share of G's norm, and the trapezoidal rule
 carries a velocity error in the stiff modes undamped (white noise of 10 % of G: v 135 % off; a
 smooth 10 % scale error: v 0.3 %). Whole rollouts fix that. Two further fit terms, measured over
-one epoch only so far: ``--compliance`` weighs G's error by the displacement it causes,
-(1 + c) S^-1 (G - G*); ``--increments`` adds the error of the outputs' change between
-consecutive snapshots.
+four fit epochs only so far (v far better early, sigma worse): ``--compliance`` weighs G's error
+by the displacement it causes, (1 + c) S^-1 (G - G*); ``--increments`` adds the error of the
+outputs' change between consecutive snapshots.
 
 Needs a dataset written by ``thermognn generate`` (with ``/linear``); torch and numpy only::
 
