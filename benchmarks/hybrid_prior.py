@@ -54,6 +54,7 @@ from omegaconf import OmegaConf
 from thermognn.core.errors import DataError
 from thermognn.core.io import atomic_path
 from thermognn.train.data import compute_stats, load_data, velocity_columns
+from thermognn.train.evaluation import linear_baseline
 from thermognn.train.model import TIGNN, hyperparameters
 from thermognn.train.prior import NewmarkPrior
 from thermognn.train.rollout import rrmse_per_step, trajectory_error, trajectory_rrmse
@@ -66,6 +67,7 @@ class Hybrid:
     def __init__(self, net: TIGNN, prior: NewmarkPrior, graph, inputs: str) -> None:
         self.net, self.prior, self.graph = net, prior, graph
         self.X = graph.ref_pos.double()                                          # [N, 3] m
+        self.batched = {1: graph}                                                # B -> B copies of the mesh
         D = net.dim
         self.seen = torch.ones(D, dtype=torch.float64)
         if inputs == "q":
@@ -74,7 +76,9 @@ class Hybrid:
     def remainders(self, z, f, train: bool):
         """Network remainders at states z [B, N, D] under f [B, N, 3]: G [B, n] N, H [B, N, 6] Pa."""
         B, N, D = z.shape
-        g = self.graph.copies(B) if B > 1 else self.graph
+        if B not in self.batched:
+            self.batched[B] = self.graph.copies(B)
+        g = self.batched[B]
         r = self.net.rates((z * self.seen).float().reshape(B * N, D), f.float().reshape(B * N, 3), g.edge_index,
                            g.node_type, g.ref_pos.float(), train)[0]
         r = (r if train else r.detach()).reshape(B, N, D).double() * self.net.dzdt_std.double()
@@ -171,7 +175,7 @@ def main() -> None:
                                            "message_passing": args.message_passing}),
                          D, velocity_columns(layout), False)
     net = TIGNN(**hp)
-    stats = compute_stats([type(t)(t.name, t.z.float(), t.force.float(), t.time) for t in train], g, dt, hp)
+    stats = compute_stats(train, g, dt, hp)
     scale = stats["dzdt_std"].clone()
     scale[3:6] = G_true[:, :, free_nodes].pow(2).mean().sqrt()
     scale[6:12] = H_true.reshape(-1, 6).pow(2).mean(0).sqrt()
@@ -229,10 +233,9 @@ def main() -> None:
     pairs = [(i, s) for i in range(T) for s in range(stride - 1, S)]
     increment_scale = target.diff(dim=1).pow(2).mean((0, 1, 2)).sqrt().clamp(min=1e-12).float()   # [D]
     # G's effect on the step's displacement, u1 = ... + (1 + c) S^-1 G1, and its scale in the data
-    prior32 = NewmarkPrior(linear, N, dt, torch.float32)
-    compliance = (1.0 + prior32.c) * prior32.from_force                                   # [n, n] m/N
+    compliance = ((1.0 + prior.c) * prior.from_force).float()                          # [n, n] m/N
     scale32 = scale.float()
-    du_true = prior32.gather(G_true.reshape(T * S, N, 3).float()) @ compliance.T           # [T S, n]
+    du_true = prior.gather(G_true.reshape(T * S, N, 3).float()) @ compliance.T           # [T S, n]
     du_scale = du_true.pow(2).mean().sqrt()
     inc_du = (du_true.reshape(T, S, -1).diff(dim=1).pow(2).mean() / du_scale**2).clamp(min=1e-12)
     B = min(args.batch, len(pairs))
@@ -254,7 +257,7 @@ def main() -> None:
             r, y = r.reshape(-1, N, D), target[i, s].float()
             loss = 100.0 * ((r - y).pow(2) * weight).sum() / (weight.sum() * len(i)) + degeneracy
             if args.compliance > 0:              # the displacement the error in G causes [stride * B, n]
-                du = prior32.gather((r[..., 3:6] - y[..., 3:6]) * scale32[3:6]) @ compliance.T / du_scale
+                du = prior.gather((r[..., 3:6] - y[..., 3:6]) * scale32[3:6]) @ compliance.T / du_scale
                 loss = loss + 100.0 * args.compliance * du.pow(2).mean()
                 if stride == 2:
                     du_change = (du[B:] - du[:B]).pow(2).mean() / inc_du
@@ -297,20 +300,15 @@ def main() -> None:
             t1 = time.perf_counter()
             hybrid.rollout(t.z[:1], t.force[:21].unsqueeze(0), sweeps)
             ms[sweeps] = 1e3 * (time.perf_counter() - t1) / (min(21, len(t.force)) - 1)
-    lin = []
-    for t in test:
-        pred = torch.as_tensor(linear.rollout_states(t.z.numpy(), t.force.numpy(), X.numpy(), layout, dt)).float()
-        truth = t.z.float()
-        lin.append((trajectory_rrmse(rrmse_per_step(pred, truth, layout)), trajectory_error(pred, truth, layout)))
-    lin_mean = [{k: float(np.mean([r[j][k] for r in lin])) for k in layout.names} for j in (0, 1)]
+    lin = linear_baseline(data, test)                            # evaluate's own baseline rows
     result = {"hybrid": {str(k): {"snapshot": v[0], "whole": v[1], "ms_per_step": ms[k]} for k, v in results.items()},
-              "linearised_fe": {"snapshot": lin_mean[0], "whole": lin_mean[1]},
+              "linearised_fe": lin,
               "epochs": epoch, "best_val": best, "args": vars(args), "log": log}
     with atomic_path(out / "result.json") as tmp:
         tmp.write_text(json.dumps(result, indent=1))
     print(f"\ntest ({len(test)} trajectories)   per snapshot q / v / sigma      whole rollout q / v / sigma")
-    rows = [("linearised FE", lin_mean, "")] + [(f"hybrid, {k} sweep(s)", v, f"   {ms[k]:.1f} ms/step")
-                                                for k, v in results.items()]
+    rows = [("linearised FE", (lin["snapshot"], lin["whole"]), f"   {lin['ms_per_step']:.2f} ms/step")]
+    rows += [(f"hybrid, {k} sweep(s)", v, f"   {ms[k]:.1f} ms/step") for k, v in results.items()]
     for name, (ps, wh), extra in rows:
         print(f"{name:24s} " + " / ".join(f"{ps[k]:.3g}" for k in layout.names) + "      "
               + " / ".join(f"{wh[k]:.3g}" for k in layout.names) + extra)

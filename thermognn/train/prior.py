@@ -118,16 +118,16 @@ class NewmarkPrior:
         """The exact remainders along one FE trajectory: G [S, n] N and H [S, N, 6] Pa, from its
         displacements u [S, N, 3], velocities v [S, N, 3], stresses [S, N, 6] and nodal forces
         f [S, N, 3]. Assumes G = 0 at the first state (an unloaded start at rest, as generate's)."""
-        uf, vf, ff = self.gather(u), self.gather(v), self.gather(f) + self.body_force
+        uf, vf, ff = self.gather(u), self.gather(v), self.gather(f)
         S = uf.shape[0]
         K, M, dt, g, c = self.stiffness, self.mass, self.dt, self.gamma, self.c
         a = torch.zeros_like(uf)                                                   # Newmark's accelerations
-        a[0] = self.initial_acceleration(uf[:1], vf[:1], ff[:1] - self.body_force, torch.zeros_like(uf[:1]))[0]
+        a[0] = self.initial_acceleration(uf[:1], vf[:1], ff[:1], torch.zeros_like(uf[:1]))[0]
         for s in range(S - 1):
             a[s + 1] = (vf[s + 1] - vf[s] - dt * (1.0 - g) * a[s]) / (g * dt)
-        # (1 + c) G1 − c G0 = M a1 + αM M v1 + c K (u1 − u0) + K u1 − f1 at every step's end
+        # (1 + c) G1 − c G0 = M a1 + αM M v1 + c K (u1 − u0) + K u1 − f1 (with gravity) at every step's end
         lumped = (a[1:] @ M.T + self.alpha_m * vf[1:] @ M.T + c * (uf[1:] - uf[:-1]) @ K.T + uf[1:] @ K.T
-                  - ff[1:])                                                        # [S - 1, n]
+                  - ff[1:] - self.body_force)                                      # [S - 1, n]
         G = torch.zeros_like(uf)
         for s in range(S - 1):
             G[s + 1] = (lumped[s] + c * G[s]) / (1.0 + c)
