@@ -257,7 +257,7 @@ def test_newmark_prior_with_the_exact_remainders_is_the_fe_step():
     rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     U, V, Sig = rollout(G, H)
     assert rel(U, u) < 1e-9 and rel(V, v) < 1e-9 and rel(Sig, sigma) < 1e-9
-    U, V, Sig = rollout(torch.zeros_like(G), 0.0)
+    U, V, Sig = rollout(torch.zeros_like(G), None)
     lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
     assert rel(U, lin[..., 0:3] - torch.as_tensor(X)) < 1e-10 and rel(V, lin[..., 3:6]) < 1e-10
     assert rel(Sig, lin[..., layout.slice("sigma")]) < 1e-10
@@ -265,3 +265,52 @@ def test_newmark_prior_with_the_exact_remainders_is_the_fe_step():
     linear.integrator = "quasi_static"
     with pytest.raises(ValueError, match="quasi_static"):
         NewmarkPrior(linear, len(X), dt)
+
+
+def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_rollout():
+    """thermognn/train/hybrid.py (``model.prior=linear``) on the damped 12 mm bend: with the
+    network's remainders zero (its last layers zeroed) the model's rollout is the linearised FE
+    model's (LinearSolid.rollout_states) to round-off; with a random network, stepping the
+    carried state [N, D + 6] (q, v, σ, Newmark's a, the last G: what export and serve step) one
+    call at a time, also scripted (TorchScript), gives the batched rollout training uses."""
+    torch = pytest.importorskip("torch")
+    from thermognn.core.schema import Mesh
+    from thermognn.train.hybrid import LinearPriorModel
+    from thermognn.train.model import TIGNN
+    from thermognn.train.prior import NewmarkPrior
+
+    s, layout, traj = _bent_block(1.0, "newmark")
+    dt, X = 2e-3, s.nodes
+    linear = modes.linear_solid(s)
+    node_type = torch.as_tensor(np.where(X[:, 2] < 1e-10, 1, 0))
+    edges = torch.as_tensor(Mesh(X, s.cells[:, :4], node_type.numpy()).edges())
+    z, f = torch.as_tensor(traj.z), torch.as_tensor(traj.force)
+    ref = torch.as_tensor(X, dtype=torch.float32)
+    torch.manual_seed(0)
+    net = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, velocity_edges=True)
+    net.set_stats({"dzdt_std": torch.full((12,), 1e-2)})       # remainders of ~1e-2 N, Pa
+    model = LinearPriorModel(net, NewmarkPrior(linear, len(X), dt), torch.as_tensor(X))
+    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
+
+    with torch.no_grad():
+        saved = {k: v.clone() for k, v in net.state_dict().items()}
+        for p in [*net.decoder.net[-1].parameters(), *net.port.parameters()]:
+            p.zero_()
+    with torch.enable_grad():
+        pred = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
+    lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
+    assert rel(pred, lin) < 1e-12 and rel(pred[..., 3:6], lin[..., 3:6]) < 1e-10
+
+    net.load_state_dict(saved)                                 # a network that corrects something
+    with torch.enable_grad():
+        batched = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
+        assert rel(batched[..., 3:6], lin[..., 3:6]) > 1e-6
+        scripted = torch.jit.script(model)
+        for stepper in (model, scripted):
+            carried = stepper.carry(z[0], f[0], edges, node_type, ref)           # [N, D + 6]
+            assert carried.shape == (len(X), 18)
+            states = [carried]
+            for k in range(1, len(f)):
+                states.append(stepper.step(states[-1], f[k], edges, node_type, ref, torch.tensor(dt)))
+            stepped = torch.stack(states)[..., :12]
+            assert rel(stepped, batched) < 1e-9 and rel(stepped[..., 3:6], batched[..., 3:6]) < 1e-8   # round-off

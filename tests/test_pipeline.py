@@ -43,3 +43,35 @@ def test_demo_runs_every_stage_end_to_end(tmp_path):
     assert summary["loop_rate_hz"] > 0.0  # the loop ran; its rate is a benchmark figure, not asserted
     assert summary["model_step"] == "euler, learned kinematics"         # as trained (the defaults)
     assert "test RRMSE" in res.stdout and "demo summary" in res.stdout
+
+
+def test_demo_with_the_linear_prior(tmp_path):
+    """`model=linear_prior` (thermognn/train/hybrid.py) through every stage on the tiny block: both
+    training phases, evaluate beside the linearised FE model, export of the carried state
+    (q, v, sigma, a, G) and the haptic loop stepping it."""
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "demo", "--out", str(tmp_path), "--duration", "2",
+                          *TINY, "model=linear_prior", "train.epochs=1", "train.rollout_epochs=1"],
+                         capture_output=True, text=True, timeout=900)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
+    assert "1 fit + 1 rollout epochs" in res.stdout
+    metrics = (tmp_path / "metrics.csv").read_text().splitlines()
+    assert metrics[0].startswith("epoch,phase") and [r.split(",")[1] for r in metrics[1:]] == ["fit", "rollout"]
+    errors = json.loads((tmp_path / "eval" / "rrmse.json").read_text())
+    for g in ("q", "v", "sigma"):        # a barely trained model is still the linearised FE model's equal
+        assert 0 < errors[g] < 1 and 0 < errors[f"linear_fe_{g}"] < 1, g
+    assert "model.prior = linear" in (tmp_path / "eval" / "summary.md").read_text()
+    from thermognn.export.exporter import verify
+
+    meta = verify(tmp_path / "model.pt")
+    assert [g for g, _ in json.loads(meta["state_layout"])] == ["q", "v", "sigma", "a", "G"]
+    summary = json.loads((tmp_path / "serve_summary.json").read_text())
+    assert summary["max_force_N"] > 0.0 and summary["final_force_N"] == 0.0
+    assert summary["model_step"].startswith("the data's Newmark step of the linearised solid")
+    # one more rollout epoch resumes from model.last.ckpt (its phase's Adam state, rng, history)
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path}", *TINY,
+                          "model=linear_prior", "train.epochs=1", "train.rollout_epochs=2"],
+                         capture_output=True, text=True, timeout=900)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
+    assert "at epoch 2" in res.stdout
+    phases = [r.split(",")[1] for r in (tmp_path / "metrics.csv").read_text().splitlines()[1:]]
+    assert phases == ["fit", "rollout", "rollout"]

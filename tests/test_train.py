@@ -600,3 +600,23 @@ def test_rollout_overrides_accept_checkpoints_of_earlier_versions(trained):
     assert note == "integrator midpoint (trained: euler)"
     assert model_from_checkpoint(restepped).integrator == "midpoint"
     assert with_rollout(ckpt, OmegaConf.create({"rollout": {"kinematics": "learned"}}))[1] == ""
+
+
+def test_linear_prior_settings_and_datasets_it_cannot_use(trained, tmp_path):
+    """model.prior=linear (thermognn/train/hybrid.py): one-line errors for a wrong value, a dataset
+    without linearised FE operators (the analytic oscillator) and rollout overrides, which do
+    not apply to its Newmark step."""
+    from thermognn.core.errors import ConfigError
+    from thermognn.train.checkpoint import with_rollout
+
+    out, _, _ = trained
+    data = [f"paths.dataset={out / 'dataset.h5'}", f"paths.checkpoint={tmp_path / 'model.ckpt'}"]
+    with pytest.raises(ConfigError, match="model.prior = 'nonlinear', expected none | linear"):
+        train(_cfg(tmp_path, *data, "model.prior=nonlinear"))
+    with pytest.raises(DataError, match=r"dataset.h5: no linearised FE operators \(/linear\) for model.prior = linear"):
+        train(_cfg(tmp_path, *data, "model=linear_prior"))
+    with pytest.raises(ConfigError, match="model.prior_sweeps = 0, expected an integer >= 1"):
+        train(_cfg(tmp_path, *data, "model=linear_prior", "model.prior_sweeps=0"))
+    ckpt = {"prior": {"kind": "linear", "sweeps": 1, "positions_only": True}, "hparams": {}}
+    with pytest.raises(ConfigError, match="rollout.integrator: a model.prior=linear model steps with"):
+        with_rollout(ckpt, _cfg(tmp_path, "rollout.integrator=midpoint"))

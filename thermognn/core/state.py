@@ -93,6 +93,10 @@ def describe_step(step) -> str:
     exact kinematics"."""
     if not isinstance(step, dict):
         return "not recorded in the model file"
+    if step.get("prior") == "linear":
+        calls = int(step.get("sweeps", 1))
+        return (f"the data's Newmark step of the linearised solid with learned remainders "
+                f"({calls} network call{'s' if calls > 1 else ''} a step)")
     integrator = str(step.get("integrator", "?"))
     if integrator == "midpoint":
         integrator += f" ({step.get('implicit_iterations', '?')} sweeps)"

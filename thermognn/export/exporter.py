@@ -13,11 +13,11 @@ from thermognn.core.config import project_path
 from thermognn.core.errors import DataError
 from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
-from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype, with_rollout
+from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint, model_step, torch_dtype, with_rollout
 from thermognn.train.data import check_fingerprint, load_graph
-from thermognn.train.model import step_settings
+from thermognn.train.hybrid import carried_layout
 
-from .module import ExportedTIGNN
+from .module import ExportedLinearPrior, ExportedTIGNN
 
 FORMAT = "thermognn-model/1"
 META_FILE = "thermognn.json"
@@ -28,33 +28,36 @@ DEFAULT_RTOL = {torch.float32: 1e-4, torch.float64: 1e-9}
 def metadata(ckpt: dict) -> str:
     """The ``thermognn.json`` extra file (keys as in docs/stages.md)."""
     return json.dumps({"format": FORMAT, "scene": ckpt.get("scene", ""), "effects": list(ckpt.get("effects", [])),
-                       "state_layout": ckpt["state_layout"], "dt": float(ckpt["dt"]),
+                       "state_layout": (carried_layout(ckpt["state_layout"]) if ckpt.get("prior")
+                                        else ckpt["state_layout"]), "dt": float(ckpt["dt"]),
                        "structure": ckpt["structure"], "config": ckpt.get("config", ""),
-                       "step": step_settings(ckpt.get("hparams", {})),
+                       "step": model_step(ckpt),
                        "versions": ckpt.get("versions", "{}")})
 
 
-def build_exported(ckpt: dict, ds: Dataset) -> ExportedTIGNN:
-    """Eager ExportedTIGNN from a checkpoint and the dataset's mesh (z0: first 'ok' trajectory's
-    initial state, the rest state of the scene)."""
+def build_exported(ckpt: dict, ds: Dataset) -> ExportedTIGNN | ExportedLinearPrior:
+    """Eager ExportedTIGNN (or ExportedLinearPrior, ``model.prior=linear``) from a checkpoint and
+    the dataset's mesh (z0: first 'ok' trajectory's initial state, the rest state of the scene)."""
     dtype = torch_dtype(ckpt["dtype"])
-    core = model_from_checkpoint(ckpt).eval()
+    core = model_from_checkpoint(ckpt, ds).eval()
     graph = load_graph(ds, dtype)
     names = ds.ok_names or ds.names
     if not names:
         raise DataError(f"{ds.path}: no trajectories to take the rest state z0 from")
     z0 = torch.as_tensor(ds.read(names[0]).z[0], dtype=dtype)
+    if ckpt.get("prior"):
+        return ExportedLinearPrior(core, z0, graph.edge_index, graph.node_type, graph.surface_faces, float(ckpt["dt"]))
     return ExportedTIGNN(core, graph.ref_pos, z0, graph.edge_index, graph.node_type, graph.surface_faces,
                          float(ckpt["dt"]))
 
 
-def script(module: ExportedTIGNN) -> torch.jit.ScriptModule:
+def script(module: ExportedTIGNN | ExportedLinearPrior) -> torch.jit.ScriptModule:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return torch.jit.script(module)
 
 
-def parity(eager: ExportedTIGNN, scripted, ds: Dataset, steps: int = 3) -> tuple[float, float]:
+def parity(eager: ExportedTIGNN | ExportedLinearPrior, scripted, ds: Dataset, steps: int = 3) -> tuple[float, float]:
     """Largest absolute and relative difference between scripted and eager steps on real data:
     one-step predictions from ``steps`` ground-truth states of the first trajectory and from the
     states of the eager model's own ``steps``-step rollout from its initial state (states off the
@@ -62,7 +65,8 @@ def parity(eager: ExportedTIGNN, scripted, ds: Dataset, steps: int = 3) -> tuple
     (``torch.jit.optimized_execution``). Relative: per state column, divided by the largest
     magnitude of that column. Both sides step from the same state: comparing two free rollouts
     would measure how fast the model amplifies round-off (an undertrained float32 model: 100x
-    per step), not the export."""
+    per step), not the export. States are made steppable by the eager ``begin`` (a linear-prior
+    model's carried state)."""
     dtype = eager.z0.dtype
     names = ds.ok_names or ds.names
     traj = ds.read(names[0])
@@ -72,9 +76,11 @@ def parity(eager: ExportedTIGNN, scripted, ds: Dataset, steps: int = 3) -> tuple
     max_abs, max_rel = 0.0, 0.0
     for optimize in (True, False):
         with torch.jit.optimized_execution(optimize):
-            za = z[0]
+            za = eager.begin(z[0], f[0])
             for s in range(n):
-                pairs = [(eager(z[s], f[s + 1]), scripted(z[s], f[s + 1]))]
+                zs = eager.begin(z[s], f[s])
+                pairs = [(eager(zs, f[s + 1]), scripted(zs, f[s + 1])),
+                         (zs, scripted.begin(z[s], f[s]))]
                 za, zb = eager(za, f[s + 1]), scripted(za, f[s + 1])
                 pairs.append((za, zb))
                 for a, b in pairs:
@@ -98,7 +104,7 @@ def export(cfg) -> Path:
         print(f"export: stepping the trained model with {stepped}")
     eager = build_exported(ckpt, ds)
     scripted = script(eager)
-    dtype = eager.z0.dtype
+    dtype = torch_dtype(ckpt["dtype"])
     rtol = OmegaConf.select(cfg, "train.export_rtol", default=None)
     rtol = DEFAULT_RTOL[dtype] if rtol is None else float(rtol)
     max_abs, max_rel = parity(eager, scripted, ds)
@@ -128,6 +134,7 @@ def verify(path) -> dict:
     for name in ("reference_positions", "z0", "edge_index", "node_type", "surface_faces", "dt"):
         if not hasattr(m, name):
             raise DataError(f"{path}: exported module lacks buffer '{name}'")
-    if not hasattr(m, "energy_entropy"):
-        raise DataError(f"{path}: exported module lacks method 'energy_entropy'")
+    for name in ("energy_entropy", "begin"):
+        if not hasattr(m, name):
+            raise DataError(f"{path}: exported module lacks method '{name}'")
     return meta

@@ -8,6 +8,14 @@ Contract (docs/stages.md, "Exported model"), in the model's dtype::
     buffers: reference_positions [N, 3], z0 [N, D], edge_index [2, E] int64,
              node_type [N] int64, surface_faces [F, 3] int64, dt (0-dim) [s]
 
+    begin(z [N, D], f [N, 3]) -> the state ``forward`` steps (here z itself)
+
+A model trained with ``model.prior=linear`` exports as :class:`ExportedLinearPrior`: the same
+contract on its *carried* state [N, D + 6], the physical state with Newmark's acceleration a
+[m/s²] and the last internal-force remainder G [N] appended (``thermognn.train.hybrid``; the
+metadata's state_layout lists them as groups ``a`` and ``G``), in float64; ``z0`` is already
+carried, and ``begin`` makes a carried state from a physical one.
+
 Never call it under ``torch.no_grad()``: dE/dz and dS/dz come from autograd.
 """
 
@@ -18,6 +26,7 @@ from typing import Tuple
 import torch
 from torch import Tensor, nn
 
+from thermognn.train.hybrid import LinearPriorModel
 from thermognn.train.model import TIGNN
 
 
@@ -39,8 +48,58 @@ class ExportedTIGNN(nn.Module):
         return self.core.step(z, f, self.edge_index, self.node_type, self.reference_positions, self.dt)
 
     @torch.jit.export
+    def begin(self, z: Tensor, f: Tensor) -> Tensor:
+        """The state ``forward`` steps, from a physical state z [N, D] under the load f [N, 3]:
+        z with the clamped nodes imposed."""
+        return self.core.impose(z, self.node_type, self.reference_positions)
+
+    @torch.jit.export
     def energy_entropy(self, z: Tensor) -> Tuple[Tensor, Tensor]:
         """Learned total energy E and entropy S of the state z [N, D] (0-dim tensors), at zero load."""
         f = torch.zeros(z.shape[0], 3, dtype=z.dtype, device=z.device)
         energy, entropy = self.core.energy_entropy(z, self.edge_index, self.node_type, self.reference_positions, f)
         return energy.detach(), entropy.detach()
+
+
+class ExportedLinearPrior(nn.Module):
+    """The linearised FE Newmark step with the network's remainders (``model.prior=linear``),
+    stepping the carried state [N, D + 6] in float64 (module docstring)."""
+
+    def __init__(self, core: LinearPriorModel, z0: Tensor, edge_index: Tensor, node_type: Tensor,
+                 surface_faces: Tensor, dt: float) -> None:
+        super().__init__()
+        self.core = core
+        X = core.reference_positions
+        self.register_buffer("reference_positions", X.to(torch.float64).contiguous())          # [N, 3] m
+        self.register_buffer("network_positions", X.to(core.net.z_mean.dtype).contiguous())   # the network's dtype
+        self.register_buffer("edge_index", edge_index.to(torch.int64).contiguous())
+        self.register_buffer("node_type", node_type.to(torch.int64).contiguous())
+        self.register_buffer("surface_faces", surface_faces.to(torch.int64).reshape(-1, 3).contiguous())
+        self.register_buffer("dt", torch.tensor(float(dt), dtype=torch.float64))
+        with torch.enable_grad():
+            carried = self.begin(z0.to(torch.float64), torch.zeros_like(X, dtype=torch.float64))
+        self.register_buffer("z0", carried.detach().contiguous())                             # [N, D + 6]
+
+    def forward(self, z: Tensor, f: Tensor) -> Tensor:
+        """One time step of the carried state z [N, D + 6] driven by the nodal force f [N, 3] [N]
+        at t_{n+1}."""
+        return self.core.step(z.to(torch.float64), f.to(torch.float64), self.edge_index, self.node_type,
+                              self.network_positions, self.dt)
+
+    @torch.jit.export
+    def begin(self, z: Tensor, f: Tensor) -> Tensor:
+        """The carried state [N, D + 6] of a physical state z [N, D] under the load f [N, 3]:
+        Newmark's acceleration from the balance of forces there, G from the network."""
+        return self.core.carry(z.to(torch.float64), f.to(torch.float64), self.edge_index, self.node_type,
+                               self.network_positions)
+
+    @torch.jit.export
+    def energy_entropy(self, z: Tensor) -> Tuple[Tensor, Tensor]:
+        """The linearised solid's elastic and kinetic energy E = u K u / 2 + v M v / 2 [J] of the
+        state z [N, D(+6)] (the network's remainders learn no energy), and S = 0 (0-dim)."""
+        P = self.core.prior
+        x = z.to(torch.float64).unsqueeze(0)
+        u = P.gather(x[:, :, 0:3] - self.reference_positions.unsqueeze(0))
+        v = P.gather(x[:, :, 3:6])
+        energy = 0.5 * ((u @ P.stiffness) * u).sum() + 0.5 * ((v @ P.mass) * v).sum()
+        return energy.detach(), torch.zeros_like(energy)

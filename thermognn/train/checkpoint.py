@@ -11,6 +11,8 @@ A checkpoint is a ``torch.save``d dict of plain types and tensors (loadable with
     state_layout  JSON string, dt [s], effects (list), structure ("generic" | "hamiltonian"), scene
     config        resolved config YAML, versions JSON, dataset (path), fingerprint (dict), split (dict)
     epoch, val_error   (validation rollout error, ``rollout.validation_error``)
+    prior         (only with ``model.prior=linear``) {"kind", "sweeps", "positions_only"}: the
+                  weights are a ``hybrid.LinearPriorModel``'s; its operators come from the dataset
     (the ``last`` checkpoint adds optimizer, scheduler, rng, history, best_val, stale_rounds)
 """
 
@@ -65,11 +67,21 @@ def torch_dtype(name: str) -> torch.dtype:
     return torch.float32 if name == "float32" else torch.float64
 
 
-def model_from_checkpoint(ckpt: dict):
-    """Rebuild the eager TIGNN (weights and normalisation loaded)."""
+def model_from_checkpoint(ckpt: dict, dataset=None):
+    """Rebuild the eager model (weights and normalisation loaded): the TIGNN, or for a checkpoint
+    with a ``prior`` (``model.prior=linear``) the LinearPriorModel around it, whose linearised FE
+    operators come from ``dataset`` (a ``Dataset``; default: the checkpoint's own dataset path)."""
     from .model import build_model
 
     model = build_model(dict(ckpt["hparams"]), torch_dtype(ckpt["dtype"]))
+    if ckpt.get("prior"):
+        from thermognn.core.schema import Dataset
+
+        from .hybrid import prior_model
+
+        if dataset is None:
+            dataset = Dataset(ckpt.get("dataset", ""))
+        model = prior_model(model, dict(ckpt["prior"]), dataset, float(ckpt["dt"]))
     try:
         model.load_state_dict(ckpt["state_dict"])
     except (RuntimeError, KeyError) as exc:
@@ -95,6 +107,12 @@ def with_rollout(ckpt: dict, cfg) -> tuple[dict, str]:
     want = {k: OmegaConf.select(cfg, f"rollout.{k}", default=None) for k in ROLLOUT_KEYS}
     if all(v is None for v in want.values()):
         return ckpt, ""
+    if ckpt.get("prior"):
+        from thermognn.core.errors import ConfigError
+
+        set_keys = ", ".join(f"rollout.{k}" for k, v in want.items() if v is not None)
+        raise ConfigError(f"{set_keys}: a model.prior=linear model steps with the data's own Newmark rule "
+                          f"(model.prior_sweeps sets its network calls); leave rollout.* null")
     hparams = stepping(ckpt["hparams"], **want)
     old, new = step_settings(ckpt["hparams"]), step_settings(hparams)
     changes = []
@@ -105,3 +123,16 @@ def with_rollout(ckpt: dict, cfg) -> tuple[dict, str]:
     if new["kinematics"] != old["kinematics"]:
         changes.append(f"{new['kinematics']} kinematics (trained: {old['kinematics']})")
     return {**ckpt, "hparams": hparams}, ", ".join(changes)
+
+
+def model_step(ckpt: dict) -> dict:
+    """How the checkpoint's model steps (``step`` metadata of exported files, ``describe_step``):
+    the TIGNN's ``step_settings``, or for a linear-prior model {"integrator": "newmark",
+    "prior": "linear", "sweeps": network calls per step, "kinematics": "exact"}."""
+    from .model import step_settings
+
+    prior = ckpt.get("prior")
+    if prior:
+        return {"integrator": "newmark", "prior": str(prior.get("kind", "linear")),
+                "sweeps": int(prior.get("sweeps", 1)), "kinematics": "exact"}
+    return step_settings(ckpt.get("hparams", {}))

@@ -31,11 +31,12 @@ from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
 from thermognn.core.state import describe_step
 
-from .checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype, with_rollout
+from .checkpoint import load_checkpoint, model_from_checkpoint, model_step, torch_dtype, with_rollout
 from .data import (Graph, LoadedData, TrajectoryTensors, check_fingerprint, load_data, rest_trajectory,
                    velocity_columns)
 from .loop import print_rrmse_table, rest_growth
-from .model import parameter_count, step_settings
+from .hybrid import LinearPriorModel
+from .model import parameter_count
 from .rollout import one_step_errors, rollout, rrmse_per_step, trajectory_error, trajectory_rrmse
 
 
@@ -246,7 +247,8 @@ def evaluate(cfg) -> dict:
     ckpt, stepped = with_rollout(ckpt, cfg)
     if stepped:
         print(f"evaluate: stepping the trained model with {stepped}")
-    model = model_from_checkpoint(ckpt).eval()
+    model = model_from_checkpoint(ckpt, data.dataset).eval()
+    prior = isinstance(model, LinearPriorModel)      # the network learned remainders, not E and S
     groups = data.layout.names
     test = data.of("test")
     train_trajs = [data.trajectories[n] for n in data.split["train"][:max_train]]
@@ -297,8 +299,12 @@ def evaluate(cfg) -> dict:
     files += ["rrmse_per_trajectory.csv", "rrmse_per_trajectory.png"]
 
     # one step from every true state: what the network learned, apart from the rollout's drift
-    step_test, step_curve = one_step_errors(model, data.graph, test, data.layout, data.dt)
-    step_train, _ = one_step_errors(model, data.graph, train_trajs, data.layout, data.dt)
+    if prior:                     # its step carries Newmark's acceleration, which the data do not hold
+        step_curve = {g: np.full(n_steps - 1, np.nan) for g in groups}
+        step_test = step_train = {g: math.nan for g in groups}
+    else:
+        step_test, step_curve = one_step_errors(model, data.graph, test, data.layout, data.dt)
+        step_train, _ = one_step_errors(model, data.graph, train_trajs, data.layout, data.dt)
     _write_csv(out / "one_step_vs_time.csv", ["step", "time_s", *groups],
                [[s + 1, times[s + 1], *[step_curve[g][s] for g in groups]]
                 for s in range(len(step_curve[groups[0]]))])
@@ -310,7 +316,8 @@ def evaluate(cfg) -> dict:
     rows, along = [], []
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.5))
     for t, pred in zip(test, preds):
-        ees = energy_entropy_along(model, data.graph, pred, t.force, data.dt)
+        ees = (np.full((pred.shape[0], 4), np.nan) if prior
+               else energy_entropy_along(model, data.graph, pred, t.force, data.dt))
         along.append(ees)
         tt = np.arange(pred.shape[0]) * data.dt
         rows += [[t.name, s, tt[s], *ees[s]] for s in range(pred.shape[0])]
@@ -346,11 +353,12 @@ def evaluate(cfg) -> dict:
         drift_line = (f"- rest drift: unloaded and left at rest for {steps} steps ({REST_HORIZONS}x the horizon), "
                       f"the body moved at most {_fmt(float(np.nanmax(held[:, 0])))} m, {_fmt(drift)} of the "
                       f"largest displacement in the test data ({_fmt(reach)} m); `rest_drift.csv`")
-        by_size = rest_growth_factors(model, data.graph, rest, data.dt)
-        growth = max(by_size.values())
-        drift_line += ("\n- rest stability: one step multiplies a disturbance of the rest state along its fastest "
-                       "mode by " + ", ".join(f"{g:.4f} at {size:g}" for size, g in by_size.items())
-                       + " typical steps' size (above 1: a drift of that size grows geometrically)")
+        if not prior:                 # (the prior's growth at rest is the linear Newmark step's, <= 1)
+            by_size = rest_growth_factors(model, data.graph, rest, data.dt)
+            growth = max(by_size.values())
+            drift_line += ("\n- rest stability: one step multiplies a disturbance of the rest state along its fastest "
+                           "mode by " + ", ".join(f"{g:.4f} at {size:g}" for size, g in by_size.items())
+                           + " typical steps' size (above 1: a drift of that size grows geometrically)")
         for line in drift_line.splitlines():
             print(f"evaluate: {line[2:]}")
 
@@ -394,13 +402,17 @@ def evaluate(cfg) -> dict:
              f"trained {ckpt.get('epoch', '?')} epochs (validation error {ckpt.get('val_error', float('nan')):.3e})",
              f"- trajectories: {len(test)} test, {len(train_trajs)} train (of {len(data.split['train'])})",
              f"- speed: {ms:.2f} ms per step (forward + autograd, {torch.get_num_threads()} threads, CPU, "
-             + describe_step(step_settings(ckpt["hparams"]))
+             + describe_step(model_step(ckpt))
              + (f"; `rollout` overrides: {stepped}" if stepped else "") + ")",
              f"- energy balance: {_fmt(balance)} = sum |E_s - E_(s-1) - dt P| / sum |E_s - E_(s-1)| over the "
              "test rollouts (the learned energy's change that the port's work P does not explain: the "
              "integrator's drift, and for GENERIC models also what M changes where the learned "
              "degeneracy M dE/dz = 0 is not exact; with exact kinematics also dE/dq . (v - the "
-             "network's dq/dt); `energy_error` in `energy_entropy.csv`)", drift_line, "",
+             "network's dq/dt); `energy_error` in `energy_entropy.csv`)", drift_line,
+             *(["- model.prior = linear: the data's Newmark step of the linearised solid with the network's "
+                "remainders G and H; the network's E and S are not the body's energy and entropy (energy "
+                "columns nan), and the one-step error is not defined (the step carries Newmark's "
+                "acceleration, which the data do not hold)"] if prior else []), "",
              "Relative L2 error per snapshot ||z_pred - z_gt|| / ||z_gt|| over all nodes of a group, "
              "averaged over the rollout steps (clamped nodes imposed) and trajectories.", "",
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),

@@ -22,6 +22,7 @@ from .checkpoint import (FORMAT, last_path, load_checkpoint, model_from_checkpoi
 from .data import (LoadedData, check_fingerprint, compute_stats, fingerprint, load_data, make_batch,
                    rest_rollout_steps, rest_samples, rest_trajectory, samples,
                    velocity_columns)
+from .hybrid import prior_kind, train_linear_prior
 from .model import TIGNN, build_model, hyperparameters, parameter_count
 from .rollout import rollout, rollout_errors, validation_error
 
@@ -246,13 +247,13 @@ def _base_checkpoint(cfg, data: LoadedData, hparams: dict, dtype_name: str, stru
             "dataset": str(data.path), "fingerprint": fingerprint(ds), "split": data.split}
 
 
-def _write_metrics(path: Path, history: list[dict]) -> None:
+def _write_metrics(path: Path, history: list[dict], fields: list[str] = METRIC_FIELDS) -> None:
     with atomic_path(path) as tmp:
         with open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=METRIC_FIELDS)
+            w = csv.DictWriter(fh, fieldnames=fields)
             w.writeheader()
             for row in history:
-                w.writerow({k: row.get(k, "") for k in METRIC_FIELDS})
+                w.writerow({k: row.get(k, "") for k in fields})
 
 
 def _tensorboard(setting, log_dir: Path):
@@ -312,6 +313,10 @@ def train(cfg) -> Path:
     structure = resolve_structure(_sel(cfg, "model.structure", "auto"), ds.effects, ds.config_yaml)
     hparams = hyperparameters(cfg.model, ds.layout.dim, velocity_columns(ds.layout), structure == "hamiltonian")
     train_trajs, val_trajs = data.of("train"), data.of("val")
+    if prior_kind(cfg.model) == "linear":                # the linearised FE step + learned remainders
+        if dist.world > 1:
+            raise ConfigError("model.prior = linear trains in one process (torchrun: not yet)")
+        return train_linear_prior(cfg, data, hparams, dtype_name, structure, ckpt_path, out_dir)
 
     torch.manual_seed(seed)
     model = build_model(hparams, dtype)
@@ -473,7 +478,7 @@ def train(cfg) -> Path:
     if dist.main:
         if not ckpt_path.exists():  # e.g. resumed a finished run whose best file was deleted
             raise DataError(f"{ckpt_path}: no best checkpoint written (delete {last} and retrain)")
-        best = model_from_checkpoint(load_checkpoint(ckpt_path))
+        best = model_from_checkpoint(load_checkpoint(ckpt_path), ds)
         mean = rollout_errors(best, data.graph, data.of("test"), ds.layout, ds.dt)[0]
         print_rrmse_table(f"test rollout RRMSE ({len(data.split['test'])} trajectories)", {"test": mean})
     return ckpt_path

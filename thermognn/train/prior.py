@@ -23,9 +23,11 @@ torch only (dense operators, for meshes of a few thousand free DOFs).
 
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from thermognn.core.linear import LinearSolid
 
@@ -34,13 +36,16 @@ def _dense(A) -> Tensor:
     return torch.as_tensor(A.toarray() if hasattr(A, "toarray") else np.asarray(A), dtype=torch.float64)
 
 
-class NewmarkPrior:
+class NewmarkPrior(nn.Module):
     """The Newmark step above over the n free DOFs of an N-node mesh, as dense matrices.
 
     Displacements u, velocities v [m/s], accelerations a [m/s²], forces and remainders G [N] are
-    [B, n] rows over the free DOFs (node-blocked, as ``LinearSolid``); stresses [B, N, 6] Pa."""
+    [B, n] rows over the free DOFs (node-blocked, as ``LinearSolid``); stresses [B, N, 6] Pa.
+    The operators are buffers left out of the state dict (they are rebuilt from the dataset's
+    ``/linear``; a TorchScript file keeps them)."""
 
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, dtype: torch.dtype = torch.float64) -> None:
+        super().__init__()
         if linear.integrator != "newmark":
             raise ValueError(f"linear prior: integrator {linear.integrator!r}, only newmark is reproduced")
         if linear.stress is None:
@@ -54,29 +59,22 @@ class NewmarkPrior:
         mass_factor = 1.0 + self.alpha_m * self.gamma * self.dt
         S_inv = torch.linalg.inv(self.c0 * mass_factor * M + (1.0 + self.c) * K)   # effective stiffness⁻¹
         # u1 = S⁻¹ (mass_factor M p + c K u0 − αM M v0 − αM dt (1 − γ) M a0 + f1 + (1 + c) G1 − c G0)
-        self.from_predictor = S_inv @ (mass_factor * M)
-        self.from_u = self.c * S_inv @ K
-        self.from_v = -self.alpha_m * S_inv @ M
-        self.from_a = -self.alpha_m * self.dt * (1.0 - self.gamma) * S_inv @ M
-        self.from_force = S_inv
-        self.stiffness, self.mass, self.mass_inv = K, M, torch.linalg.inv(M)
-        self.free = torch.as_tensor(np.asarray(linear.free, dtype=bool))          # [3N]
-        self.free_index = torch.nonzero(self.free).flatten()                       # [n]
-        self.n_nodes = int(n_nodes)
+        free = torch.as_tensor(np.asarray(linear.free, dtype=bool))                 # [3N]
         n = K.shape[0]
-        self.body_force = (torch.zeros(n, dtype=torch.float64) if linear.body_force is None
-                           else torch.as_tensor(np.asarray(linear.body_force), dtype=torch.float64))
-        self.stress_operator = torch.zeros(6 * n_nodes, 3 * n_nodes, dtype=torch.float64)  # [6N, 3N]
-        self.stress_operator[:, self.free] = _dense(linear.stress)
-        self.to(dtype)
-
-    _TENSORS = ("from_predictor", "from_u", "from_v", "from_a", "from_force", "stiffness", "mass",
-                "mass_inv", "body_force", "stress_operator")
-
-    def to(self, dtype: torch.dtype) -> "NewmarkPrior":
-        for k in self._TENSORS:
-            setattr(self, k, getattr(self, k).to(dtype))
-        return self
+        stress_operator = torch.zeros(6 * n_nodes, 3 * n_nodes, dtype=torch.float64)  # [6N, 3N]
+        stress_operator[:, free] = _dense(linear.stress)
+        operators = {
+            "from_predictor": S_inv @ (mass_factor * M), "from_u": self.c * S_inv @ K,
+            "from_v": -self.alpha_m * S_inv @ M, "from_a": -self.alpha_m * self.dt * (1.0 - self.gamma) * S_inv @ M,
+            "from_force": S_inv, "stiffness": K, "mass": M, "mass_inv": torch.linalg.inv(M),
+            "body_force": (torch.zeros(n, dtype=torch.float64) if linear.body_force is None
+                           else torch.as_tensor(np.asarray(linear.body_force), dtype=torch.float64)),
+            "stress_operator": stress_operator}
+        for name, value in operators.items():
+            self.register_buffer(name, value.to(dtype), persistent=False)
+        self.register_buffer("free", free, persistent=False)
+        self.register_buffer("free_index", torch.nonzero(free).flatten(), persistent=False)  # [n]
+        self.n_nodes = int(n_nodes)
 
     # --- free DOFs <-> nodal fields ---------------------------------------------------------
     def gather(self, nodal: Tensor) -> Tensor:
@@ -107,11 +105,12 @@ class NewmarkPrior:
         v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
         return u1, v1, a1
 
-    def stress(self, u: Tensor, H: Tensor | float = 0.0) -> Tensor:
+    def stress(self, u: Tensor, H: Optional[Tensor] = None) -> Tensor:
         """Nodal Cauchy stress σ = Σ u + H [B, N, 6] Pa (Voigt 11 22 33 12 13 23) of the nodal
-        displacements u [B, N, 3] m."""
+        displacements u [B, N, 3] m (H = 0: the linearised stress)."""
         B = u.shape[0]
-        return (u.reshape(B, -1) @ self.stress_operator.T).reshape(B, self.n_nodes, 6) + H
+        linear = (u.reshape(B, -1) @ self.stress_operator.T).reshape(B, self.n_nodes, 6)
+        return linear if H is None else linear + H
 
     # --- what a learned model must supply ---------------------------------------------------
     def remainders(self, u: Tensor, v: Tensor, sigma: Tensor, f: Tensor) -> tuple[Tensor, Tensor]:

@@ -11,6 +11,7 @@ from torch import Tensor
 from thermognn.core.state import StateLayout
 
 from .data import Graph, TrajectoryTensors
+from .hybrid import LinearPriorModel
 
 
 def rollout(model, graph: Graph, z0: Tensor, forces: Tensor, dt: float, steps: int | None = None) -> Tensor:
@@ -19,6 +20,11 @@ def rollout(model, graph: Graph, z0: Tensor, forces: Tensor, dt: float, steps: i
     Returns z [S, N, D] (z[0] = z0 with the clamped nodes imposed). ``steps`` (default S - 1)
     may exceed S - 1: the last load is then held."""
     steps = forces.shape[0] - 1 if steps is None else steps
+    if isinstance(model, LinearPriorModel):  # the linearised FE step, carrying a and G between steps
+        with torch.enable_grad():
+            pred = model.rollouts(z0.unsqueeze(0), forces.unsqueeze(0), graph.edge_index, graph.node_type,
+                                  graph.ref_pos, steps, False)[0]
+        return pred.detach().to(z0.dtype)
     dt_t = torch.tensor(dt, dtype=z0.dtype)
     out = [model.impose(z0, graph.node_type, graph.ref_pos)]
     with torch.enable_grad():  # the model differentiates E and S: never under no_grad

@@ -1,0 +1,453 @@
+"""``model.prior = linear``: the data's own Newmark step of the solid linearised at rest, with the
+nonlinear remainders learned by the graph network.
+
+The FE solid's step, with its internal force split as f_int(u) = K u − G(u) and its stress as
+σ = Σ u + H (``thermognn.train.prior``), is over the free DOFs::
+
+    M a1 + αM M v1 + c K (u1 − u0) + K u1 = f1 + (1 + c) G1 − c G0,    c = βK / dt      [N]
+    u1 = u0 + dt v0 + dt² ((1/2 − β) a0 + β a1),   v1 = v0 + dt ((1 − γ) a0 + γ a1)
+    σ1 = Σ u1 + H1                                                                       [Pa]
+
+The network's GENERIC rates at a state are read as the remainders: its v columns as G [N] (at
+the free DOFs), its σ columns as H [Pa], each times ``dzdt_std`` (set to the remainders' RMS in
+the training data). With ``positions_only`` the network sees the positions alone (G and H of a
+hyperelastic solid are functions of the displacement). A step: the linear step with the last G
+predicts the state; the network gives G1, H1 there (``sweeps`` times, each at the latest
+prediction); the linear step with them gives the state. With G = H = 0 this is the linearised
+FE model that ``evaluate`` reports; with the exact remainders it is the FE step itself (test in
+``tests/test_fe_modes.py``), so the network only learns what the linear solid misses, and the
+linear solve spreads a local correction over the body.
+
+Besides the physical state z [N, D] (q, v, σ), the step carries Newmark's acceleration a and the
+last remainder G: the *carried state* is z with a [m/s²] and G [N] appended as nodal columns,
+[N, D + 6] (zero at clamped DOFs). ``begin`` makes it from a physical state (a from the balance
+of forces there, as the FE starts; G from the network), ``step`` advances it, and the first D
+columns are the physical state. The exported module steps the carried state, so ``serve`` keeps
+a and G between ticks without knowing about them.
+
+Training (:func:`train_linear_prior`, from ``thermognn train`` with ``model.prior=linear``) runs
+in two phases (docs/accuracy.md, session 12: each alone fails): ``train.epochs`` epochs of a
+one-step regression of the network's outputs on the exact remainders of the training
+trajectories (``NewmarkPrior.remainders``), then ``train.rollout_epochs`` epochs on whole rollouts,
+back-propagated through the linear solves. Torch only; dense operators (meshes of a few thousand
+free DOFs).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Dict, List, Tuple
+
+import torch
+from omegaconf import OmegaConf
+from torch import Tensor, nn
+
+from thermognn.core.errors import ConfigError, DataError
+
+from .model import TIGNN
+from .prior import NewmarkPrior
+
+#: the state layout the prior steps: positions, velocities and stresses, nothing else
+LAYOUT = ["q", "v", "sigma"]
+#: the carried state's extra nodal columns after the physical ones: Newmark's acceleration, G
+CARRIED = (("a", 3), ("G", 3))
+#: PRIORS: model.prior values
+PRIORS = ("none", "linear")
+
+
+class LinearPriorModel(nn.Module):
+    """The linearised FE Newmark step with the network's remainders (module docstring).
+
+    Physical states z [B, N, D] in float64 (the prior's dtype); the network runs in its own dtype.
+    Graph tensors (edge_index, node_type, ref_pos) are those of B disjoint copies of the mesh."""
+
+    def __init__(self, net: TIGNN, prior: NewmarkPrior, reference_positions: Tensor,
+                 positions_only: bool = True, sweeps: int = 1) -> None:
+        super().__init__()
+        if net.dim != 12:
+            raise ValueError(f"linear prior: state dimension {net.dim}, expected 12 (q, v, sigma)")
+        self.net = net
+        self.prior = prior
+        self.dim = int(net.dim)
+        self.sweeps = int(sweeps)
+        self.positions_only = bool(positions_only)
+        self.register_buffer("reference_positions", reference_positions.to(torch.float64).contiguous(),
+                             persistent=False)                                       # [N, 3] m
+        seen = torch.ones(self.dim, dtype=net.z_mean.dtype)
+        if positions_only:
+            seen[3:] = 0.0
+        self.register_buffer("seen", seen, persistent=False)                        # [D] network inputs
+
+    def remainders(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
+                   create_graph: bool) -> Tuple[Tensor, Tensor]:
+        """The network's remainders at states z [B, N, D] under the loads f [B, N, 3] [N]:
+        G [B, n] N over the free DOFs and H [B, N, 6] Pa (float64)."""
+        B, N, D = z.shape[0], z.shape[1], z.shape[2]
+        dtype = self.net.z_mean.dtype
+        seen = (z.to(dtype) * self.seen).reshape(B * N, D)                          # [B N, D]
+        r = self.net.rates(seen, f.to(dtype).reshape(B * N, 3), edge_index, node_type, ref_pos, create_graph)[0]
+        if not create_graph:
+            r = r.detach()
+        r = r.reshape(B, N, D).to(torch.float64) * self.net.dzdt_std.to(torch.float64)   # [B, N, D] SI
+        return self.prior.gather(r[:, :, 3:6]), r[:, :, 6:12]
+
+    def state(self, u: Tensor, v: Tensor, H: Tensor) -> Tensor:
+        """Physical states [B, N, D] (q = X + u, v, σ = Σ u + H) from free-DOF u, v [B, n]."""
+        U = self.prior.scatter(u)                                                   # [B, N, 3]
+        return torch.cat([self.reference_positions.unsqueeze(0) + U, self.prior.scatter(v),
+                          self.prior.stress(U, H)], -1)
+
+    def begin(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
+              create_graph: bool) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """(u, v, a, G, H) at the physical states z [B, N, D] under f [B, N, 3]: a from the
+        balance of forces there, G and H from the network."""
+        z, f = z.to(torch.float64), f.to(torch.float64)
+        U = z[:, :, 0:3] - self.reference_positions.unsqueeze(0)
+        u, v = self.prior.gather(U), self.prior.gather(z[:, :, 3:6])
+        G, _ = self.remainders(z, f, edge_index, node_type, ref_pos, create_graph)
+        H = z[:, :, 6:12] - self.prior.stress(U, None)
+        a = self.prior.initial_acceleration(u, v, self.prior.gather(f), G)
+        return u, v, a, G, H
+
+    def advance(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, f1: Tensor, edge_index: Tensor,
+                node_type: Tensor, ref_pos: Tensor, create_graph: bool) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """One step under the loads f1 [B, N, 3] at its end: predict with the last G, evaluate
+        the network there (``sweeps`` times), step with its G1."""
+        f1 = f1.to(torch.float64)
+        f1_rows = self.prior.gather(f1)
+        G1 = G
+        for _ in range(self.sweeps):
+            u1, v1, _a1 = self.prior.step(u, v, a, f1_rows, G, G1)
+            G1, H = self.remainders(self.state(u1, v1, H), f1, edge_index, node_type, ref_pos, create_graph)
+        u1, v1, a1 = self.prior.step(u, v, a, f1_rows, G, G1)
+        return u1, v1, a1, G1, H
+
+    # --- the carried state [N, D + 6]: what rollouts, export and serve step ---------------------
+    @torch.jit.export
+    def carry(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor) -> Tensor:
+        """The carried state [N, D + 6] of the physical state z [N, D] under the load f [N, 3]."""
+        u, v, a, G, H = self.begin(z.unsqueeze(0), f.unsqueeze(0), edge_index, node_type, ref_pos, False)
+        return torch.cat([self.state(u, v, H)[0], self.prior.scatter(a)[0], self.prior.scatter(G)[0]], -1)
+
+    @torch.jit.export
+    def step(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
+             dt: Tensor) -> Tensor:
+        """One step of the carried state z [N, D + 6] driven by the load f [N, 3] [N] at the step's
+        end (dt is the prior's own; the argument keeps TIGNN's signature)."""
+        D = self.dim
+        x = z.to(torch.float64).unsqueeze(0)                                        # [1, N, D + 6]
+        U = x[:, :, 0:3] - self.reference_positions.unsqueeze(0)
+        u, v = self.prior.gather(U), self.prior.gather(x[:, :, 3:6])
+        a, G = self.prior.gather(x[:, :, D:D + 3]), self.prior.gather(x[:, :, D + 3:D + 6])
+        H = x[:, :, 6:12] - self.prior.stress(U, None)
+        u, v, a, G, H = self.advance(u, v, a, G, H, f.unsqueeze(0), edge_index, node_type, ref_pos, False)
+        out = torch.cat([self.state(u, v, H)[0], self.prior.scatter(a)[0], self.prior.scatter(G)[0]], -1)
+        return out.to(z.dtype)
+
+    def rollouts(self, z0: Tensor, forces: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
+                 steps: int, create_graph: bool) -> Tensor:
+        """Physical states [B, steps + 1, N, D] (float64) from z0 [B, N, D] under the loads
+        forces [B, S, N, 3] (forces[:, s] at t_s; the last one held beyond S - 1 steps)."""
+        S = forces.shape[1]
+        u, v, a, G, H = self.begin(z0, forces[:, 0], edge_index, node_type, ref_pos, create_graph)
+        out = [self.state(u, v, H)]
+        for s in range(1, steps + 1):
+            u, v, a, G, H = self.advance(u, v, a, G, H, forces[:, min(s, S - 1)], edge_index, node_type,
+                                         ref_pos, create_graph)
+            out.append(self.state(u, v, H))
+        return torch.stack(out, 1)
+
+
+def prior_kind(cfg_model) -> str:
+    """``model.prior``: none (the network steps the state) | linear (this module)."""
+    kind = str(OmegaConf.select(cfg_model, "prior", default="none"))
+    if kind not in PRIORS:
+        raise ConfigError(f"model.prior = '{kind}', expected " + " | ".join(PRIORS))
+    return kind
+
+
+def prior_settings(cfg_model) -> dict:
+    """The checkpoint's ``prior`` entry from the ``model`` config group."""
+    sweeps = OmegaConf.select(cfg_model, "prior_sweeps", default=1)
+    if not isinstance(sweeps, int) or isinstance(sweeps, bool) or sweeps < 1:
+        raise ConfigError(f"model.prior_sweeps = {sweeps!r}, expected an integer >= 1 (network calls per step)")
+    inputs = str(OmegaConf.select(cfg_model, "prior_inputs", default="positions"))
+    if inputs not in ("positions", "state"):
+        raise ConfigError(f"model.prior_inputs = '{inputs}', expected positions | state")
+    return {"kind": "linear", "sweeps": sweeps, "positions_only": inputs == "positions"}
+
+
+def build_prior(ds, dt: float) -> NewmarkPrior:
+    """The dataset's ``/linear`` as a NewmarkPrior (float64); one-line errors where it cannot be."""
+    names = list(ds.layout.names)
+    if names != LAYOUT:
+        raise ConfigError(f"model.prior = linear: {ds.path} has state variables {names}, expected {LAYOUT} "
+                          f"(a scene with inertia and no stored internal variables)")
+    linear = ds.linear_solid()
+    if linear is None:
+        raise DataError(f"{ds.path}: no linearised FE operators (/linear) for model.prior = linear "
+                        f"(regenerate the dataset with this version of thermognn generate)")
+    try:
+        return NewmarkPrior(linear, len(ds.mesh.nodes), float(dt))
+    except ValueError as exc:
+        raise ConfigError(f"model.prior = linear: {ds.path}: {exc}") from None
+
+
+def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
+    """The LinearPriorModel of a network, the checkpoint's ``prior`` settings and the dataset."""
+    X = torch.as_tensor(ds.mesh.nodes, dtype=torch.float64)
+    return LinearPriorModel(net, build_prior(ds, dt), X, bool(settings.get("positions_only", True)),
+                            int(settings.get("sweeps", 1)))
+
+
+def carried_layout(layout_json: str) -> str:
+    """The exported state layout of a prior model: the physical one plus a and G."""
+    import json
+
+    return json.dumps(json.loads(layout_json) + [list(g) for g in CARRIED])
+
+
+# --- training ---------------------------------------------------------------------------------
+#: the network's last layers start at this fraction of their initial size, so that a fresh model
+#: is the linearised FE model to within 1 % of the remainders' scale
+START_SCALE = 0.01
+#: gradient-norm clip of both phases
+CLIP = 1.0
+
+
+def exact_remainders(model: LinearPriorModel, trajs) -> Tuple[List[Tensor], List[Tensor]]:
+    """The exact remainders of each trajectory: G as nodal vectors [S, N, 3] N (zero at clamped
+    DOFs) and H [S, N, 6] Pa, float64."""
+    P, X = model.prior, model.reference_positions
+    Gs, Hs = [], []
+    for t in trajs:
+        z, f = t.z.double(), t.force.double()
+        G, H = P.remainders(z[..., 0:3] - X, z[..., 3:6], z[..., 6:12], f)
+        Gs.append(P.scatter(G))
+        Hs.append(H)
+    return Gs, Hs
+
+
+def remainder_scale(stats: Dict[str, Tensor], G: List[Tensor], H: List[Tensor], free_nodes: Tensor) -> Tensor:
+    """The network's output scale ``dzdt_std`` [D]: the RMS of G over the free nodes [N] (v
+    columns, one number) and of each H component (σ columns) in the training data."""
+    scale = stats["dzdt_std"].clone().double()
+    scale[3:6] = torch.cat([g[:, free_nodes] for g in G]).pow(2).mean().sqrt()
+    scale[6:12] = torch.cat([h.reshape(-1, 6) for h in H]).pow(2).mean(0).sqrt()
+    return scale.clamp(min=1e-30)
+
+
+def _lr(base: float, decay: float, progress: float) -> float:
+    """Exponential schedule: base at progress 0, base * decay at 1."""
+    return base * decay ** min(max(progress, 0.0), 1.0)
+
+
+class _FitPhase:
+    """Phase 1: the network's outputs at the data's states (with training noise) regressed on
+    the exact remainders, in its own units (``dzdt_std``); samples are (trajectory, snapshot)."""
+
+    def __init__(self, model: LinearPriorModel, trajs, G: List[Tensor], H: List[Tensor], noise: float,
+                 lambda_data: float, lambda_degeneracy: float) -> None:
+        net = model.net
+        dtype, N, D = net.z_mean.dtype, trajs[0].z.shape[1], model.dim
+        free_nodes = model.prior.free.reshape(N, 3).all(1)                             # [N]
+        scale = net.dzdt_std.detach().double()
+        self.model, self.trajs = model, trajs
+        self.targets = [(torch.cat([torch.zeros_like(g), g, h], -1) / scale).to(dtype)
+                        for g, h in zip(G, H)]                                          # [S, N, D] each
+        self.weight = torch.zeros(N, D, dtype=dtype)                                     # q columns: unused
+        self.weight[:, 3:] = 1.0
+        self.weight[~free_nodes, 3:6] = 0.0
+        step_rms = torch.cat([t.z.diff(dim=0).reshape(-1, D) for t in trajs]).double().pow(2).mean(0).sqrt()
+        self.noise = (step_rms * noise).to(dtype) * free_nodes.to(dtype).view(N, 1)      # [N, D]
+        self.samples = [(i, s) for i, t in enumerate(trajs) for s in range(t.z.shape[0])]
+        self.lambda_data, self.lambda_degeneracy = lambda_data, lambda_degeneracy
+
+    def loss(self, chosen, g, gen: torch.Generator) -> Tuple[Tensor, float, float]:
+        """(loss, data loss, degeneracy loss) of the samples ``chosen`` on the mesh copies g."""
+        net, k = self.model.net, len(chosen)
+        N, D = self.weight.shape
+        z = torch.stack([self.trajs[i].z[s] for i, s in chosen])                          # [k, N, D]
+        f = torch.stack([self.trajs[i].force[s] for i, s in chosen])                      # [k, N, 3]
+        y = torch.stack([self.targets[i][s] for i, s in chosen])
+        z = z + torch.randn(z.shape, generator=gen, dtype=z.dtype) * self.noise
+        r, _, _, _, _, deg = net.rates((z * self.model.seen).reshape(k * N, D), f.reshape(k * N, 3),
+                                       g.edge_index, g.node_type, g.ref_pos, True)
+        data_loss = ((r.reshape(k, N, D) - y).pow(2) * self.weight).sum() / (self.weight.sum() * k)
+        return self.lambda_data * data_loss + self.lambda_degeneracy * deg, float(data_loss.detach()), float(deg.detach())
+
+
+class _RolloutPhase:
+    """Phase 2: whole rollouts from each trajectory's first state, back-propagated through the
+    linear solves; each group's error relative to its RMS in the training data (q: the
+    displacement's). Samples are trajectory indices; a batch runs to its shortest trajectory."""
+
+    def __init__(self, model: LinearPriorModel, trajs) -> None:
+        self.model, self.trajs = model, trajs
+        Z = [t.z.double() for t in trajs]
+        X = model.reference_positions
+        self.Z = Z
+        self.scales = [(slice(0, 3), torch.cat([z[..., 0:3] - X for z in Z]).pow(2).mean().sqrt()),
+                       (slice(3, 6), torch.cat([z[..., 3:6] for z in Z]).pow(2).mean().sqrt()),
+                       (slice(6, 12), torch.cat([z[..., 6:12] for z in Z]).pow(2).mean().sqrt())]
+        self.samples = list(range(len(trajs)))
+
+    def loss(self, chosen, g) -> Tuple[Tensor, float, float]:
+        S = min(self.trajs[i].z.shape[0] for i in chosen)
+        truth = torch.stack([self.Z[i][:S] for i in chosen])                              # [k, S, N, D]
+        forces = torch.stack([self.trajs[i].force[:S] for i in chosen])                   # [k, S, N, 3]
+        pred = self.model.rollouts(truth[:, 0], forces, g.edge_index, g.node_type, g.ref_pos, S - 1, True)
+        loss = sum(((pred[:, 1:, :, sl] - truth[:, 1:, :, sl]) / sc).pow(2).mean() for sl, sc in self.scales)
+        return loss, float(loss.detach()), 0.0
+
+
+def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str, ckpt_path: Path,
+                       out_dir: Path) -> Path:
+    """``thermognn train`` with ``model.prior=linear`` (module docstring): ``train.epochs`` fit
+    epochs on the exact remainders, then ``train.rollout_epochs`` epochs on whole rollouts; best
+    checkpoint by the validation rollout error, ``model.last.ckpt`` after every epoch (resumed),
+    ``metrics.csv`` with the phase of each epoch."""
+    from thermognn.core.config import project_path
+
+    from .checkpoint import last_path, load_checkpoint, save_checkpoint, torch_dtype
+    from .data import compute_stats
+    from .loop import (_base_checkpoint, _progress, _sel, _tensorboard, _write_metrics, print_rrmse_table,
+                       training_identity)
+    from .model import build_model, parameter_count
+    from .rollout import rollout_errors, validation_error
+
+    tc, ds = cfg.train, data.dataset
+    dtype = torch_dtype(dtype_name)
+    seed = int(_sel(cfg, "seed", 0))
+    fit_epochs = int(tc.epochs)
+    roll_epochs = int(_sel(tc, "rollout_epochs", 0))
+    if roll_epochs < 0:
+        raise ConfigError(f"train.rollout_epochs = {roll_epochs}, expected >= 0")
+    epochs = fit_epochs + roll_epochs
+    settings = prior_settings(cfg.model)
+    torch.manual_seed(seed)
+    net = build_model(hparams, dtype)
+    model = prior_model(net, settings, ds, ds.dt)
+    train_trajs, val_trajs = data.of("train"), data.of("val")
+    graph, N = data.graph, data.graph.n_nodes
+    free_nodes = model.prior.free.reshape(N, 3).all(1)                               # [N]
+    G_true, H_true = exact_remainders(model, train_trajs)
+    stats = compute_stats(train_trajs, graph, ds.dt, hparams)
+    stats["dzdt_std"] = remainder_scale(stats, G_true, H_true, free_nodes)
+    net.set_stats(stats)
+    with torch.no_grad():                        # start at (1 % from) the linearised FE model
+        for p in [*net.decoder.net[-1].parameters(), *net.port.parameters(),
+                  *(p for dec in net.edge_decoders for p in dec.net[-1].parameters())]:
+            p.mul_(START_SCALE)
+    if _sel(tc, "init", None):                   # warm start from a checkpoint of the same model
+        src = load_checkpoint(project_path(str(tc.init)))
+        if src.get("prior") != settings or src.get("hparams") != hparams:
+            raise ConfigError(f"train.init = '{tc.init}': not a model.prior=linear checkpoint of this model")
+        model.load_state_dict(src["state_dict"])
+        stats = {k: v.clone() for k, v in src["stats"].items()}
+    base = {**_base_checkpoint(cfg, data, hparams, dtype_name, structure, stats), "prior": settings}
+    identity = {**training_identity(cfg, hparams, dtype_name), "prior": settings,
+                "rollout_lr": float(_sel(tc, "rollout_lr", 1e-3)),
+                "rollout_lr_decay": float(_sel(tc, "rollout_lr_decay", 0.01))}
+
+    fit = _FitPhase(model, train_trajs, G_true, H_true, float(_sel(tc, "noise", 0.1)),
+                    float(_sel(tc, "lambda_data", 100.0)), float(_sel(tc, "lambda_degeneracy", 1.0)))
+    rollouts = _RolloutPhase(model, train_trajs)
+    batch_size = max(1, int(tc.batch_size))
+    copies: Dict[int, object] = {}
+
+    def mesh(k: int):
+        """k disjoint copies of the mesh graph (made once per batch size)."""
+        if k not in copies:
+            copies[k] = graph.copies(k)
+        return copies[k]
+
+    def optimizer(epoch: int) -> torch.optim.Adam:
+        return torch.optim.Adam(net.parameters(), lr=float(tc.lr) if epoch < fit_epochs else identity["rollout_lr"])
+
+    gen = torch.Generator().manual_seed(seed)
+    start, history, best_val = 0, [], math.inf
+    opt = optimizer(0)
+    last = last_path(ckpt_path)
+    if bool(_sel(tc, "resume", True)) and last.exists():
+        state = load_checkpoint(last)
+        if state.get("identity") != identity:
+            print(f"{last}: configuration changed; training from scratch")
+        else:
+            model.load_state_dict(state["state_dict"])
+            start, history, best_val = int(state["epoch"]), list(state["history"]), float(state["best_val"])
+            opt = optimizer(start - 1)                               # the phase that wrote it
+            opt.load_state_dict(state["optimizer"])
+            gen.set_state(state["rng"]["generator"])
+            torch.set_rng_state(state["rng"]["torch"])
+            print(f"resuming from {last} at epoch {start}")
+    print(f"train (model.prior=linear): {len(train_trajs)} train / {len(val_trajs)} val / "
+          f"{len(data.split['test'])} test trajectories, {fit_epochs} fit + {roll_epochs} rollout epochs, "
+          f"{parameter_count(model)} parameters, {model.prior.free_index.numel()} free DOFs")
+
+    tb = _tensorboard(_sel(tc, "tensorboard", "auto"), out_dir / "tensorboard")
+    fields = ["epoch", "phase", "lr", "loss", "data_loss", "degeneracy_loss", "val_error", "seconds"]
+    with _progress() as progress:
+        task = progress.add_task("train", total=epochs, completed=start, info="")
+        for epoch in range(start, epochs):
+            t0 = time.perf_counter()
+            if epoch == fit_epochs:
+                opt = optimizer(epoch)                               # phase 2 starts its own Adam
+            model.train()
+            if epoch < fit_epochs:          # phase 1: one step from the data's states, exact remainders
+                phase, items, base_lr, decay = "fit", fit.samples, float(tc.lr), float(_sel(tc, "lr_decay", 0.1))
+                progress_at = lambda b: (epoch + b / nb) / fit_epochs  # noqa: E731
+            else:                           # phase 2: whole rollouts through the linear solves
+                phase, items, base_lr, decay = ("rollout", rollouts.samples, identity["rollout_lr"],
+                                                identity["rollout_lr_decay"])
+                progress_at = lambda b: (epoch - fit_epochs + b / nb) / roll_epochs  # noqa: E731
+            perm = torch.randperm(len(items), generator=gen).tolist()
+            nb = max(1, len(perm) // batch_size)
+            total = data_total = deg_total = 0.0
+            for b in range(nb):
+                for group in opt.param_groups:
+                    group["lr"] = _lr(base_lr, decay, progress_at(b))
+                chosen = [items[j] for j in perm[b * batch_size:(b + 1) * batch_size]]
+                g = mesh(len(chosen))
+                loss, data_loss, deg = fit.loss(chosen, g, gen) if phase == "fit" else rollouts.loss(chosen, g)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(net.parameters(), CLIP)
+                opt.step()
+                total, data_total, deg_total = total + float(loss), data_total + data_loss, deg_total + deg
+            if not math.isfinite(total):
+                raise DataError(f"{data.path}: training diverged (non-finite loss at epoch {epoch + 1}, {phase}); "
+                                f"lower train.lr or train.rollout_lr")
+            model.eval()
+            val = validation_error(model, graph, val_trajs, data.layout, ds.dt)
+            row = {"epoch": epoch + 1, "phase": phase, "lr": opt.param_groups[0]["lr"], "loss": total / nb,
+                   "data_loss": data_total / nb, "degeneracy_loss": deg_total / nb, "val_error": val}
+            if val < best_val or best_val == math.inf:
+                best_val = min(val, best_val)
+                save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": epoch + 1, "val_error": val},
+                                ckpt_path)
+            row["seconds"] = time.perf_counter() - t0
+            history.append(row)
+            save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": epoch + 1, "val_error": val,
+                             "optimizer": opt.state_dict(), "history": history, "best_val": best_val,
+                             "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
+                             "identity": identity}, last)
+            _write_metrics(out_dir / "metrics.csv", history, fields)
+            if tb is not None:
+                for key, value in row.items():
+                    if key not in ("epoch", "phase") and math.isfinite(value):
+                        tb.add_scalar(f"train/{key}", value, epoch + 1)
+                tb.flush()
+            progress.update(task, completed=epoch + 1, info=f"{phase} loss {row['loss']:.3e} val {val:.3e}")
+    if tb is not None:
+        tb.close()
+    if not ckpt_path.exists():
+        raise DataError(f"{ckpt_path}: no best checkpoint written (delete {last} and retrain)")
+    from .checkpoint import model_from_checkpoint
+
+    best = model_from_checkpoint(load_checkpoint(ckpt_path), ds)
+    mean = rollout_errors(best, graph, data.of("test"), data.layout, ds.dt)[0]
+    print_rrmse_table(f"test rollout RRMSE ({len(data.split['test'])} trajectories)", {"test": mean})
+    return ckpt_path
