@@ -416,7 +416,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(net.parameters(), CLIP)
                 opt.step()
-                total, data_total, deg_total = total + float(loss), data_total + data_loss, deg_total + deg
+                total, data_total, deg_total = total + float(loss.detach()), data_total + data_loss, deg_total + deg
             if not math.isfinite(total):
                 raise DataError(f"{data.path}: training diverged (non-finite loss at epoch {epoch + 1}, {phase}); "
                                 f"lower train.lr or train.rollout_lr")
