@@ -314,3 +314,13 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
                 states.append(stepper.step(states[-1], f[k], edges, node_type, ref, torch.tensor(dt)))
             stepped = torch.stack(states)[..., :12]
             assert rel(stepped, batched) < 1e-9 and rel(stepped[..., 3:6], batched[..., 3:6]) < 1e-8   # round-off
+
+    # anchored: the remainders vanish at the unloaded reference state, as the true ones do
+    rest = torch.cat([torch.as_tensor(X), torch.zeros(len(X), 9, dtype=torch.float64)], 1).unsqueeze(0)
+    zero = torch.zeros_like(rest[:, :, 0:3])
+    with torch.enable_grad():
+        G, H = model.remainders(rest, zero, edges, node_type, ref, False)
+        assert float(H.abs().max()) > 1e-6
+        model.anchor(edges, node_type, ref)
+        G, H = model.remainders(rest, zero, edges, node_type, ref, False)
+    assert float(G.abs().max()) == 0.0 and float(H.abs().max()) == 0.0

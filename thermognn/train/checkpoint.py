@@ -70,7 +70,8 @@ def torch_dtype(name: str) -> torch.dtype:
 def model_from_checkpoint(ckpt: dict, dataset=None):
     """Rebuild the eager model (weights and normalisation loaded): the TIGNN, or for a checkpoint
     with a ``prior`` (``model.prior=linear``) the LinearPriorModel around it, whose linearised FE
-    operators come from ``dataset`` (a ``Dataset``; default: the checkpoint's own dataset path)."""
+    operators come from ``dataset`` (a ``Dataset``; default: the checkpoint's own dataset path),
+    anchored (its remainders at the unloaded reference state subtracted, ``LinearPriorModel.anchor``)."""
     from .model import build_model
 
     model = build_model(dict(ckpt["hparams"]), torch_dtype(ckpt["dtype"]))
@@ -88,6 +89,11 @@ def model_from_checkpoint(ckpt: dict, dataset=None):
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise DataError(f"{ckpt.get('_path', 'checkpoint')}: weights do not fit the model they describe "
                         f"(written by another thermognn version?): {first}") from None
+    if ckpt.get("prior"):                 # remainders zero at the unloaded reference state
+        from .data import load_graph
+
+        graph = load_graph(dataset, torch_dtype(ckpt["dtype"]))
+        model.anchor(graph.edge_index, graph.node_type, graph.ref_pos)
     return model
 
 
