@@ -20,7 +20,7 @@ linear solve spreads a local correction over the body.
 
 Besides the physical state z [N, D] (q, v, σ), the step carries Newmark's acceleration a and the
 last remainder G: the *carried state* is z with a [m/s²] and G [N] appended as nodal columns,
-[N, D + 6] (zero at clamped DOFs). ``begin`` makes it from a physical state (a from the balance
+[N, D + 6] (zero at clamped DOFs). ``carry`` makes it from a physical state (a from the balance
 of forces there, as the FE starts; G from the network), ``step`` advances it, and the first D
 columns are the physical state. The exported module steps the carried state, so ``serve`` keeps
 a and G between ticks without knowing about them.
@@ -130,12 +130,19 @@ class LinearPriorModel(nn.Module):
         """(u, v, a, G, H) at the physical states z [B, N, D] under f [B, N, 3]: a from the
         balance of forces there, G and H from the network."""
         z, f = z.to(torch.float64), f.to(torch.float64)
-        U = z[:, :, 0:3] - self.reference_positions.unsqueeze(0)
-        u, v = self.prior.gather(U), self.prior.gather(z[:, :, 3:6])
+        u, v, H = self.unpack(z)
         G, _ = self.remainders(z, f, edge_index, node_type, ref_pos, create_graph)
-        H = z[:, :, 6:12] - self.prior.stress(U, None)
         a = self.prior.initial_acceleration(u, v, self.prior.gather(f), G)
         return u, v, a, G, H
+
+    def unpack(self, z: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+        """(u, v [B, n], H [B, N, 6]) of float64 states z [B, N, D(+6)]: the inverse of ``state``."""
+        U = z[:, :, 0:3] - self.reference_positions.unsqueeze(0)                    # [B, N, 3]
+        return self.prior.gather(U), self.prior.gather(z[:, :, 3:6]), z[:, :, 6:12] - self.prior.stress(U, None)
+
+    def pack(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor) -> Tensor:
+        """The carried state [N, D + 6] of one body ([1, ...] inputs): ``state`` with a and G."""
+        return torch.cat([self.state(u, v, H)[0], self.prior.scatter(a)[0], self.prior.scatter(G)[0]], -1)
 
     def advance(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, f1: Tensor, edge_index: Tensor,
                 node_type: Tensor, ref_pos: Tensor, create_graph: bool) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
@@ -155,7 +162,7 @@ class LinearPriorModel(nn.Module):
     def carry(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor) -> Tensor:
         """The carried state [N, D + 6] of the physical state z [N, D] under the load f [N, 3]."""
         u, v, a, G, H = self.begin(z.unsqueeze(0), f.unsqueeze(0), edge_index, node_type, ref_pos, False)
-        return torch.cat([self.state(u, v, H)[0], self.prior.scatter(a)[0], self.prior.scatter(G)[0]], -1)
+        return self.pack(u, v, a, G, H)
 
     @torch.jit.export
     def step(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
@@ -164,13 +171,10 @@ class LinearPriorModel(nn.Module):
         end (dt is the prior's own; the argument keeps TIGNN's signature)."""
         D = self.dim
         x = z.to(torch.float64).unsqueeze(0)                                        # [1, N, D + 6]
-        U = x[:, :, 0:3] - self.reference_positions.unsqueeze(0)
-        u, v = self.prior.gather(U), self.prior.gather(x[:, :, 3:6])
+        u, v, H = self.unpack(x)
         a, G = self.prior.gather(x[:, :, D:D + 3]), self.prior.gather(x[:, :, D + 3:D + 6])
-        H = x[:, :, 6:12] - self.prior.stress(U, None)
         u, v, a, G, H = self.advance(u, v, a, G, H, f.unsqueeze(0), edge_index, node_type, ref_pos, False)
-        out = torch.cat([self.state(u, v, H)[0], self.prior.scatter(a)[0], self.prior.scatter(G)[0]], -1)
-        return out.to(z.dtype)
+        return self.pack(u, v, a, G, H).to(z.dtype)
 
     def rollouts(self, z0: Tensor, forces: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                  steps: int, create_graph: bool) -> Tensor:
