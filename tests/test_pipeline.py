@@ -75,3 +75,40 @@ def test_demo_with_the_linear_prior(tmp_path):
     assert "at epoch 2" in res.stdout
     phases = [r.split(",")[1] for r in (tmp_path / "metrics.csv").read_text().splitlines()[1:]]
     assert phases == ["fit", "rollout", "rollout"]
+
+
+def test_linear_prior_data_parallel_with_torchrun(tmp_path):
+    """`model=linear_prior` under torchrun: two processes with batch size 1 take the steps that one
+    process takes with batch size 2 (every process takes every 2nd sample of one shuffled order,
+    gradients averaged before clipping; no training noise, so nothing else is random)."""
+    from pathlib import Path
+
+    import torch
+
+    from thermognn.train.checkpoint import load_checkpoint
+
+    data = tmp_path / "dataset.h5"
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "generate", f"out={tmp_path}", *TINY[:2]],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    common = [f"paths.dataset={data}", "model=linear_prior", "model.hidden=16", "model.message_passing=2",
+              "train.epochs=1", "train.rollout_epochs=1", "train.noise=0", "train.threads=1"]
+    one = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'one'}", *common,
+                          "train.batch_size=2"], capture_output=True, text=True, timeout=600)
+    assert one.returncode == 0, one.stdout[-2000:] + one.stderr[-3000:]
+    torchrun = Path(sys.executable).with_name("torchrun")
+    two = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node=2", "-m", "thermognn.cli", "train",
+                          f"out={tmp_path / 'two'}", *common, "train.batch_size=1"], capture_output=True, text=True,
+                         timeout=600, env={**__import__("os").environ, "OMP_NUM_THREADS": "1"})
+    assert two.returncode == 0, two.stdout[-2000:] + two.stderr[-3000:]
+    assert "2 processes" in two.stdout and two.stdout.count("test rollout RRMSE") == 1   # rank 0 reports
+    a, b = (load_checkpoint(tmp_path / run / "model.last.ckpt") for run in ("one", "two"))
+    assert [r["phase"] for r in b["history"]] == ["fit", "rollout"]
+    for name, p in a["state_dict"].items():
+        q = b["state_dict"][name]
+        if p.is_floating_point():
+            assert torch.allclose(p, q, rtol=1e-4, atol=1e-5 * float(p.abs().max()) + 1e-12), name
+        else:
+            assert torch.equal(p, q), name
+    for key in ("loss", "val_error"):
+        assert abs(a["history"][-1][key] - b["history"][-1][key]) <= 1e-4 * abs(a["history"][-1][key]), key

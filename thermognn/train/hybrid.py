@@ -282,7 +282,7 @@ class _FitPhase:
                  lambda_data: float, lambda_degeneracy: float) -> None:
         net = model.net
         dtype, N, D = net.z_mean.dtype, trajs[0].z.shape[1], model.dim
-        free_nodes = model.prior.free.reshape(N, 3).all(1)                             # [N]
+        free_nodes = model.prior.free_nodes()                                           # [N]
         scale = net.dzdt_std.detach().double()
         self.model, self.trajs = model, trajs
         self.targets = [(torch.cat([torch.zeros_like(g), g, h], -1) / scale).to(dtype)
@@ -292,6 +292,7 @@ class _FitPhase:
         self.weight[~free_nodes, 3:6] = 0.0
         step_rms = torch.cat([t.z.diff(dim=0).reshape(-1, D) for t in trajs]).double().pow(2).mean(0).sqrt()
         self.noise = (step_rms * noise).to(dtype) * free_nodes.to(dtype).view(N, 1)      # [N, D]
+        self.noisy = noise > 0
         self.samples = [(i, s) for i, t in enumerate(trajs) for s in range(t.z.shape[0])]
         self.lambda_data, self.lambda_degeneracy = lambda_data, lambda_degeneracy
 
@@ -302,7 +303,8 @@ class _FitPhase:
         z = torch.stack([self.trajs[i].z[s] for i, s in chosen])                          # [k, N, D]
         f = torch.stack([self.trajs[i].force[s] for i, s in chosen])                      # [k, N, 3]
         y = torch.stack([self.targets[i][s] for i, s in chosen])
-        z = z + torch.randn(z.shape, generator=gen, dtype=z.dtype) * self.noise
+        if self.noisy:                       # (no draw without noise: the generator also orders the epochs)
+            z = z + torch.randn(z.shape, generator=gen, dtype=z.dtype) * self.noise
         r, _, _, _, _, deg = net.rates((z * self.model.seen).reshape(k * N, D), f.reshape(k * N, 3),
                                        g.edge_index, g.node_type, g.ref_pos, True)
         data_loss = ((r.reshape(k, N, D) - y).pow(2) * self.weight).sum() / (self.weight.sum() * k)
@@ -334,11 +336,16 @@ class _RolloutPhase:
 
 
 def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str, ckpt_path: Path,
-                       out_dir: Path) -> Path:
+                       out_dir: Path, dist) -> Path:
     """``thermognn train`` with ``model.prior=linear`` (module docstring): ``train.epochs`` fit
     epochs on the exact remainders, then ``train.rollout_epochs`` epochs on whole rollouts; best
     checkpoint by the validation rollout error, ``model.last.ckpt`` after every epoch (resumed),
-    ``metrics.csv`` with the phase of each epoch."""
+    ``metrics.csv`` with the phase of each epoch.
+
+    Under torchrun (``dist``: ``loop._Dist``) each of the W processes takes every W-th sample of
+    an epoch's shuffled order (the same order everywhere: one seeded generator) and the gradients
+    are averaged before clipping, so W processes with ``train.batch_size`` k take the steps one
+    process takes with batch size W k. Rank 0 writes the checkpoints, metrics and the test table."""
     from thermognn.core.config import project_path
 
     from .checkpoint import last_path, load_checkpoint, save_checkpoint, torch_dtype
@@ -361,11 +368,10 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     net = build_model(hparams, dtype)
     model = prior_model(net, settings, ds, ds.dt)
     train_trajs, val_trajs = data.of("train"), data.of("val")
-    graph, N = data.graph, data.graph.n_nodes
-    free_nodes = model.prior.free.reshape(N, 3).all(1)                               # [N]
+    graph = data.graph
     G_true, H_true = exact_remainders(model, train_trajs)
     stats = compute_stats(train_trajs, graph, ds.dt, hparams)
-    stats["dzdt_std"] = remainder_scale(stats, G_true, H_true, free_nodes)
+    stats["dzdt_std"] = remainder_scale(stats, G_true, H_true, model.prior.free_nodes())
     net.set_stats(stats)
     with torch.no_grad():                        # start at (1 % from) the linearised FE model
         for p in [*net.decoder.net[-1].parameters(), *net.port.parameters(),
@@ -404,7 +410,8 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     if bool(_sel(tc, "resume", True)) and last.exists():
         state = load_checkpoint(last)
         if state.get("identity") != identity:
-            print(f"{last}: configuration changed; training from scratch")
+            if dist.main:
+                print(f"{last}: configuration changed; training from scratch")
         else:
             model.load_state_dict(state["state_dict"])
             start, history, best_val = int(state["epoch"]), list(state["history"]), float(state["best_val"])
@@ -412,14 +419,17 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
             opt.load_state_dict(state["optimizer"])
             gen.set_state(state["rng"]["generator"])
             torch.set_rng_state(state["rng"]["torch"])
-            print(f"resuming from {last} at epoch {start}")
-    print(f"train (model.prior=linear): {len(train_trajs)} train / {len(val_trajs)} val / "
-          f"{len(data.split['test'])} test trajectories, {fit_epochs} fit + {roll_epochs} rollout epochs, "
-          f"{parameter_count(model)} parameters, {model.prior.free_index.numel()} free DOFs")
+            if dist.main:
+                print(f"resuming from {last} at epoch {start}")
+    if dist.main:
+        print(f"train (model.prior=linear): {len(train_trajs)} train / {len(val_trajs)} val / "
+              f"{len(data.split['test'])} test trajectories, {fit_epochs} fit + {roll_epochs} rollout epochs, "
+              f"{parameter_count(model)} parameters, {model.prior.free_index.numel()} free DOFs"
+              + (f", {dist.world} processes" if dist.world > 1 else ""))
 
-    tb = _tensorboard(_sel(tc, "tensorboard", "auto"), out_dir / "tensorboard")
+    tb = _tensorboard(_sel(tc, "tensorboard", "auto"), out_dir / "tensorboard") if dist.main else None
     fields = ["epoch", "phase", "lr", "loss", "data_loss", "degeneracy_loss", "val_error", "seconds"]
-    with _progress() as progress:
+    with _progress(disable=not dist.main) as progress:
         task = progress.add_task("train", total=epochs, completed=start, info="")
         for epoch in range(start, epochs):
             t0 = time.perf_counter()
@@ -434,6 +444,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                                                 identity["rollout_lr_decay"])
                 progress_at = lambda b: (epoch - fit_epochs + b / nb) / roll_epochs  # noqa: E731
             perm = torch.randperm(len(items), generator=gen).tolist()
+            perm = perm[dist.rank:len(perm) // dist.world * dist.world:dist.world]   # this process's share
             nb = max(1, len(perm) // batch_size)
             total = data_total = deg_total = 0.0
             for b in range(nb):
@@ -444,9 +455,11 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                 loss, data_loss, deg = fit.loss(chosen, g, gen) if phase == "fit" else rollouts.loss(chosen, g)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
+                dist.average_gradients(net)
                 torch.nn.utils.clip_grad_norm_(net.parameters(), CLIP)
                 opt.step()
                 total, data_total, deg_total = total + float(loss.detach()), data_total + data_loss, deg_total + deg
+            total, data_total, deg_total = dist.mean([total, data_total, deg_total])
             if not math.isfinite(total):
                 raise DataError(f"{data.path}: training diverged (non-finite loss at epoch {epoch + 1}, {phase}); "
                                 f"lower train.lr or train.rollout_lr")
@@ -456,17 +469,19 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
             model.anchored = False
             row = {"epoch": epoch + 1, "phase": phase, "lr": opt.param_groups[0]["lr"], "loss": total / nb,
                    "data_loss": data_total / nb, "degeneracy_loss": deg_total / nb, "val_error": val}
-            if val < best_val or best_val == math.inf:
-                best_val = min(val, best_val)
+            improved = val < best_val or best_val == math.inf
+            best_val = min(val, best_val)
+            if improved and dist.main:
                 save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": epoch + 1, "val_error": val},
                                 ckpt_path)
             row["seconds"] = time.perf_counter() - t0
             history.append(row)
-            save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": epoch + 1, "val_error": val,
-                             "optimizer": opt.state_dict(), "history": history, "best_val": best_val,
-                             "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
-                             "identity": identity}, last)
-            _write_metrics(out_dir / "metrics.csv", history, fields)
+            if dist.main:
+                save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": epoch + 1, "val_error": val,
+                                 "optimizer": opt.state_dict(), "history": history, "best_val": best_val,
+                                 "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
+                                 "identity": identity}, last)
+                _write_metrics(out_dir / "metrics.csv", history, fields)
             if tb is not None:
                 for key, value in row.items():
                     if key not in ("epoch", "phase") and math.isfinite(value):
@@ -475,6 +490,9 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
             progress.update(task, completed=epoch + 1, info=f"{phase} loss {row['loss']:.3e} val {val:.3e}")
     if tb is not None:
         tb.close()
+    dist.barrier()                                  # rank 0 has written its last checkpoint
+    if not dist.main:
+        return ckpt_path
     if not ckpt_path.exists():
         raise DataError(f"{ckpt_path}: no best checkpoint written (delete {last} and retrain)")
     from .checkpoint import model_from_checkpoint

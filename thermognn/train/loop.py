@@ -83,6 +83,14 @@ class _Dist:
                 self.dist.all_reduce(p.grad, op=self.dist.ReduceOp.SUM)
                 p.grad /= self.world
 
+    def mean(self, values: list[float]) -> list[float]:
+        """The mean of each value over the processes (as given in one process)."""
+        if self.world == 1:
+            return list(values)
+        t = torch.tensor(values, dtype=torch.float64)
+        self.dist.all_reduce(t, op=self.dist.ReduceOp.SUM)
+        return (t / self.world).tolist()
+
     def barrier(self) -> None:
         if self.world > 1:
             self.dist.barrier()
@@ -314,9 +322,7 @@ def train(cfg) -> Path:
     hparams = hyperparameters(cfg.model, ds.layout.dim, velocity_columns(ds.layout), structure == "hamiltonian")
     train_trajs, val_trajs = data.of("train"), data.of("val")
     if prior_kind(cfg.model) == "linear":                # the linearised FE step + learned remainders
-        if dist.world > 1:
-            raise ConfigError("model.prior = linear trains in one process (torchrun: not yet)")
-        return train_linear_prior(cfg, data, hparams, dtype_name, structure, ckpt_path, out_dir)
+        return train_linear_prior(cfg, data, hparams, dtype_name, structure, ckpt_path, out_dir, dist)
 
     torch.manual_seed(seed)
     model = build_model(hparams, dtype)

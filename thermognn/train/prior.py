@@ -77,6 +77,10 @@ class NewmarkPrior(nn.Module):
         self.n_nodes = int(n_nodes)
 
     # --- free DOFs <-> nodal fields ---------------------------------------------------------
+    def free_nodes(self) -> Tensor:
+        """[N] bool: the nodes none of whose DOFs is clamped."""
+        return self.free.reshape(self.n_nodes, 3).all(1)
+
     def gather(self, nodal: Tensor) -> Tensor:
         """[B, N, 3] nodal vectors -> [B, n] over the free DOFs."""
         return nodal.reshape(nodal.shape[0], -1).index_select(1, self.free_index)
@@ -112,6 +116,17 @@ class NewmarkPrior(nn.Module):
         linear = (u.reshape(B, -1) @ self.stress_operator.T).reshape(B, self.n_nodes, 6)
         return linear if H is None else linear + H
 
+    def accelerations(self, u: Tensor, v: Tensor, f: Tensor) -> Tensor:
+        """Newmark's accelerations a [S, n] m/s² along one trajectory of free-DOF displacements u,
+        velocities v and forces f [S, n]: a0 from the balance at the start (G0 = 0: an unloaded
+        start at rest, as generate's), then v1 = v0 + dt ((1 − γ) a0 + γ a1) solved for a1."""
+        dt, g = self.dt, self.gamma
+        a = torch.zeros_like(u)
+        a[0] = self.initial_acceleration(u[:1], v[:1], f[:1], torch.zeros_like(u[:1]))[0]
+        for s in range(u.shape[0] - 1):
+            a[s + 1] = (v[s + 1] - v[s] - dt * (1.0 - g) * a[s]) / (g * dt)
+        return a
+
     # --- what a learned model must supply ---------------------------------------------------
     def remainders(self, u: Tensor, v: Tensor, sigma: Tensor, f: Tensor) -> tuple[Tensor, Tensor]:
         """The exact remainders along one FE trajectory: G [S, n] N and H [S, N, 6] Pa, from its
@@ -119,11 +134,8 @@ class NewmarkPrior(nn.Module):
         f [S, N, 3]. Assumes G = 0 at the first state (an unloaded start at rest, as generate's)."""
         uf, vf, ff = self.gather(u), self.gather(v), self.gather(f)
         S = uf.shape[0]
-        K, M, dt, g, c = self.stiffness, self.mass, self.dt, self.gamma, self.c
-        a = torch.zeros_like(uf)                                                   # Newmark's accelerations
-        a[0] = self.initial_acceleration(uf[:1], vf[:1], ff[:1], torch.zeros_like(uf[:1]))[0]
-        for s in range(S - 1):
-            a[s + 1] = (vf[s + 1] - vf[s] - dt * (1.0 - g) * a[s]) / (g * dt)
+        K, M, c = self.stiffness, self.mass, self.c
+        a = self.accelerations(uf, vf, ff)
         # (1 + c) G1 − c G0 = M a1 + αM M v1 + c K (u1 − u0) + K u1 − f1 (with gravity) at every step's end
         lumped = (a[1:] @ M.T + self.alpha_m * vf[1:] @ M.T + c * (uf[1:] - uf[:-1]) @ K.T + uf[1:] @ K.T
                   - ff[1:] - self.body_force)                                      # [S - 1, n]
