@@ -272,11 +272,14 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
     network's remainders zero (its last layers zeroed) the model's rollout is the linearised FE
     model's (LinearSolid.rollout_states) to round-off; with a random network, stepping the
     carried state [N, D + 6] (q, v, σ, Newmark's a, the last G: what export and serve step) one
-    call at a time, also scripted (TorchScript), gives the batched rollout training uses."""
+    call at a time, also scripted (TorchScript), gives the batched rollout training uses; the
+    one-step error from the states of its own rollout vanishes."""
     torch = pytest.importorskip("torch")
     from thermognn.core.schema import Mesh
+    from thermognn.train.data import Graph, TrajectoryTensors
     from thermognn.train.hybrid import LinearPriorModel
     from thermognn.train.model import TIGNN
+    from thermognn.train.rollout import one_step_errors
     from thermognn.train.prior import NewmarkPrior
 
     s, layout, traj = _bent_block(1.0, "newmark")
@@ -300,6 +303,14 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
         pred = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
     lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
     assert rel(pred, lin) < 1e-12 and rel(pred[..., 3:6], lin[..., 3:6]) < 1e-10
+    # one step from each state of its own rollout, with the Newmark acceleration recovered from
+    # the velocities there (evaluate's one-step error), is that rollout's step; from the FE's not
+    graph = Graph(ref, edges, node_type, torch.zeros(0, 3, dtype=torch.long))
+    times = torch.arange(len(f)) * dt
+    with torch.enable_grad():
+        own, _ = one_step_errors(model, graph, [TrajectoryTensors("lin", lin, f, times)], layout, dt)
+        fe, _ = one_step_errors(model, graph, [TrajectoryTensors("fe", z, f, times)], layout, dt)
+    assert max(own.values()) < 1e-8 and min(fe.values()) > 1e-4, (own, fe)
 
     net.load_state_dict(saved)                                 # a network that corrects something
     with torch.enable_grad():

@@ -299,12 +299,8 @@ def evaluate(cfg) -> dict:
     files += ["rrmse_per_trajectory.csv", "rrmse_per_trajectory.png"]
 
     # one step from every true state: what the network learned, apart from the rollout's drift
-    if prior:                     # its step carries Newmark's acceleration, which the data do not hold
-        step_curve = {g: np.full(n_steps - 1, np.nan) for g in groups}
-        step_test = step_train = {g: math.nan for g in groups}
-    else:
-        step_test, step_curve = one_step_errors(model, data.graph, test, data.layout, data.dt)
-        step_train, _ = one_step_errors(model, data.graph, train_trajs, data.layout, data.dt)
+    step_test, step_curve = one_step_errors(model, data.graph, test, data.layout, data.dt)
+    step_train, _ = one_step_errors(model, data.graph, train_trajs, data.layout, data.dt)
     _write_csv(out / "one_step_vs_time.csv", ["step", "time_s", *groups],
                [[s + 1, times[s + 1], *[step_curve[g][s] for g in groups]]
                 for s in range(len(step_curve[groups[0]]))])
@@ -411,8 +407,8 @@ def evaluate(cfg) -> dict:
              "network's dq/dt); `energy_error` in `energy_entropy.csv`)", drift_line,
              *(["- model.prior = linear: the data's Newmark step of the linearised solid with the network's "
                 "remainders G and H; the network's E and S are not the body's energy and entropy (energy "
-                "columns nan), and the one-step error is not defined (the step carries Newmark's "
-                "acceleration, which the data do not hold)"] if prior else []), "",
+                "columns nan); its one step from a true state starts, as its rollouts do, from Newmark's "
+                "acceleration balancing the forces there"] if prior else []), "",
              "Relative L2 error per snapshot ||z_pred - z_gt|| / ||z_gt|| over all nodes of a group, "
              "averaged over the rollout steps (clamped nodes imposed) and trajectories.", "",
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),

@@ -109,8 +109,9 @@ def one_step_errors(model, graph: Graph, trajs: list[TrajectoryTensors], layout:
 
     Returns (the ratio over all steps, nodes and trajectories per group; per step, the ratio
     over the nodes and trajectories of that step, {group: [S - 1]}); NaN where the data's group
-    does not change. A rollout error far above this one comes from the rollout drifting off the
-    data; a one-step error near 1 means the step itself is not learned. Up to ``ONE_STEP_CHUNK``
+    does not change. A ``LinearPriorModel`` steps each true state with the data's own Newmark
+    acceleration there (``NewmarkPrior.accelerations``) and the network's G. A rollout error far
+    above this one comes from the rollout drifting off the data; a one-step error near 1 means the step itself is not learned. Up to ``ONE_STEP_CHUNK``
     snapshots go through the network in one pass, on disjoint copies of the mesh."""
     steps = max((t.z.shape[0] - 1 for t in trajs), default=0)
     num = {g: np.zeros(steps) for g in layout.names}
@@ -121,6 +122,10 @@ def one_step_errors(model, graph: Graph, trajs: list[TrajectoryTensors], layout:
         for t in trajs:
             S = t.z.shape[0] - 1
             dt_t = torch.tensor(dt, dtype=t.z.dtype)
+            if isinstance(model, LinearPriorModel):        # Newmark's a along the trajectory [S + 1, n]
+                p = model.prior
+                accelerations = p.accelerations(p.gather(t.z[..., 0:3].double() - model.reference_positions),
+                                                p.gather(t.z[..., 3:6].double()), p.gather(t.force.double()))
             for s0 in range(0, S, ONE_STEP_CHUNK):
                 k = min(ONE_STEP_CHUNK, S - s0)
                 if k not in copies:
@@ -128,8 +133,15 @@ def one_step_errors(model, graph: Graph, trajs: list[TrajectoryTensors], layout:
                 many = copies[k]
                 z = t.z[s0: s0 + k]                                                     # [k, N, D]
                 f = t.force[s0 + 1: s0 + k + 1]                                         # [k, N, 3]
-                z_next = model.step(z.reshape(k * N, -1), f.reshape(k * N, -1), many.edge_index,
-                                    many.node_type, many.ref_pos, dt_t).detach().reshape(k, N, -1)
+                if isinstance(model, LinearPriorModel):   # the true state with the data's own Newmark a
+                    mesh = (many.edge_index, many.node_type, many.ref_pos)
+                    u, v, H = model.unpack(z.double())
+                    G, _ = model.remainders(z, t.force[s0: s0 + k], *mesh, False)
+                    u, v, _, _, H = model.advance(u, v, accelerations[s0: s0 + k], G, H, f, *mesh, False)
+                    z_next = model.state(u, v, H).to(z.dtype)
+                else:
+                    z_next = model.step(z.reshape(k * N, -1), f.reshape(k * N, -1), many.edge_index,
+                                        many.node_type, many.ref_pos, dt_t).detach().reshape(k, N, -1)
                 miss = (z_next - t.z[s0 + 1: s0 + k + 1]).double()                      # [k, N, D]
                 change = (t.z[s0 + 1: s0 + k + 1] - z).double()
                 for g in layout.names:
