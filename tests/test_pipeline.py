@@ -77,30 +77,43 @@ def test_demo_with_the_linear_prior(tmp_path):
     assert phases == ["fit", "rollout", "rollout"]
 
 
-def test_linear_prior_data_parallel_with_torchrun(tmp_path):
+@pytest.fixture(scope="module")
+def tiny_block(tmp_path_factory):
+    """The tiny block's dataset (with its /linear operators), generated once for this module."""
+    out = tmp_path_factory.mktemp("tiny_block")
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "generate", f"out={out}", *TINY[:2]],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return out / "dataset.h5"
+
+
+def _train_prior(out, data, *overrides, torchrun: int = 0):
+    from pathlib import Path
+
+    cmd = [sys.executable, "-m", "thermognn.cli", "train"]
+    env = None
+    if torchrun:
+        cmd = [str(Path(sys.executable).with_name("torchrun")), "--standalone", f"--nproc_per_node={torchrun}",
+               "-m", "thermognn.cli", "train"]
+        env = {**__import__("os").environ, "OMP_NUM_THREADS": "1"}
+    res = subprocess.run([*cmd, f"out={out}", f"paths.dataset={data}", "model=linear_prior", "model.hidden=16",
+                          "model.message_passing=2", "train.threads=1", *overrides],
+                         capture_output=True, text=True, timeout=600, env=env)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    return res
+
+
+def test_linear_prior_data_parallel_with_torchrun(tmp_path, tiny_block):
     """`model=linear_prior` under torchrun: two processes with batch size 1 take the steps that one
     process takes with batch size 2 (every process takes every 2nd sample of one shuffled order,
     gradients averaged before clipping; no training noise, so nothing else is random)."""
-    from pathlib import Path
-
     import torch
 
     from thermognn.train.checkpoint import load_checkpoint
 
-    data = tmp_path / "dataset.h5"
-    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "generate", f"out={tmp_path}", *TINY[:2]],
-                         capture_output=True, text=True, timeout=600)
-    assert res.returncode == 0, res.stderr[-3000:]
-    common = [f"paths.dataset={data}", "model=linear_prior", "model.hidden=16", "model.message_passing=2",
-              "train.epochs=1", "train.rollout_epochs=1", "train.noise=0", "train.threads=1"]
-    one = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'one'}", *common,
-                          "train.batch_size=2"], capture_output=True, text=True, timeout=600)
-    assert one.returncode == 0, one.stdout[-2000:] + one.stderr[-3000:]
-    torchrun = Path(sys.executable).with_name("torchrun")
-    two = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node=2", "-m", "thermognn.cli", "train",
-                          f"out={tmp_path / 'two'}", *common, "train.batch_size=1"], capture_output=True, text=True,
-                         timeout=600, env={**__import__("os").environ, "OMP_NUM_THREADS": "1"})
-    assert two.returncode == 0, two.stdout[-2000:] + two.stderr[-3000:]
+    common = ["train.epochs=1", "train.rollout_epochs=1", "train.noise=0"]
+    _train_prior(tmp_path / "one", tiny_block, *common, "train.batch_size=2")
+    two = _train_prior(tmp_path / "two", tiny_block, *common, "train.batch_size=1", torchrun=2)
     assert "2 processes" in two.stdout and two.stdout.count("test rollout RRMSE") == 1   # rank 0 reports
     a, b = (load_checkpoint(tmp_path / run / "model.last.ckpt") for run in ("one", "two"))
     assert [r["phase"] for r in b["history"]] == ["fit", "rollout"]
@@ -112,3 +125,19 @@ def test_linear_prior_data_parallel_with_torchrun(tmp_path):
             assert torch.equal(p, q), name
     for key in ("loss", "val_error"):
         assert abs(a["history"][-1][key] - b["history"][-1][key]) <= 1e-4 * abs(a["history"][-1][key]), key
+
+
+def test_linear_prior_early_stopping_ends_each_phase(tmp_path, tiny_block):
+    """train.patience with model=linear_prior: a phase ends after `patience` epochs without
+    improving on its own best; the fit phase hands over to the rollouts. At a zero learning rate
+    nothing improves after each phase's first epoch. A resumed run does not redo skipped epochs."""
+    from thermognn.train.checkpoint import load_checkpoint
+
+    run = ["train.epochs=4", "train.rollout_epochs=4", "train.lr=0", "train.rollout_lr=0", "train.patience=1"]
+    res = _train_prior(tmp_path, tiny_block, *run)
+    assert "the fit phase ends at epoch 2" in res.stdout and "the rollout phase ends at epoch 6" in res.stdout
+    rows = [r.split(",")[:2] for r in (tmp_path / "metrics.csv").read_text().splitlines()[1:]]
+    assert rows == [["1", "fit"], ["2", "fit"], ["5", "rollout"], ["6", "rollout"]]
+    assert load_checkpoint(tmp_path / "model.last.ckpt")["resume_at"] == 8
+    res = _train_prior(tmp_path, tiny_block, *run)
+    assert "at epoch 8" in res.stdout and len((tmp_path / "metrics.csv").read_text().splitlines()) == 5

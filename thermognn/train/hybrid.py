@@ -340,7 +340,9 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     """``thermognn train`` with ``model.prior=linear`` (module docstring): ``train.epochs`` fit
     epochs on the exact remainders, then ``train.rollout_epochs`` epochs on whole rollouts; best
     checkpoint by the validation rollout error, ``model.last.ckpt`` after every epoch (resumed),
-    ``metrics.csv`` with the phase of each epoch.
+    ``metrics.csv`` with the phase of each epoch. Validation runs every epoch; with
+    ``train.patience`` p > 0 a phase ends after p epochs without improving on its own best (the
+    fit phase hands over to the rollouts, the rollout phase ends training).
 
     Under torchrun (``dist``: ``loop._Dist``) each of the W processes takes every W-th sample of
     an epoch's shuffled order (the same order everywhere: one seeded generator) and the gradients
@@ -405,6 +407,8 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
 
     gen = torch.Generator().manual_seed(seed)
     start, history, best_val = 0, [], math.inf
+    patience = int(_sel(tc, "patience", 0))
+    phase_best, stale = math.inf, 0              # early stopping ends a phase (the fit phase: on to rollouts)
     opt = optimizer(0)
     last = last_path(ckpt_path)
     if bool(_sel(tc, "resume", True)) and last.exists():
@@ -414,7 +418,9 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                 print(f"{last}: configuration changed; training from scratch")
         else:
             model.load_state_dict(state["state_dict"])
-            start, history, best_val = int(state["epoch"]), list(state["history"]), float(state["best_val"])
+            start, history, best_val = (int(state.get("resume_at", state["epoch"])), list(state["history"]),
+                                        float(state["best_val"]))
+            phase_best, stale = float(state.get("phase_best", math.inf)), int(state.get("stale_rounds", 0))
             opt = optimizer(start - 1)                               # the phase that wrote it
             opt.load_state_dict(state["optimizer"])
             gen.set_state(state["rng"]["generator"])
@@ -431,10 +437,12 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     fields = ["epoch", "phase", "lr", "loss", "data_loss", "degeneracy_loss", "val_error", "seconds"]
     with _progress(disable=not dist.main) as progress:
         task = progress.add_task("train", total=epochs, completed=start, info="")
-        for epoch in range(start, epochs):
+        epoch = start
+        while epoch < epochs:
             t0 = time.perf_counter()
             if epoch == fit_epochs:
                 opt = optimizer(epoch)                               # phase 2 starts its own Adam
+                phase_best, stale = math.inf, 0
             model.train()
             if epoch < fit_epochs:          # phase 1: one step from the data's states, exact remainders
                 phase, items, base_lr, decay = "fit", fit.samples, float(tc.lr), float(_sel(tc, "lr_decay", 0.1))
@@ -467,27 +475,37 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
             model.anchor(graph.edge_index, graph.node_type, graph.ref_pos)      # stepped as it will be used
             val = validation_error(model, graph, val_trajs, data.layout, ds.dt)
             model.anchored = False
-            row = {"epoch": epoch + 1, "phase": phase, "lr": opt.param_groups[0]["lr"], "loss": total / nb,
+            done = epoch + 1
+            row = {"epoch": done, "phase": phase, "lr": opt.param_groups[0]["lr"], "loss": total / nb,
                    "data_loss": data_total / nb, "degeneracy_loss": deg_total / nb, "val_error": val}
             improved = val < best_val or best_val == math.inf
             best_val = min(val, best_val)
+            stale = 0 if val < phase_best else stale + 1
+            phase_best = min(val, phase_best)
+            epoch = done
+            if patience > 0 and stale >= patience and done < epochs:    # early stopping ends the phase
+                epoch = fit_epochs if done < fit_epochs else epochs
+                if dist.main:
+                    print(f"early stopping: the {phase} phase ends at epoch {done} "
+                          f"(no improvement in {patience} epochs)")
             if improved and dist.main:
-                save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": epoch + 1, "val_error": val},
+                save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": done, "val_error": val},
                                 ckpt_path)
             row["seconds"] = time.perf_counter() - t0
             history.append(row)
             if dist.main:
-                save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": epoch + 1, "val_error": val,
-                                 "optimizer": opt.state_dict(), "history": history, "best_val": best_val,
+                save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": done, "val_error": val,
+                                 "resume_at": epoch, "optimizer": opt.state_dict(), "history": history,
+                                 "best_val": best_val, "phase_best": phase_best, "stale_rounds": stale,
                                  "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
                                  "identity": identity}, last)
                 _write_metrics(out_dir / "metrics.csv", history, fields)
             if tb is not None:
                 for key, value in row.items():
                     if key not in ("epoch", "phase") and math.isfinite(value):
-                        tb.add_scalar(f"train/{key}", value, epoch + 1)
+                        tb.add_scalar(f"train/{key}", value, done)
                 tb.flush()
-            progress.update(task, completed=epoch + 1, info=f"{phase} loss {row['loss']:.3e} val {val:.3e}")
+            progress.update(task, completed=epoch, info=f"{phase} loss {row['loss']:.3e} val {val:.3e}")
     if tb is not None:
         tb.close()
     dist.barrier()                                  # rank 0 has written its last checkpoint
