@@ -407,8 +407,8 @@ def evaluate(cfg) -> dict:
              "network's dq/dt); `energy_error` in `energy_entropy.csv`)", drift_line,
              *(["- model.prior = linear: the data's Newmark step of the linearised solid with the network's "
                 "remainders G and H; the network's E and S are not the body's energy and entropy (energy "
-                "columns nan); its one step from a true state starts, as its rollouts do, from Newmark's "
-                "acceleration balancing the forces there"] if prior else []), "",
+                "columns nan); its one step from a true state takes the data's own Newmark acceleration "
+                "there, recovered from the velocities"] if prior else []), "",
              "Relative L2 error per snapshot ||z_pred - z_gt|| / ||z_gt|| over all nodes of a group, "
              "averaged over the rollout steps (clamped nodes imposed) and trajectories.", "",
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
