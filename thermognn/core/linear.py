@@ -5,6 +5,16 @@ Linearised about the undeformed rest state, the discrete solid obeys::
     M ü + C u̇ + K u = f(t),    K = ∂f_int/∂u at u = 0 [N/m],   M = ∫ ρ N_i N_j dX [kg],
     σ(u) ≈ Σ u                 (nodal Cauchy stress [Pa], Voigt 11 22 33 12 13 23)
 
+A viscous solid relaxes the isochoric part of its stress by a Prony series
+g_R(t) = 1 − Σ ḡ_i (1 − exp(−t/τ_i)) (``thermognn/generate/solid.py``); linearised, the isochoric
+parts K_iso of K and Σ_iso of Σ relax the same way (the volumetric parts K − K_iso, Σ − Σ_iso
+do not)::
+
+    f_int(t) = (K − K_iso) u + (1 − Σ ḡ_i) K_iso u + Σ ḡ_i h_i,   h_i(t) = ∫ exp(−(t−s)/τ_i) K_iso u̇(s) ds
+
+with h_i [N] updated over a step Δt as the FE updates its own (exact for u linear within the
+step): h_i ← exp(−Δt/τ_i) h_i + τ_i/Δt (1 − exp(−Δt/τ_i)) K_iso (u_new − u_old); the stress alike.
+
 over the free (not clamped) DOFs, node-blocked (node i, component c at 3 i + c). ``generate``
 assembles K, M and Σ from its own solid (``thermognn/generate/modes.py``) and stores them in the
 dataset (``/linear``, ``thermognn/core/schema.py``); :class:`LinearSolid` steps them with the
@@ -16,6 +26,7 @@ numpy only (no torch, no dolfinx): the FE side and the learning side both use it
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -53,7 +64,9 @@ class LinearSolid:
     numpy or scipy.sparse; None if not available),
     rayleigh (αM [1/s], βK [s]) damping written as the FE solid writes it, integrator
     ('newmark' | 'quasi_static' | another name, which :meth:`rollout` refuses), Newmark β, γ,
-    body_force [n] N (gravity, or None)."""
+    body_force [n] N (gravity, or None); for a viscous solid its Prony terms prony ((ḡ_i, τ_i [s]),
+    ...) with the isochoric parts stiffness_iso [n, n] N/m and stress_iso [6N, n] Pa/m of K and Σ
+    (module docstring; () and None for an elastic one)."""
 
     stiffness: np.ndarray
     mass: np.ndarray
@@ -64,22 +77,59 @@ class LinearSolid:
     beta: float = 0.25
     gamma: float = 0.5
     body_force: np.ndarray | None = None
+    prony: tuple[tuple[float, float], ...] = ()
+    stiffness_iso: np.ndarray | None = None
+    stress_iso: np.ndarray | None = None
     #: LU factorisations by (integrator, dt), made on the first rollout that needs them
     _factors: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
+    @property
+    def viscous(self) -> bool:
+        return bool(self.prony) and self.stiffness_iso is not None
+
+    def relaxation(self, dt: float) -> list[tuple[float, float, float]]:
+        """Per Prony term (ḡ_i, exp(−dt/τ_i), τ_i/dt (1 − exp(−dt/τ_i))): its weight, and the decay and
+        the increment's weight of its internal variable over a step dt (none for an elastic solid)."""
+        if not self.viscous:
+            return []
+        return [(float(g), math.exp(-dt / tau), -math.expm1(-dt / tau) / (dt / tau)) for g, tau in self.prony]
+
+    def step_stiffness(self, dt: float):
+        """K_dt [n, n] N/m: f_int at a step's end is K_dt u_new plus what the internal variables
+        and u_old give (:meth:`relaxation`); K for an elastic solid."""
+        terms = self.relaxation(dt)
+        if not terms:
+            return self.stiffness
+        return self.stiffness - sum(g * (1.0 - c) for g, _, c in terms) * self.stiffness_iso
+
     def _solvers(self, dt: float, alpha_m: float, beta_k: float):
-        """(solve with the step's effective stiffness, solve with M) for newmark; (solve with K,
-        None) for quasi-static; factorised once per integrator and dt."""
+        """(solve with the step's effective stiffness, solve with M) for newmark; (solve with the
+        step's stiffness, None) for quasi-static; factorised once per integrator and dt."""
         key = (self.integrator, float(dt), alpha_m, beta_k, float(self.beta), float(self.gamma))
         if key not in self._factors:
-            K, M = self.stiffness, self.mass
+            K, M = self.step_stiffness(dt), self.mass
             if self.integrator == "quasi_static":
                 self._factors[key] = (lu_solver(K), None)
             else:
                 c0 = 1.0 / (self.beta * dt**2)
-                self._factors[key] = (lu_solver(c0 * (1.0 + alpha_m * self.gamma * dt) * M + (1.0 + beta_k / dt) * K),
-                                      lu_solver(M))
+                self._factors[key] = (lu_solver(c0 * (1.0 + alpha_m * self.gamma * dt) * M + K
+                                                + beta_k / dt * self.stiffness), lu_solver(M))
         return self._factors[key]
+
+    def _relaxed(self, A, A_iso, U: np.ndarray, dt: float) -> np.ndarray:
+        """A u [S, m] along displacements U [S, n] with A's isochoric part A_iso relaxed (module
+        docstring; the internal variables start as if U[0] were applied at once); A U if elastic."""
+        out = np.asarray(A @ U.T).T
+        terms = self.relaxation(dt)
+        if not terms or A_iso is None:
+            return out
+        iso = np.asarray(A_iso @ U.T).T                                # [S, m]
+        for g, decay, weight in terms:
+            h = iso[0].copy()
+            for s in range(1, U.shape[0]):
+                h = decay * h + weight * (iso[s] - iso[s - 1])
+                out[s] += g * (h - iso[s])
+        return out
 
     @property
     def n_free(self) -> int:
@@ -95,9 +145,12 @@ class LinearSolid:
         u0 [n], v0 [n] under the free-DOF forces [S, n] [N] (forces[s] acts at t_s, s = 0 the
         start), with the data's own integrator applied to the linear system:
 
-        * ``newmark``: M a_{n+1} + αM M v_{n+1} + βK K (u_{n+1} − u_n)/dt + K u_{n+1} = f_{n+1}
-          with Newmark (β, γ), and M a_0 = f_0 − K u_0 − αM M v_0 (balance at the start);
-        * ``quasi_static``: K u_s = f_s at every snapshot.
+        * ``newmark``: M a_{n+1} + αM M v_{n+1} + βK K (u_{n+1} − u_n)/dt + f_int,{n+1} = f_{n+1}
+          with Newmark (β, γ), and M a_0 = f_0 − K u_0 − αM M v_0 (balance at the start; the
+          FE's stiffness damping takes the unrelaxed elastic stress's rate, hence K);
+        * ``quasi_static``: f_int,s = f_s at every snapshot;
+
+        f_int = K u for an elastic solid, relaxed as in the module docstring for a viscous one.
         """
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"linearised FE: integrator {self.integrator!r} is not reproduced "
@@ -108,23 +161,44 @@ class LinearSolid:
             F = F + np.asarray(self.body_force, dtype=float)[None]
         alpha_m, beta_k = (float(r) for r in self.rayleigh)
         solve, solve_m = self._solvers(dt, alpha_m, beta_k)
+        terms = self.relaxation(dt)
+        u = np.array(u0, dtype=float)
+        h = [self.stiffness_iso @ u for _ in terms]                   # Prony internal forces [N]
+
+        def history(u_old):                 # f_int,new − K_dt u_new: what u_old and the h_i give [N]
+            return sum((g * (decay * hi - weight * (self.stiffness_iso @ u_old))
+                        for (g, decay, weight), hi in zip(terms, h)), np.zeros_like(u_old))
+
+        def relax(u_old, u_new):
+            return [decay * hi + weight * (self.stiffness_iso @ (u_new - u_old))
+                    for (_, decay, weight), hi in zip(terms, h)]
+
         if self.integrator == "quasi_static":
-            return np.stack([solve(f) for f in F]), None
+            if not terms:
+                return np.stack([solve(f) for f in F]), None
+            u = lu_solver(K)(F[0])                                     # the instantaneous response to f_0
+            h = [self.stiffness_iso @ u for _ in terms]
+            U = [u]
+            for f in F[1:]:
+                u_new = solve(f - history(u))
+                h, u = relax(u, u_new), u_new
+                U.append(u)
+            return np.stack(U), None
         if v0 is None:
             raise ValueError("linearised FE: newmark needs the velocity v0")
         b, g = float(self.beta), float(self.gamma)
-        c0, c1 = 1.0 / (b * dt**2), 1.0 / (2.0 * b) - 1.0
-        u, v = np.array(u0, dtype=float), np.array(v0, dtype=float)
+        c0, c1, c = 1.0 / (b * dt**2), 1.0 / (2.0 * b) - 1.0, beta_k / dt
+        v = np.array(v0, dtype=float)
         a = solve_m(F[0] - K @ u - alpha_m * (M @ v))
         U, V = [u], [v]
         for s in range(1, F.shape[0]):
             pred = c0 * (u + dt * v) + c1 * a                          # a_{n+1} = c0 u_{n+1} − pred
-            rhs = (F[s] + M @ pred + beta_k / dt * (K @ u)
+            rhs = (F[s] + M @ pred + c * (K @ u) - history(u)
                    + alpha_m * (M @ (g * dt * pred - v - dt * (1 - g) * a)))
             u_new = solve(rhs)
             a_new = c0 * u_new - pred
             v = v + dt * ((1 - g) * a + g * a_new)
-            u, a = u_new, a_new
+            h, u, a = relax(u, u_new), u_new, a_new
             U.append(u)
             V.append(v)
         return np.asarray(U), np.asarray(V)
@@ -151,5 +225,5 @@ class LinearSolid:
             v_all[:, self.free] = V
             out[..., layout.slice("v")] = v_all.reshape(S, N, 3)
         if self.stress is not None and "sigma" in layout.names:
-            out[..., layout.slice("sigma")] = np.asarray(self.stress @ U.T).T.reshape(S, N, 6)
+            out[..., layout.slice("sigma")] = self._relaxed(self.stress, self.stress_iso, U, dt).reshape(S, N, 6)
         return out

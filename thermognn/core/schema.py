@@ -23,7 +23,10 @@ Layout (units SI)::
         stress              (6N, n)  Σ [Pa/m] nodal Cauchy stress of a displacement (optional)
         free                (3N,)    bool             the DOFs K and M act on
         body_force          (n,)     [N]              gravity load (optional)
-                            attrs: rayleigh (αM [1/s], βK [s]), integrator, beta, gamma
+        stiffness_iso       (n, n)   K_iso [N/m]      viscous solids: the isochoric parts of K
+        stress_iso          (6N, n)  Σ_iso [Pa/m]     and Σ, which the Prony series relaxes
+                            attrs: rayleigh (αM [1/s], βK [s]), integrator, beta, gamma,
+                            prony (JSON [[ḡ_i, τ_i [s]], ...]; viscous solids)
                             (``thermognn.core.linear.LinearSolid``: the physics baseline)
     /trajectories/<name>/   attrs: status ('ok' | 'failed'), reason (str), load_point (3,) [m]
         time                (S,)        float64  [s]
@@ -161,7 +164,7 @@ class DatasetWriter:
         if "linear" in self._f:
             del self._f["linear"]
         g = self._f.create_group("linear")
-        for name in ("stiffness", "mass", "stress"):
+        for name in ("stiffness", "mass", "stress", "stiffness_iso", "stress_iso"):
             matrix = getattr(linear, name)
             if matrix is not None:
                 _write_csr(g, name, matrix)
@@ -170,6 +173,8 @@ class DatasetWriter:
             g.create_dataset("body_force", data=np.asarray(linear.body_force, dtype=np.float64))
         g.attrs.update({"rayleigh": np.asarray(linear.rayleigh, dtype=np.float64), "integrator": linear.integrator,
                         "beta": float(linear.beta), "gamma": float(linear.gamma)})
+        if linear.prony:
+            g.attrs["prony"] = json.dumps([[float(a), float(b)] for a, b in linear.prony])
 
     def set_time_resolution(self, report: dict) -> None:
         """Store generate's time-resolution diagnostic (JSON) on the root; finalised with the file."""
@@ -272,7 +277,10 @@ class Dataset:
                     stress=_read_csr(g, "stress") if "stress" in g else None,
                     rayleigh=tuple(float(r) for r in g.attrs["rayleigh"]), integrator=str(g.attrs["integrator"]),
                     beta=float(g.attrs["beta"]), gamma=float(g.attrs["gamma"]),
-                    body_force=g["body_force"][()] if "body_force" in g else None)
+                    body_force=g["body_force"][()] if "body_force" in g else None,
+                    prony=tuple((float(a), float(b)) for a, b in json.loads(str(g.attrs.get("prony", "[]")))),
+                    stiffness_iso=_read_csr(g, "stiffness_iso") if "stiffness_iso" in g else None,
+                    stress_iso=_read_csr(g, "stress_iso") if "stress_iso" in g else None)
             except KeyError as exc:
                 raise DataError(f"{self.path}: /linear lacks {exc}") from None
         n = int(free.sum())

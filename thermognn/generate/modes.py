@@ -89,22 +89,30 @@ def rest_operators(solid, sparse: bool = False):
 
     w = ufl.TestFunction(solid.V)
     du = ufl.TrialFunction(solid.V)
-    P = solid._F * solid._S_el                     # elastic first Piola stress of solid.u [Pa]
-    stiffness = ufl.derivative(ufl.inner(P, ufl.grad(w)) * solid.dx, solid.u, du)
     mass = solid.rho * ufl.inner(du, w) * solid.dx
-    saved = solid.u.x.array.copy()
-    try:
-        solid.u.x.array[:] = 0.0
-        K = _assemble(stiffness, sparse=True)      # [3N, 3N]
-    finally:
-        solid.u.x.array[:] = saved
     M = _assemble(mass, sparse=True)               # [3N, 3N]
     free = ~constrained_dofs(solid)                # [3N]
     idx = np.flatnonzero(free)
-    K = K[idx][:, idx]
-    K = 0.5 * (K + K.T)                            # symmetric up to round-off already
+    K = rest_stiffness(solid, solid._S_el)[idx][:, idx]       # elastic 2nd Piola stress of solid.u [Pa]
     M = M[idx][:, idx]
     return (K.tocsr(), M.tocsr(), free) if sparse else (K.toarray(), M.toarray(), free)
+
+
+def rest_stiffness(solid, S):
+    """∂/∂u ∫ F S : Grad w dX at u = 0 [N/m] (scipy CSR over all 3N DOFs, symmetrised) for a 2nd
+    Piola–Kirchhoff stress S [Pa] written in ``solid.u`` (the law's whole elastic stress, or a
+    part of it). ``solid.u`` is zeroed for the assembly and restored afterwards."""
+    import ufl
+
+    w, du = ufl.TestFunction(solid.V), ufl.TrialFunction(solid.V)
+    form = ufl.derivative(ufl.inner(solid._F * S, ufl.grad(w)) * solid.dx, solid.u, du)
+    saved = solid.u.x.array.copy()
+    try:
+        solid.u.x.array[:] = 0.0
+        K = _assemble(form, sparse=True)           # [3N, 3N]
+    finally:
+        solid.u.x.array[:] = saved
+    return (0.5 * (K + K.T)).tocsr()               # symmetric up to round-off already
 
 
 # -- modes ------------------------------------------------------------------------------------
@@ -249,20 +257,21 @@ def energy_shares(K, M, free: np.ndarray, nodes: np.ndarray, trajectories: Itera
     return out
 
 
-def linear_stress(solid, free: np.ndarray):
+def linear_stress(solid, free: np.ndarray, isochoric: bool = False):
     """Σ [6N, n] Pa/m (scipy CSR): the nodal Cauchy stress (Voigt 11 22 33 12 13 23, volume-averaged
     cell values as the dataset stores them, ``Solid.node_average``) of a small displacement of the
     n free DOFs, σ = λ tr(ε) I + 2 μ ε with ε = sym(Grad u) and the law's moduli at rest
     (μ = ``shear_modulus``, λ = K − 2μ/3; every isotropic hyperelastic law, and the unrelaxed
-    Prony response, linearise to this at rest). P1 tets only (None for higher degrees, whose
-    nodes are not the cells' vertices alone)."""
+    Prony response, linearise to this at rest); with ``isochoric`` its isochoric part alone,
+    2 μ dev ε (λ = −2μ/3), the part a Prony series relaxes. P1 tets only (None for higher
+    degrees, whose nodes are not the cells' vertices alone)."""
     import scipy.sparse as sp
 
     cells = solid.cells
     if cells.shape[1] != 4:
         return None
     mu = solid.mat.shear_modulus
-    lam = solid.mat.bulk_modulus - 2.0 * mu / 3.0
+    lam = (0.0 if isochoric else solid.mat.bulk_modulus) - 2.0 * mu / 3.0
     x = solid.nodes[cells]                                          # [T, 4, 3]
     G = np.linalg.inv(x[:, 1:] - x[:, :1])                          # [T, 3, 3]: columns are grad phi_1..3
     grad = np.concatenate([-G.sum(2, keepdims=True), G], 2).transpose(0, 2, 1)   # [T, 4, 3] grad phi_a
@@ -285,16 +294,27 @@ def linear_stress(solid, free: np.ndarray):
 def linear_solid(solid, sparse: bool = True) -> LinearSolid:
     """The solid linearised at rest (``thermognn.core.linear.LinearSolid``): K, M over the free
     DOFs (:func:`rest_operators`), the stress operator (:func:`linear_stress`), the solid's
-    Rayleigh damping, Newmark β, γ and integrator ('quasi_static' without inertia), and the
-    gravity load (:func:`body_force`) over the free DOFs."""
+    Rayleigh damping, Newmark β, γ and integrator ('quasi_static' without inertia), the
+    gravity load (:func:`body_force`) over the free DOFs, and for a viscous solid its Prony terms
+    with the isochoric parts of K and Σ they relax (:func:`rest_stiffness` of the law's
+    isochoric stress)."""
     K, M, free = rest_operators(solid, sparse=sparse)
     opt = solid.opt
     gravity = body_force(solid)
+    viscous = {}
+    if solid.viscous:
+        from .materials import pk2_split
+
+        idx = np.flatnonzero(free)
+        K_iso = rest_stiffness(solid, pk2_split(solid.mat_ufl, solid.u)[1])[idx][:, idx]
+        viscous = {"prony": tuple((float(t.g), float(t.tau)) for t in solid.mat.prony),
+                   "stiffness_iso": K_iso if sparse else K_iso.toarray(),
+                   "stress_iso": linear_stress(solid, free, isochoric=True)}
     return LinearSolid(stiffness=K, mass=M, free=free, stress=linear_stress(solid, free),
                        rayleigh=tuple(float(r) for r in opt.rayleigh),
                        integrator=opt.integrator if solid.inertia else "quasi_static",
                        beta=float(opt.beta), gamma=float(opt.gamma),
-                       body_force=None if gravity is None else gravity.ravel()[free])
+                       body_force=None if gravity is None else gravity.ravel()[free], **viscous)
 
 
 def linear_rollout_error(linear: LinearSolid, nodes: np.ndarray, trajectories: Iterable, layout,

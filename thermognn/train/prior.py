@@ -18,6 +18,10 @@ the linearised FE model ``evaluate`` reports, and with the exact remainders of a
 (:meth:`NewmarkPrior.remainders`) it reproduces that trajectory to round-off. A hybrid model
 learns G and H; the linear solve spreads G over the body, so a local correction suffices.
 
+A viscous solid's ``/linear`` also holds its Prony relaxation (``LinearSolid.prony``), which the
+linearised baseline steps; this prior takes the unrelaxed K and Σ and leaves the relaxation to
+the remainders (a relaxing prior would carry the Prony internal forces between steps).
+
 torch only (dense operators, for meshes of a few thousand free DOFs).
 """
 
