@@ -319,7 +319,7 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
     torch = pytest.importorskip("torch")
     from thermognn.core.schema import Mesh
     from thermognn.train.data import Graph, TrajectoryTensors
-    from thermognn.train.hybrid import LinearPriorModel
+    from thermognn.train.hybrid import LinearPriorModel, _RolloutPhase
     from thermognn.train.model import TIGNN
     from thermognn.train.rollout import one_step_errors
     from thermognn.train.prior import NewmarkPrior
@@ -353,6 +353,19 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
         own, _ = one_step_errors(model, graph, [TrajectoryTensors("lin", lin, f, times)], layout, dt)
         fe, _ = one_step_errors(model, graph, [TrajectoryTensors("fe", z, f, times)], layout, dt)
     assert max(own.values()) < 1e-8 and min(fe.values()) > 1e-4, (own, fe)
+    # training rollouts in windows (train.rollout_window) tile the trajectory; a window from a
+    # state mid-way takes the data's Newmark acceleration there and so follows the linear model's
+    # own rollout exactly; a window as long as the trajectory is the whole rollout
+    own = [TrajectoryTensors("lin", lin, f, times)]
+    windows = _RolloutPhase(model, own, window=3)
+    assert windows.samples == [(0, 0), (0, 3), (0, 6)] and _RolloutPhase(model, own).samples == [(0, 0)]
+    with torch.enable_grad():
+        assert float(windows.loss([(0, 3), (0, 6)], graph.copies(2))[0]) < 1e-18
+        assert float(windows.loss([(0, 0)], graph.copies(1))[0]) < 1e-18
+        fe_windows = _RolloutPhase(model, [TrajectoryTensors("fe", z, f, times)], window=100)
+        whole = _RolloutPhase(model, [TrajectoryTensors("fe", z, f, times)])
+        assert fe_windows.window == whole.window == len(f) - 1
+        assert float(fe_windows.loss([(0, 0)], graph.copies(1))[0]) == float(whole.loss([(0, 0)], graph.copies(1))[0]) > 0
 
     net.load_state_dict(saved)                                 # a network that corrects something
     with torch.enable_grad():

@@ -180,8 +180,13 @@ class LinearPriorModel(nn.Module):
                  steps: int, create_graph: bool) -> Tensor:
         """Physical states [B, steps + 1, N, D] (float64) from z0 [B, N, D] under the loads
         forces [B, S, N, 3] (forces[:, s] at t_s; the last one held beyond S - 1 steps)."""
-        S = forces.shape[1]
         u, v, a, G, H = self.begin(z0, forces[:, 0], edge_index, node_type, ref_pos, create_graph)
+        return self.roll(u, v, a, G, H, forces, edge_index, node_type, ref_pos, steps, create_graph)
+
+    def roll(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, forces: Tensor, edge_index: Tensor,
+             node_type: Tensor, ref_pos: Tensor, steps: int, create_graph: bool) -> Tensor:
+        """``rollouts`` from its start (u, v, a, G, H), e.g. ``begin``'s with another acceleration."""
+        S = forces.shape[1]
         out = [self.state(u, v, H)]
         for s in range(1, steps + 1):
             u, v, a, G, H = self.advance(u, v, a, G, H, forces[:, min(s, S - 1)], edge_index, node_type,
@@ -316,7 +321,7 @@ class _RolloutPhase:
     linear solves; each group's error relative to its RMS in the training data (q: the
     displacement's). Samples are trajectory indices; a batch runs to its shortest trajectory."""
 
-    def __init__(self, model: LinearPriorModel, trajs) -> None:
+    def __init__(self, model: LinearPriorModel, trajs, window: int = 0) -> None:
         self.model, self.trajs = model, trajs
         Z = [t.z.double() for t in trajs]
         X = model.reference_positions
@@ -324,13 +329,28 @@ class _RolloutPhase:
         self.scales = [(slice(0, 3), torch.cat([z[..., 0:3] - X for z in Z]).pow(2).mean().sqrt()),
                        (slice(3, 6), torch.cat([z[..., 3:6] for z in Z]).pow(2).mean().sqrt()),
                        (slice(6, 12), torch.cat([z[..., 6:12] for z in Z]).pow(2).mean().sqrt())]
-        self.samples = list(range(len(trajs)))
+        longest = max(z.shape[0] for z in Z) - 1
+        self.window = window if 0 < window < longest else longest           # steps per sample
+        # samples: (trajectory, first state) of windows tiling every trajectory
+        self.samples = [(i, s) for i, z in enumerate(Z) for s in range(0, z.shape[0] - 1, self.window)]
+        p = model.prior                    # the data's Newmark accelerations, where a window starts mid-way
+        self.accelerations = ([p.accelerations(p.gather(z[..., 0:3] - X), p.gather(z[..., 3:6]),
+                                               p.gather(t.force.double())) for z, t in zip(Z, trajs)]
+                              if self.window < longest else [])
 
     def loss(self, chosen, g) -> Tuple[Tensor, float, float]:
-        S = min(self.trajs[i].z.shape[0] for i in chosen)
-        truth = torch.stack([self.Z[i][:S] for i in chosen])                              # [k, S, N, D]
-        forces = torch.stack([self.trajs[i].force[:S] for i in chosen])                   # [k, S, N, 3]
-        pred = self.model.rollouts(truth[:, 0], forces, g.edge_index, g.node_type, g.ref_pos, S - 1, True)
+        """Rollouts of ``window`` steps (fewer where a trajectory ends: a batch runs to its
+        shortest) from the true states of the samples ``chosen``: from a trajectory's start as
+        ``LinearPriorModel.rollouts`` steps it, from a later state with the data's own Newmark
+        acceleration there (as ``rollout.one_step_errors``)."""
+        W = min(min(self.window, self.Z[i].shape[0] - 1 - s) for i, s in chosen)
+        truth = torch.stack([self.Z[i][s:s + W + 1] for i, s in chosen])                  # [k, W + 1, N, D]
+        forces = torch.stack([self.trajs[i].force[s:s + W + 1] for i, s in chosen])       # [k, W + 1, N, 3]
+        mesh = (g.edge_index, g.node_type, g.ref_pos)
+        u, v, a, G, H = self.model.begin(truth[:, 0], forces[:, 0], *mesh, True)
+        if any(s > 0 for _, s in chosen):
+            a = torch.stack([self.accelerations[i][s] if s > 0 else a[j] for j, (i, s) in enumerate(chosen)])
+        pred = self.model.roll(u, v, a, G, H, forces, *mesh, W, True)
         loss = sum(((pred[:, 1:, :, sl] - truth[:, 1:, :, sl]) / sc).pow(2).mean() for sl, sc in self.scales)
         return loss, float(loss.detach()), 0.0
 
@@ -365,6 +385,9 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     if roll_epochs < 0:
         raise ConfigError(f"train.rollout_epochs = {roll_epochs}, expected >= 0")
     epochs = fit_epochs + roll_epochs
+    window = int(_sel(tc, "rollout_window", 0))
+    if window < 0:
+        raise ConfigError(f"train.rollout_window = {window}, expected >= 0 (0: whole rollouts)")
     settings = prior_settings(cfg.model)
     torch.manual_seed(seed)
     net = build_model(hparams, dtype)
@@ -388,11 +411,12 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     base = {**_base_checkpoint(cfg, data, hparams, dtype_name, structure, stats), "prior": settings}
     identity = {**training_identity(cfg, hparams, dtype_name), "prior": settings,
                 "rollout_lr": float(_sel(tc, "rollout_lr", 1e-3)),
-                "rollout_lr_decay": float(_sel(tc, "rollout_lr_decay", 0.01))}
+                "rollout_lr_decay": float(_sel(tc, "rollout_lr_decay", 0.01)),
+                **({"rollout_window": window} if window else {})}
 
     fit = _FitPhase(model, train_trajs, G_true, H_true, float(_sel(tc, "noise", 0.1)),
                     float(_sel(tc, "lambda_data", 100.0)), float(_sel(tc, "lambda_degeneracy", 1.0)))
-    rollouts = _RolloutPhase(model, train_trajs)
+    rollouts = _RolloutPhase(model, train_trajs, window)
     batch_size = max(1, int(tc.batch_size))
     copies: Dict[int, object] = {}
 
