@@ -80,7 +80,7 @@ class LinearSolid:
     prony: tuple[tuple[float, float], ...] = ()
     stiffness_iso: np.ndarray | None = None
     stress_iso: np.ndarray | None = None
-    #: LU factorisations by (integrator, dt), made on the first rollout that needs them
+    #: LU factorisations by (integrator, dt) (and of K, "instantaneous"), made on the first rollout that needs them
     _factors: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
@@ -166,17 +166,24 @@ class LinearSolid:
         h = [self.stiffness_iso @ u for _ in terms]                   # Prony internal forces [N]
 
         def history(u_old):                 # f_int,new − K_dt u_new: what u_old and the h_i give [N]
-            return sum((g * (decay * hi - weight * (self.stiffness_iso @ u_old))
-                        for (g, decay, weight), hi in zip(terms, h)), np.zeros_like(u_old))
+            if not terms:
+                return np.zeros_like(u_old)
+            iso = self.stiffness_iso @ u_old
+            return sum((g * (decay * hi - weight * iso) for (g, decay, weight), hi in zip(terms, h)),
+                       np.zeros_like(u_old))
 
         def relax(u_old, u_new):
-            return [decay * hi + weight * (self.stiffness_iso @ (u_new - u_old))
-                    for (_, decay, weight), hi in zip(terms, h)]
+            if not terms:
+                return []
+            iso = self.stiffness_iso @ (u_new - u_old)
+            return [decay * hi + weight * iso for (_, decay, weight), hi in zip(terms, h)]
 
         if self.integrator == "quasi_static":
             if not terms:
                 return np.stack([solve(f) for f in F]), None
-            u = lu_solver(K)(F[0])                                     # the instantaneous response to f_0
+            if "instantaneous" not in self._factors:
+                self._factors["instantaneous"] = lu_solver(K)
+            u = self._factors["instantaneous"](F[0])                   # the instantaneous response to f_0
             h = [self.stiffness_iso @ u for _ in terms]
             U = [u]
             for f in F[1:]:

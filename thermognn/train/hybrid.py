@@ -140,6 +140,14 @@ class LinearPriorModel(nn.Module):
         U = z[:, :, 0:3] - self.reference_positions.unsqueeze(0)                    # [B, N, 3]
         return self.prior.gather(U), self.prior.gather(z[:, :, 3:6]), z[:, :, 6:12] - self.prior.stress(U, None)
 
+    def accelerations(self, z: Tensor, f: Tensor) -> Tensor:
+        """The data's own Newmark accelerations a [S, n] m/s² along one trajectory of physical
+        states z [S, N, D] under its loads f [S, N, 3] (``NewmarkPrior.accelerations``): what a
+        step from a true state mid-way starts with (one-step error, rollout windows)."""
+        p = self.prior
+        U = z[:, :, 0:3].to(torch.float64) - self.reference_positions.unsqueeze(0)        # [S, N, 3]
+        return p.accelerations(p.gather(U), p.gather(z[:, :, 3:6].to(torch.float64)), p.gather(f.to(torch.float64)))
+
     def pack(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor) -> Tensor:
         """The carried state [N, D + 6] of one body ([1, ...] inputs): ``state`` with a and G."""
         return torch.cat([self.state(u, v, H)[0], self.prior.scatter(a)[0], self.prior.scatter(G)[0]], -1)
@@ -317,9 +325,9 @@ class _FitPhase:
 
 
 class _RolloutPhase:
-    """Phase 2: whole rollouts from each trajectory's first state, back-propagated through the
-    linear solves; each group's error relative to its RMS in the training data (q: the
-    displacement's). Samples are trajectory indices; a batch runs to its shortest trajectory."""
+    """Phase 2: rollouts from true states, back-propagated through the linear solves (whole
+    trajectories, or windows of ``window`` steps tiling them); each group's error relative to its
+    RMS in the training data (q: the displacement's). Samples are (trajectory, first state)."""
 
     def __init__(self, model: LinearPriorModel, trajs, window: int = 0) -> None:
         self.model, self.trajs = model, trajs
@@ -333,9 +341,8 @@ class _RolloutPhase:
         self.window = window if 0 < window < longest else longest           # steps per sample
         # samples: (trajectory, first state) of windows tiling every trajectory
         self.samples = [(i, s) for i, z in enumerate(Z) for s in range(0, z.shape[0] - 1, self.window)]
-        p = model.prior                    # the data's Newmark accelerations, where a window starts mid-way
-        self.accelerations = ([p.accelerations(p.gather(z[..., 0:3] - X), p.gather(z[..., 3:6]),
-                                               p.gather(t.force.double())) for z, t in zip(Z, trajs)]
+        # the data's Newmark accelerations, where a window starts mid-way
+        self.accelerations = ([model.accelerations(z, t.force) for z, t in zip(Z, trajs)]
                               if self.window < longest else [])
 
     def loss(self, chosen, g) -> Tuple[Tensor, float, float]:

@@ -110,7 +110,7 @@ def one_step_errors(model, graph: Graph, trajs: list[TrajectoryTensors], layout:
     Returns (the ratio over all steps, nodes and trajectories per group; per step, the ratio
     over the nodes and trajectories of that step, {group: [S - 1]}); NaN where the data's group
     does not change. A ``LinearPriorModel`` steps each true state with the data's own Newmark
-    acceleration there (``NewmarkPrior.accelerations``) and the network's G. A rollout error far
+    acceleration there (``LinearPriorModel.accelerations``) and the network's G. A rollout error far
     above this one comes from the rollout drifting off the data; a one-step error near 1 means the step itself is not learned. Up to ``ONE_STEP_CHUNK``
     snapshots go through the network in one pass, on disjoint copies of the mesh."""
     steps = max((t.z.shape[0] - 1 for t in trajs), default=0)
@@ -123,9 +123,7 @@ def one_step_errors(model, graph: Graph, trajs: list[TrajectoryTensors], layout:
             S = t.z.shape[0] - 1
             dt_t = torch.tensor(dt, dtype=t.z.dtype)
             if isinstance(model, LinearPriorModel):        # Newmark's a along the trajectory [S + 1, n]
-                p = model.prior
-                accelerations = p.accelerations(p.gather(t.z[..., 0:3].double() - model.reference_positions),
-                                                p.gather(t.z[..., 3:6].double()), p.gather(t.force.double()))
+                accelerations = model.accelerations(t.z, t.force)
             for s0 in range(0, S, ONE_STEP_CHUNK):
                 k = min(ONE_STEP_CHUNK, S - s0)
                 if k not in copies:
