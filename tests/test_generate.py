@@ -48,6 +48,7 @@ def test_generate_tiny_block_writes_valid_dataset(tmp_path):
         moved = t.z[-1, t.load_nodes, 2] - d.mesh.nodes[t.load_nodes, 2]
         assert np.all(moved < 0)  # pressed in
         assert np.abs(t.z[-1, :, 6:]).max() > 100.0  # stresses of order 1 N / (1 cm)^2
+    assert len({tuple(d.read(name).load_point) for name in d.names}) == 3   # each case its own point
     # the solid linearised at rest (/linear), the physics baseline evaluate reports
     lin = d.linear_solid()
     free = np.repeat(d.mesh.node_type != NODE_CLAMPED, 3)
@@ -108,6 +109,54 @@ def test_generate_resumes_and_skips_done_trajectories(tmp_path, monkeypatch):
     assert d.ok_names == ["traj_0", "traj_1", "traj_2"]
 
 
+def test_generate_restarts_a_partial_file_with_other_load_points(tmp_path, monkeypatch):
+    """A partial file from another load draw (an older version) is not mixed into the new one."""
+    pytest.importorskip("dolfinx")
+    import h5py
+
+    from thermognn.generate import generate, pipeline
+
+    cfg = _cfg(tmp_path)
+    real = pipeline.simulate
+
+    def crash_after_first(solid, spec, layout, k, *a):
+        if k > 0:
+            raise KeyboardInterrupt
+        return real(solid, spec, layout, k, *a)
+
+    monkeypatch.setattr(pipeline, "simulate", crash_after_first)
+    with pytest.raises(KeyboardInterrupt):
+        generate(cfg)
+    with h5py.File(tmp_path / "dataset.h5.partial", "a") as f:
+        f["trajectories/traj_0"].attrs["load_point"] += 1e-3
+    done = []
+    monkeypatch.setattr(pipeline, "simulate", lambda solid, spec, layout, k, *a: done.append(k) or
+                        real(solid, spec, layout, k, *a))
+    generate(cfg)
+    assert done == [0, 1, 2]
+
+
+def test_load_cases_press_distinct_points():
+    """Case k presses the k-th loadable node of one seeded order: n cases, n distinct points."""
+    from thermognn.generate.scene import LoadSpec, load_case
+
+    rng = np.random.default_rng(1)
+    nodes = rng.random((30, 3))
+    node_type = np.zeros(30, np.int8)
+    node_type[:12] = NODE_SURFACE
+    normals = np.tile([0.0, 0.0, 1.0], (30, 1))
+    loads = LoadSpec(n_trajectories=12, magnitude=2.0, radius=0.0, ramp_steps=1, ramp_shape="linear", seed=3)
+    cases = [load_case(k, nodes, node_type, normals, loads) for k in range(12)]
+    centres = [int(c[1][0]) for c in cases]
+    assert sorted(centres) == list(range(12))                       # every loadable node once
+    assert all(np.allclose(c[0], nodes[c[1][0]]) for c in cases)
+    assert all(np.allclose(c[2].sum(0), [0, 0, -2.0]) for c in cases)  # the whole force, inwards
+    assert [int(load_case(k, nodes, node_type, normals, loads)[1][0]) for k in range(12)] == centres  # seeded
+    loads.n_trajectories = 13
+    with pytest.raises(ConfigError, match=r"scene.loads.n_trajectories = 13: at most 12"):
+        load_case(0, nodes, node_type, normals, loads)
+
+
 def test_generate_failed_trajectory_is_recorded_without_nan(tmp_path):
     pytest.importorskip("dolfinx")
     from thermognn.generate import generate
@@ -128,6 +177,7 @@ def test_generate_failed_trajectory_is_recorded_without_nan(tmp_path):
     ("scene.time.dt=-1", "scene.time.dt"),
     ("scene.mesh.clamp=left", "scene.mesh.clamp"),
     ("scene.loads.ramp_shape=step", "scene.loads.ramp_shape"),
+    ("scene.loads.n_trajectories=1000", "scene.loads.n_trajectories"),
 ])
 def test_bad_scene_config_gives_one_line_error(tmp_path, override, needle):
     pytest.importorskip("dolfinx")

@@ -15,7 +15,7 @@ from thermognn.core.io import versions_json
 from thermognn.core.schema import NODE_CLAMPED, NODE_SURFACE, DatasetWriter, Trajectory
 from thermognn.core.state import StateLayout, state_layout
 
-from .scene import SceneSpec, dataset_mesh, load_case, node_types, ramp, scene_from_config, \
+from .scene import SceneSpec, check_load_cases, dataset_mesh, load_case, node_types, ramp, scene_from_config, \
     boundary_faces_outward, vertex_normals
 
 
@@ -100,19 +100,27 @@ def simulate(solid, spec: SceneSpec, layout: StateLayout, k: int, ntype: np.ndar
     return traj, TrajectoryCost(time.perf_counter() - t0, len(times) - 1, iterations, cuts)
 
 
-def _stale_partial_mesh(out: Path, nodes: np.ndarray) -> bool:
-    """True when a partial file to resume from holds other mesh nodes than ``nodes`` (N, 3)."""
+def _stale_partial(out: Path, nodes: np.ndarray, load_points) -> str:
+    """Why a partial file to resume from cannot be resumed ('' if it can): other mesh nodes than
+    ``nodes`` (N, 3), or a trajectory whose load point is not this draw's (``load_points(k)``, (3,) [m]:
+    a file from an older load draw)."""
     import h5py
 
     partial = out.with_name(out.name + ".partial")
     if not partial.exists():
-        return False
+        return ""
     try:
         with h5py.File(partial, "r") as f:
             old = f["mesh/nodes"][()]
-    except (OSError, KeyError):
-        return False  # unreadable: DatasetWriter discards it itself
-    return old.shape != nodes.shape or not np.allclose(old, nodes, rtol=0, atol=1e-12)
+            if old.shape != nodes.shape or not np.allclose(old, nodes, rtol=0, atol=1e-12):
+                return "a different mesh (gmsh version?)"
+            for name, g in f.get("trajectories", {}).items():
+                k = int(name.split("_")[-1])
+                if not np.allclose(g.attrs["load_point"], load_points(k), rtol=0, atol=1e-12):
+                    return f"other load points ({name})"
+    except (OSError, KeyError, ValueError):
+        return ""  # unreadable: DatasetWriter discards it itself
+    return ""
 
 
 def _linearised(solid, spec: SceneSpec, layout: StateLayout, writer: DatasetWriter, console) -> None:
@@ -160,8 +168,11 @@ def generate(cfg) -> Path:
     costs: list[TrajectoryCost] = []
     failed = 0
     names = [f"traj_{k}" for k in range(spec.loads.n_trajectories)]
-    if _stale_partial_mesh(out, mesh.nodes):
-        console.print("partial dataset has a different mesh (gmsh version?): starting afresh")
+    check_load_cases(spec.loads, int((ntype == NODE_SURFACE).sum()))
+    stale = _stale_partial(out, mesh.nodes,
+                           lambda k: load_case(k, solid.nodes, ntype, normals, spec.loads)[0])
+    if stale:
+        console.print(f"partial dataset has {stale}: starting afresh")
         out.with_name(out.name + ".partial").unlink()
     with DatasetWriter(out, mesh, layout, spec.dt, to_yaml(cfg), versions_json(), spec.name, spec.effects) as w:
         todo = [k for k, n in enumerate(names) if not w.has(n)]

@@ -7,8 +7,10 @@ optionally with a band ``zmin:0.1`` (nodes within 10 % of the extent from that s
 ``surface`` (every boundary node) and ``upper`` (boundary nodes whose outward normal points up,
 n_z > 0.5: the top of a curved shell). Clamped wins over loadable.
 
-Loads: per trajectory k a load point is drawn (``numpy.random.default_rng([loads.seed, k])``)
-among the loadable nodes; the loadable nodes within ``loads.radius`` of it share the total force
+Loads: the load points are the loadable nodes in one seeded order
+(``numpy.random.default_rng(loads.seed).permutation``), case k pressing the k-th: every case has
+its own point, so no test trajectory repeats a training one (``loads.n_trajectories`` can be at most
+the number of loadable nodes). The loadable nodes within ``loads.radius`` of it share the total force
 ``loads.magnitude`` [N] equally, directed along the inward surface normal at the load point;
 the force ramps over ``ramp_steps`` steps and is then held. ``ramp_shape``: ``linear`` or
 ``smooth`` (cubic smoothstep 3s² − 2s³: zero load rate at start and end, so the dynamic response
@@ -216,10 +218,15 @@ def node_types(nodes: np.ndarray, tets: np.ndarray, mesh_cfg) -> np.ndarray:
 
 def load_case(k: int, nodes: np.ndarray, node_type: np.ndarray, normals: np.ndarray,
               loads: LoadSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(load_point (3,) [m], load_nodes (K,), nodal force at full magnitude (N, 3) [N]) of case k."""
-    rng = np.random.default_rng([loads.seed, k])
+    """(load_point (3,) [m], load_nodes (K,), nodal force at full magnitude (N, 3) [N]) of case k.
+
+    Case k presses the k-th loadable node of one seeded order, so cases 0..n-1 press n distinct
+    points (``check_load_cases``)."""
     candidates = np.flatnonzero(node_type == NODE_SURFACE)
-    centre = int(rng.choice(candidates))
+    check_load_cases(loads, len(candidates))
+    if not 0 <= k < len(candidates):
+        raise ConfigError(f"load case {k}: expected 0 <= k < {len(candidates)} (the loadable nodes)")
+    centre = int(np.random.default_rng(loads.seed).permutation(candidates)[k])
     point = nodes[centre].copy()
     dist = np.linalg.norm(nodes[candidates] - point, axis=1)
     load_nodes = np.sort(candidates[dist <= loads.radius]) if loads.radius > 0 else np.array([centre])
@@ -229,6 +236,15 @@ def load_case(k: int, nodes: np.ndarray, node_type: np.ndarray, normals: np.ndar
     force = np.zeros_like(nodes)
     force[load_nodes] = loads.magnitude / len(load_nodes) * direction
     return point, load_nodes.astype(np.int64), force
+
+
+def check_load_cases(loads: LoadSpec, n_loadable: int) -> None:
+    """ConfigError unless every load case can press a point of its own."""
+    if loads.n_trajectories > n_loadable:
+        raise ConfigError(
+            f"scene.loads.n_trajectories = {loads.n_trajectories}: at most {n_loadable} (the loadable "
+            f"nodes of scene.mesh.loadable; each case presses its own point): refine scene.mesh.cell_size "
+            f"or widen scene.mesh.loadable")
 
 
 def ramp(t: float, dt: float, ramp_steps: int, shape: str = "linear") -> float:
