@@ -390,3 +390,64 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
         model.anchor(edges, node_type, ref)
         G, H = model.remainders(rest, zero, edges, node_type, ref, False)
     assert float(G.abs().max()) == 0.0 and float(H.abs().max()) == 0.0
+
+
+def test_second_order_remainders_make_gentle_loads_exactly_linear():
+    """``model.prior_order=2`` (LinearPriorModel.network_remainders): the network's remainders are
+    its second difference along the ray from the unloaded rest state, so for any weights they
+    start at second order in the load, as the true G = K u − f_int(u) and H = σ − Σ u do. On the
+    damped 12 mm bend with a random network: along a ray of states and loads, halving the step
+    quarters G and H (order 1, anchored: halves them); under loads scaled by ε the rollout
+    differs from the linearised FE model's by O(ε) relative (order 1: by a share that does not
+    shrink); the scripted model steps as the eager one."""
+    torch = pytest.importorskip("torch")
+    from thermognn.core.schema import Mesh
+    from thermognn.train.hybrid import LinearPriorModel
+    from thermognn.train.model import TIGNN
+    from thermognn.train.prior import NewmarkPrior
+
+    s, layout, traj = _bent_block(1.0, "newmark")
+    dt, X = 2e-3, s.nodes
+    linear = modes.linear_solid(s)
+    node_type = torch.as_tensor(np.where(X[:, 2] < 1e-10, 1, 0))
+    edges = torch.as_tensor(Mesh(X, s.cells[:, :4], node_type.numpy()).edges())
+    z, f = torch.as_tensor(traj.z), torch.as_tensor(traj.force)
+    ref = torch.as_tensor(X)
+    lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
+    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
+
+    def model_of(order):
+        torch.manual_seed(0)
+        net = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, velocity_edges=True).double()
+        net.set_stats({"z_std": z.reshape(-1, 12).std(0) + 1e-3, "f_std": torch.full((3,), 0.1),
+                       "dzdt_std": torch.full((12,), 3e-2)})
+        m = LinearPriorModel(net, NewmarkPrior(linear, len(X), dt), ref, positions_only=False, order=order)
+        with torch.enable_grad():
+            m.anchor(edges, node_type, ref)
+        return m
+
+    rest = torch.cat([ref, torch.zeros(len(X), 9, dtype=torch.float64)], 1).unsqueeze(0)    # [1, N, 12]
+    ray = (z[-1:] - rest, f[-1:])                                                           # state and load
+    for order, ratio in ((1, 0.5), (2, 0.25)):
+        model = model_of(order)
+        with torch.enable_grad():
+            G1, H1 = model.remainders(rest + 1e-3 * ray[0], 1e-3 * ray[1], edges, node_type, ref, False)
+            G2, H2 = model.remainders(rest + 2e-3 * ray[0], 2e-3 * ray[1], edges, node_type, ref, False)
+        assert float(G1.norm() / G2.norm()) == pytest.approx(ratio, rel=0.02), order
+        assert float(H1.norm() / H2.norm()) == pytest.approx(ratio, rel=0.02), order
+        gaps = []
+        for eps in (1.0, 1e-2, 1e-3):
+            with torch.enable_grad():
+                pred = model.rollouts(z[:1], eps * f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
+            gaps.append(rel(pred[..., 3:6], eps * lin[..., 3:6]))     # (the linear model scales with the load)
+        assert gaps[0] > 1e-4, gaps                                  # the network corrects something
+        if order == 1:
+            assert gaps[2] > 0.3 * gaps[1], gaps
+        else:
+            assert gaps[2] == pytest.approx(0.1 * gaps[1], rel=0.05) and gaps[1] < 0.2 * gaps[0], gaps
+    scripted = torch.jit.script(model)
+    with torch.enable_grad():
+        carried = model.carry(z[0], f[0], edges, node_type, ref)
+        a = model.step(carried, f[1], edges, node_type, ref, torch.tensor(dt))
+        b = scripted.step(carried, f[1], edges, node_type, ref, torch.tensor(dt))
+    assert rel(b, a) < 1e-12

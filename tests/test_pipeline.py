@@ -141,3 +141,19 @@ def test_linear_prior_early_stopping_ends_each_phase(tmp_path, tiny_block):
     assert load_checkpoint(tmp_path / "model.last.ckpt")["resume_at"] == 8
     res = _train_prior(tmp_path, tiny_block, *run)
     assert "at epoch 8" in res.stdout and len((tmp_path / "metrics.csv").read_text().splitlines()) == 5
+
+
+def test_linear_prior_of_second_order_trains_and_exports(tmp_path, tiny_block):
+    """`model.prior_order=2` through train and export: the checkpoint records the order, the
+    exported file (scripted, checked against the eager model by export itself) says how it steps."""
+    from thermognn.core.state import describe_step
+    from thermognn.export.exporter import verify
+    from thermognn.train.checkpoint import load_checkpoint
+
+    _train_prior(tmp_path, tiny_block, "model.prior_order=2", "train.epochs=1", "train.rollout_epochs=1")
+    assert load_checkpoint(tmp_path / "model.ckpt")["prior"]["order"] == 2
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={tmp_path}",
+                          f"paths.dataset={tiny_block}"], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    meta = verify(tmp_path / "model.pt")
+    assert "of second order" in describe_step(meta["step"])

@@ -617,6 +617,8 @@ def test_linear_prior_settings_and_datasets_it_cannot_use(trained, tmp_path):
         train(_cfg(tmp_path, *data, "model=linear_prior"))
     with pytest.raises(ConfigError, match="model.prior_sweeps = 0, expected an integer >= 1"):
         train(_cfg(tmp_path, *data, "model=linear_prior", "model.prior_sweeps=0"))
+    with pytest.raises(ConfigError, match=r"model.prior_order = 3, expected 1 \| 2"):
+        train(_cfg(tmp_path, *data, "model=linear_prior", "model.prior_order=3"))
     with pytest.raises(ConfigError, match=r"train.rollout_window = -1, expected >= 0 \(0: whole rollouts\)"):
         train(_cfg(tmp_path, *data, "model=linear_prior", "train.rollout_window=-1"))
     ckpt = {"prior": {"kind": "linear", "sweeps": 1, "positions_only": True}, "hparams": {}}

@@ -95,8 +95,11 @@ def describe_step(step) -> str:
         return "not recorded in the model file"
     if step.get("prior") == "linear":
         calls = int(step.get("sweeps", 1))
-        return (f"the data's Newmark step of the linearised solid with learned remainders "
-                f"({calls} network call{'s' if calls > 1 else ''} a step)")
+        second = int(step.get("order", 1)) == 2
+        return (f"the data's Newmark step of the linearised solid with learned remainders"
+                + (" of second order" if second else "")
+                + f" ({calls} network call{'s' if calls > 1 else ''} a step"
+                + (", each on 2 states and the rest state" if second else "") + ")")
     integrator = str(step.get("integrator", "?"))
     if integrator == "midpoint":
         integrator += f" ({step.get('implicit_iterations', '?')} sweeps)"

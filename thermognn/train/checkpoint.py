@@ -11,8 +11,9 @@ A checkpoint is a ``torch.save``d dict of plain types and tensors (loadable with
     state_layout  JSON string, dt [s], effects (list), structure ("generic" | "hamiltonian"), scene
     config        resolved config YAML, versions JSON, dataset (path), fingerprint (dict), split (dict)
     epoch, val_error   (validation rollout error, ``rollout.validation_error``)
-    prior         (only with ``model.prior=linear``) {"kind", "sweeps", "positions_only"}: the
-                  weights are a ``hybrid.LinearPriorModel``'s; its operators come from the dataset
+    prior         (only with ``model.prior=linear``) {"kind", "sweeps", "positions_only"} and
+                  "order" when 2 (``model.prior_order``): the weights are a
+                  ``hybrid.LinearPriorModel``'s; its operators come from the dataset
     (the ``last`` checkpoint adds optimizer, scheduler, rng, history, best_val, stale_rounds)
 """
 
@@ -134,11 +135,13 @@ def with_rollout(ckpt: dict, cfg) -> tuple[dict, str]:
 def model_step(ckpt: dict) -> dict:
     """How the checkpoint's model steps (``step`` metadata of exported files, ``describe_step``):
     the TIGNN's ``step_settings``, or for a linear-prior model {"integrator": "newmark",
-    "prior": "linear", "sweeps": network calls per step, "kinematics": "exact"}."""
+    "prior": "linear", "sweeps": network calls per step, "kinematics": "exact"} (and "order": 2
+    for second-order remainders)."""
     from .model import step_settings
 
     prior = ckpt.get("prior")
     if prior:
         return {"integrator": "newmark", "prior": str(prior.get("kind", "linear")),
-                "sweeps": int(prior.get("sweeps", 1)), "kinematics": "exact"}
+                "sweeps": int(prior.get("sweeps", 1)), "kinematics": "exact",
+                **({"order": 2} if int(prior.get("order", 1)) == 2 else {})}
     return step_settings(ckpt.get("hparams", {}))

@@ -55,6 +55,8 @@ LAYOUT = ["q", "v", "sigma"]
 CARRIED = (("a", 3), ("G", 3))
 #: PRIORS: model.prior values
 PRIORS = ("none", "linear")
+#: model.prior_order values: the order at which the learned remainders start (LinearPriorModel.network_remainders)
+ORDERS = (1, 2)
 
 
 class LinearPriorModel(nn.Module):
@@ -64,14 +66,17 @@ class LinearPriorModel(nn.Module):
     Graph tensors (edge_index, node_type, ref_pos) are those of B disjoint copies of the mesh."""
 
     def __init__(self, net: TIGNN, prior: NewmarkPrior, reference_positions: Tensor,
-                 positions_only: bool = True, sweeps: int = 1) -> None:
+                 positions_only: bool = True, sweeps: int = 1, order: int = 1) -> None:
         super().__init__()
         if net.dim != 12:
             raise ValueError(f"linear prior: state dimension {net.dim}, expected 12 (q, v, sigma)")
+        if order not in ORDERS:
+            raise ValueError(f"linear prior: order {order}, expected one of {ORDERS}")
         self.net = net
         self.prior = prior
         self.dim = int(net.dim)
         self.sweeps = int(sweeps)
+        self.order = int(order)
         self.positions_only = bool(positions_only)
         self.register_buffer("reference_positions", reference_positions.to(torch.float64).contiguous(),
                              persistent=False)                                       # [N, 3] m
@@ -87,17 +92,49 @@ class LinearPriorModel(nn.Module):
                              persistent=False)                                                     # [1, N, 6] Pa
         self.anchored = False
 
+    def network_remainders(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
+                           create_graph: bool) -> Tuple[Tensor, Tensor]:
+        """The remainders in the network's units (its v columns G / dzdt_std, its σ columns
+        H / dzdt_std) at states z [B, N, D] under the loads f [B, N, 3] [N], and the network's
+        degeneracy loss (0-dim): (r [B, N, D] in the network's dtype, degeneracy).
+
+        ``order`` 1: the network's rates r(z, f). ``order`` 2: their second difference along the
+        ray from the unloaded rest state z₀ (q = X, v = σ = 0, f = 0) through (z, f),
+        2 [r(z, f) − 2 r(z½, f/2) + r(z₀, 0)] with z½ = z₀ + (z − z₀)/2: for any weights its
+        constant and linear parts in (z − z₀, f) cancel (a quadratic r is returned unchanged), as
+        the true G = K u − f_int(u) and H = σ − Σ u start at second order in u. So under small loads
+        the model is the linearised FE model, with an error O(load²); each call evaluates the
+        network on 2B + 1 copies of the mesh."""
+        B, N, D = z.shape[0], z.shape[1], z.shape[2]
+        dtype = self.net.z_mean.dtype
+        if self.order == 1:
+            zs, fs = z.to(dtype), f.to(dtype)
+            ei, nt, rp = edge_index, node_type, ref_pos
+        else:
+            rest = torch.cat([self.reference_positions, torch.zeros(N, D - 3, dtype=torch.float64,
+                                                                    device=z.device)], 1).unsqueeze(0)  # [1, N, D]
+            half = rest + 0.5 * (z.to(torch.float64) - rest)             # z½ formed in float64: [B, N, D]
+            zs = torch.cat([z.to(dtype), half.to(dtype), rest.to(dtype)], 0)                  # [2B + 1, N, D]
+            fs = torch.cat([f.to(dtype), 0.5 * f.to(dtype), torch.zeros_like(f[:1]).to(dtype)], 0)
+            E = edge_index.shape[1] // B                                 # edges of one copy (copies in order)
+            ei = torch.cat([edge_index, edge_index + B * N, edge_index[:, :E] + 2 * B * N], 1)
+            nt = torch.cat([node_type, node_type, node_type[:N]])
+            rp = torch.cat([ref_pos, ref_pos, ref_pos[:N]])
+        M = zs.shape[0]
+        out = self.net.rates((zs * self.seen).reshape(M * N, D), fs.reshape(M * N, 3), ei, nt, rp, create_graph)
+        r = out[0].reshape(M, N, D)
+        if self.order == 2:
+            r = 2.0 * (r[:B] - 2.0 * r[B:2 * B] + r[2 * B:])              # [B, N, D]
+        return r, out[5]
+
     def remainders(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                    create_graph: bool) -> Tuple[Tensor, Tensor]:
         """The network's remainders at states z [B, N, D] under the loads f [B, N, 3] [N]:
         G [B, n] N over the free DOFs and H [B, N, 6] Pa (float64)."""
-        B, N, D = z.shape[0], z.shape[1], z.shape[2]
-        dtype = self.net.z_mean.dtype
-        seen = (z.to(dtype) * self.seen).reshape(B * N, D)                          # [B N, D]
-        r = self.net.rates(seen, f.to(dtype).reshape(B * N, 3), edge_index, node_type, ref_pos, create_graph)[0]
+        r = self.network_remainders(z, f, edge_index, node_type, ref_pos, create_graph)[0]
         if not create_graph:
             r = r.detach()
-        r = r.reshape(B, N, D).to(torch.float64) * self.net.dzdt_std.to(torch.float64)   # [B, N, D] SI
+        r = r.to(torch.float64) * self.net.dzdt_std.to(torch.float64)              # [B, N, D] SI
         G, H = self.prior.gather(r[:, :, 3:6]), r[:, :, 6:12]
         if self.anchored:
             return G - self.rest_G, H - self.rest_H
@@ -219,7 +256,12 @@ def prior_settings(cfg_model) -> dict:
     inputs = str(OmegaConf.select(cfg_model, "prior_inputs", default="positions"))
     if inputs not in ("positions", "state"):
         raise ConfigError(f"model.prior_inputs = '{inputs}', expected positions | state")
-    return {"kind": "linear", "sweeps": sweeps, "positions_only": inputs == "positions"}
+    order = OmegaConf.select(cfg_model, "prior_order", default=1)
+    if order not in ORDERS or isinstance(order, bool):
+        raise ConfigError(f"model.prior_order = {order!r}, expected 1 | 2 (the order in the load at which "
+                          f"the learned remainders start)")
+    settings = {"kind": "linear", "sweeps": sweeps, "positions_only": inputs == "positions"}
+    return {**settings, "order": int(order)} if order != 1 else settings
 
 
 def build_prior(ds, dt: float) -> NewmarkPrior:
@@ -242,7 +284,7 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
     """The LinearPriorModel of a network, the checkpoint's ``prior`` settings and the dataset."""
     X = torch.as_tensor(ds.mesh.nodes, dtype=torch.float64)
     return LinearPriorModel(net, build_prior(ds, dt), X, bool(settings.get("positions_only", True)),
-                            int(settings.get("sweeps", 1)))
+                            int(settings.get("sweeps", 1)), int(settings.get("order", 1)))
 
 
 def carried_layout(layout_json: str) -> str:
@@ -311,16 +353,15 @@ class _FitPhase:
 
     def loss(self, chosen, g, gen: torch.Generator) -> Tuple[Tensor, float, float]:
         """(loss, data loss, degeneracy loss) of the samples ``chosen`` on the mesh copies g."""
-        net, k = self.model.net, len(chosen)
+        k = len(chosen)
         N, D = self.weight.shape
         z = torch.stack([self.trajs[i].z[s] for i, s in chosen])                          # [k, N, D]
         f = torch.stack([self.trajs[i].force[s] for i, s in chosen])                      # [k, N, 3]
         y = torch.stack([self.targets[i][s] for i, s in chosen])
         if self.noisy:                       # (no draw without noise: the generator also orders the epochs)
             z = z + torch.randn(z.shape, generator=gen, dtype=z.dtype) * self.noise
-        r, _, _, _, _, deg = net.rates((z * self.model.seen).reshape(k * N, D), f.reshape(k * N, 3),
-                                       g.edge_index, g.node_type, g.ref_pos, True)
-        data_loss = ((r.reshape(k, N, D) - y).pow(2) * self.weight).sum() / (self.weight.sum() * k)
+        r, deg = self.model.network_remainders(z, f, g.edge_index, g.node_type, g.ref_pos, True)   # [k, N, D]
+        data_loss = ((r - y).pow(2) * self.weight).sum() / (self.weight.sum() * k)
         return self.lambda_data * data_loss + self.lambda_degeneracy * deg, float(data_loss.detach()), float(deg.detach())
 
 
