@@ -316,12 +316,14 @@ def train(cfg) -> Path:
         raise ConfigError(f"train.epochs = {epochs}, expected >= 1")
     ckpt_path = project_path(cfg.paths.checkpoint)
     out_dir = project_path(cfg.out)
-    data = load_data(project_path(cfg.paths.dataset), tc.split, seed, dtype)
+    prior = prior_kind(cfg.model)
+    data = load_data(project_path(cfg.paths.dataset), tc.split, seed, dtype,
+                     state_dtype=torch.float64 if prior == "linear" else dtype)   # the prior steps float64 states
     ds = data.dataset
     structure = resolve_structure(_sel(cfg, "model.structure", "auto"), ds.effects, ds.config_yaml)
     hparams = hyperparameters(cfg.model, ds.layout.dim, velocity_columns(ds.layout), structure == "hamiltonian")
     train_trajs, val_trajs = data.of("train"), data.of("val")
-    if prior_kind(cfg.model) == "linear":                # the linearised FE step + learned remainders
+    if prior == "linear":                                # the linearised FE step + learned remainders
         return train_linear_prior(cfg, data, hparams, dtype_name, structure, ckpt_path, out_dir, dist)
 
     torch.manual_seed(seed)
