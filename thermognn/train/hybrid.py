@@ -104,28 +104,27 @@ class LinearPriorModel(nn.Module):
         constant and linear parts in (z − z₀, f) cancel (a quadratic r is returned unchanged), as
         the true G = K u − f_int(u) and H = σ − Σ u start at second order in u. So under small loads
         the model is the linearised FE model, with an error O(load²); each call evaluates the
-        network on 2B + 1 copies of the mesh."""
+        network on 2B + 1 copies of the mesh (the degeneracy loss is that of the 2B loaded ones,
+        so that it weighs every sample alike whatever the batch)."""
         B, N, D = z.shape[0], z.shape[1], z.shape[2]
         dtype = self.net.z_mean.dtype
         if self.order == 1:
-            zs, fs = z.to(dtype), f.to(dtype)
-            ei, nt, rp = edge_index, node_type, ref_pos
-        else:
-            rest = torch.cat([self.reference_positions, torch.zeros(N, D - 3, dtype=torch.float64,
-                                                                    device=z.device)], 1).unsqueeze(0)  # [1, N, D]
-            half = rest + 0.5 * (z.to(torch.float64) - rest)             # z½ formed in float64: [B, N, D]
-            zs = torch.cat([z.to(dtype), half.to(dtype), rest.to(dtype)], 0)                  # [2B + 1, N, D]
-            fs = torch.cat([f.to(dtype), 0.5 * f.to(dtype), torch.zeros_like(f[:1]).to(dtype)], 0)
-            E = edge_index.shape[1] // B                                 # edges of one copy (copies in order)
-            ei = torch.cat([edge_index, edge_index + B * N, edge_index[:, :E] + 2 * B * N], 1)
-            nt = torch.cat([node_type, node_type, node_type[:N]])
-            rp = torch.cat([ref_pos, ref_pos, ref_pos[:N]])
-        M = zs.shape[0]
-        out = self.net.rates((zs * self.seen).reshape(M * N, D), fs.reshape(M * N, 3), ei, nt, rp, create_graph)
-        r = out[0].reshape(M, N, D)
-        if self.order == 2:
-            r = 2.0 * (r[:B] - 2.0 * r[B:2 * B] + r[2 * B:])              # [B, N, D]
-        return r, out[5]
+            out = self.net.rates((z.to(dtype) * self.seen).reshape(B * N, D), f.to(dtype).reshape(B * N, 3),
+                                 edge_index, node_type, ref_pos, create_graph)
+            return out[0].reshape(B, N, D), out[5]
+        rest = torch.cat([self.reference_positions, torch.zeros(N, D - 3, dtype=torch.float64,
+                                                                device=z.device)], 1).unsqueeze(0)      # [1, N, D]
+        half = rest + 0.5 * (z.to(torch.float64) - rest)                  # z½ formed in float64: [B, N, D]
+        zs = torch.cat([z.to(dtype), half.to(dtype)], 0)                                          # [2B, N, D]
+        fs = torch.cat([f.to(dtype), 0.5 * f.to(dtype)], 0)
+        out = self.net.rates((zs * self.seen).reshape(2 * B * N, D), fs.reshape(2 * B * N, 3),
+                             torch.cat([edge_index, edge_index + B * N], 1), torch.cat([node_type, node_type]),
+                             torch.cat([ref_pos, ref_pos]), create_graph)
+        E = edge_index.shape[1] // B                                      # edges of one copy (copies in order)
+        r0 = self.net.rates((rest.to(dtype) * self.seen).reshape(N, D), torch.zeros(N, 3, dtype=dtype),
+                            edge_index[:, :E], node_type[:N], ref_pos[:N], create_graph)[0]                # [N, D]
+        r = out[0].reshape(2 * B, N, D)
+        return 2.0 * (r[:B] - 2.0 * r[B:] + r0.unsqueeze(0)), out[5]                             # [B, N, D]
 
     def remainders(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                    create_graph: bool) -> Tuple[Tensor, Tensor]:
