@@ -309,6 +309,22 @@ def test_newmark_prior_with_the_exact_remainders_is_the_fe_step():
         NewmarkPrior(linear, len(X), dt)
 
 
+def _bent_block_graph():
+    """The damped 12 mm bend (Newmark, dt 2 ms) with what a graph network needs: (layout, its
+    trajectory, dt, reference positions X [N, 3], the linearised solid, node types (base
+    clamped), mesh edges, z [S, N, D] and loads f [S, N, 3] as tensors)."""
+    import torch
+
+    from thermognn.core.schema import Mesh
+
+    s, layout, traj = _bent_block(1.0, "newmark")
+    dt, X = 2e-3, s.nodes
+    node_type = torch.as_tensor(np.where(X[:, 2] < 1e-10, 1, 0))
+    edges = torch.as_tensor(Mesh(X, s.cells[:, :4], node_type.numpy()).edges())
+    return (layout, traj, dt, X, modes.linear_solid(s), node_type, edges, torch.as_tensor(traj.z),
+            torch.as_tensor(traj.force))
+
+
 def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_rollout():
     """thermognn/train/hybrid.py (``model.prior=linear``) on the damped 12 mm bend: with the
     network's remainders zero (its last layers zeroed) the model's rollout is the linearised FE
@@ -317,19 +333,13 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
     call at a time, also scripted (TorchScript), gives the batched rollout training uses; the
     one-step error from the states of its own rollout vanishes."""
     torch = pytest.importorskip("torch")
-    from thermognn.core.schema import Mesh
     from thermognn.train.data import Graph, TrajectoryTensors
     from thermognn.train.hybrid import LinearPriorModel, _RolloutPhase
     from thermognn.train.model import TIGNN
     from thermognn.train.rollout import one_step_errors
     from thermognn.train.prior import NewmarkPrior
 
-    s, layout, traj = _bent_block(1.0, "newmark")
-    dt, X = 2e-3, s.nodes
-    linear = modes.linear_solid(s)
-    node_type = torch.as_tensor(np.where(X[:, 2] < 1e-10, 1, 0))
-    edges = torch.as_tensor(Mesh(X, s.cells[:, :4], node_type.numpy()).edges())
-    z, f = torch.as_tensor(traj.z), torch.as_tensor(traj.force)
+    layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph()
     ref = torch.as_tensor(X, dtype=torch.float32)
     torch.manual_seed(0)
     net = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, velocity_edges=True)
@@ -401,17 +411,11 @@ def test_second_order_remainders_make_gentle_loads_exactly_linear():
     differs from the linearised FE model's by O(ε) relative (order 1: by a share that does not
     shrink); the scripted model steps as the eager one."""
     torch = pytest.importorskip("torch")
-    from thermognn.core.schema import Mesh
     from thermognn.train.hybrid import LinearPriorModel
     from thermognn.train.model import TIGNN
     from thermognn.train.prior import NewmarkPrior
 
-    s, layout, traj = _bent_block(1.0, "newmark")
-    dt, X = 2e-3, s.nodes
-    linear = modes.linear_solid(s)
-    node_type = torch.as_tensor(np.where(X[:, 2] < 1e-10, 1, 0))
-    edges = torch.as_tensor(Mesh(X, s.cells[:, :4], node_type.numpy()).edges())
-    z, f = torch.as_tensor(traj.z), torch.as_tensor(traj.force)
+    layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph()
     ref = torch.as_tensor(X)
     lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
     rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
