@@ -11,7 +11,10 @@ The FE solid's step, with its internal force split as f_int(u) = K u − G(u) an
 The network's GENERIC rates at a state are read as the remainders: its v columns as G [N] (at
 the free DOFs), its σ columns as H [Pa], each times ``dzdt_std`` (set to the remainders' RMS in
 the training data). With ``positions_only`` the network sees the positions alone (G and H of a
-hyperelastic solid are functions of the displacement). A step: the linear step with the last G
+hyperelastic solid are functions of the displacement). With ``order`` 2 (``model.prior_order``,
+the ``model=linear_prior`` preset's) G and H are the network's second difference along the ray
+from the unloaded rest state (``network_remainders``), so they start at second order in the load
+as the true ones do, and gentle loads give the linearised FE model whatever the weights. A step: the linear step with the last G
 predicts the state; the network gives G1, H1 there (``sweeps`` times, each at the latest
 prediction); the linear step with them gives the state. With G = H = 0 this is the linearised
 FE model that ``evaluate`` reports; with the exact remainders it is the FE step itself (test in
