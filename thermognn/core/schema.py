@@ -263,7 +263,14 @@ class Dataset:
 
     def linear_solid(self) -> LinearSolid | None:
         """The solid linearised at rest (``/linear``), or None in files written before it existed
-        (or by an importer, which has no FE model). DataError if the group is incomplete."""
+        (or by an importer, which has no FE model). DataError if the group is incomplete. Read
+        once: every call returns the same object, so its callers (a prior model, evaluate's
+        baseline and gentle-load check) share its LU factorisations; treat it as read-only."""
+        if not hasattr(self, "_linear"):
+            self._linear = self._read_linear()
+        return self._linear
+
+    def _read_linear(self) -> LinearSolid | None:
         import h5py
 
         with h5py.File(self.path, "r") as f:

@@ -71,6 +71,11 @@ class LoadedData:
     def of(self, part: str) -> list[TrajectoryTensors]:
         return [self.trajectories[n] for n in self.split[part]]
 
+    def reference_positions(self) -> np.ndarray:
+        """The mesh's reference positions X [N, 3] [m] as the states store them (rounded to
+        ``state_dtype``; float64 array), so that q − X is zero at rest."""
+        return torch.as_tensor(self.dataset.mesh.nodes, dtype=self.state_dtype).double().numpy()
+
     def read(self, name: str) -> TrajectoryTensors:
         """Trajectory ``name`` as tensors (read once, then kept in ``trajectories``)."""
         if name not in self.trajectories:
@@ -153,8 +158,7 @@ def load_data(path, fractions, seed: int, dtype: torch.dtype = torch.float32,
         raise DataError(f"{ds.path}: state_layout {ds.layout.to_json()} must start with q (3)")
     split = split_names(ds, fractions, seed)
     data = LoadedData(path=Path(path), dataset=ds, graph=load_graph(ds, dtype), layout=ds.layout,
-                      dt=ds.dt, split=split)
-    data.state_dtype = state_dtype or dtype
+                      dt=ds.dt, split=split, state_dtype=state_dtype or dtype)
     for name in sorted({n for p in parts for n in split[p]}, key=ds.names.index):
         data.read(name)
     return data

@@ -200,7 +200,7 @@ def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors]) -> dict:
     groups = data.layout.names
     predicted = {"q"} | ({"v"} if lin.integrator == "newmark" else set()) \
         | ({"sigma"} if lin.stress is not None else set())
-    X = torch.as_tensor(data.dataset.mesh.nodes, dtype=data.state_dtype).double().numpy()   # as the states' q
+    X = data.reference_positions()
     per_traj, whole, elapsed, steps = [], [], 0.0, 0
     try:
         for t in trajs:
@@ -232,16 +232,16 @@ def gentle_load_gaps(model: LinearPriorModel, data: LoadedData, traj: Trajectory
     (``model.prior_order=2``) the gap shrinks in proportion to the load, and gentle loads give the
     linear model; a gap that does not shrink is a first-order error of the learned remainders."""
     lin = data.dataset.linear_solid()
-    X = torch.as_tensor(data.dataset.mesh.nodes, dtype=torch.float64)
+    X = data.reference_positions()
     z0, out = traj.z.double(), {}
     for scale in scales:
         forces = traj.force.double() * scale
         pred = rollout(model, data.graph, z0[0], forces, data.dt).double()
-        ref = torch.as_tensor(lin.rollout_states(z0.numpy(), forces.numpy(), X.numpy(), data.layout, data.dt))
+        ref = torch.as_tensor(lin.rollout_states(z0.numpy(), forces.numpy(), X, data.layout, data.dt))
         gaps = {}
         for g in data.layout.names:
             sl = data.layout.slice(g)
-            rest = z0[0, :, sl] if g != "q" else X
+            rest = z0[0, :, sl] if g != "q" else torch.as_tensor(X)
             num, den = (pred[1:, :, sl] - ref[1:, :, sl]).norm(), (ref[1:, :, sl] - rest).norm()
             gaps[g] = float(num / den) if float(den) > 0 else math.nan
         out[scale] = gaps

@@ -95,6 +95,11 @@ class LinearPriorModel(nn.Module):
                              persistent=False)                                                     # [1, N, 6] Pa
         self.anchored = False
 
+    def rest_state(self) -> Tensor:
+        """The unloaded reference state z₀ [1, N, D] (float64): q = X, v = 0, σ = 0."""
+        X = self.reference_positions
+        return torch.cat([X, torch.zeros(X.shape[0], self.dim - 3, dtype=X.dtype, device=X.device)], 1).unsqueeze(0)
+
     def network_remainders(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                            create_graph: bool) -> Tuple[Tensor, Tensor]:
         """The remainders in the network's units (its v columns G / dzdt_std, its σ columns
@@ -115,8 +120,7 @@ class LinearPriorModel(nn.Module):
             out = self.net.rates((z.to(dtype) * self.seen).reshape(B * N, D), f.to(dtype).reshape(B * N, 3),
                                  edge_index, node_type, ref_pos, create_graph)
             return out[0].reshape(B, N, D), out[5]
-        rest = torch.cat([self.reference_positions, torch.zeros(N, D - 3, dtype=torch.float64,
-                                                                device=z.device)], 1).unsqueeze(0)      # [1, N, D]
+        rest = self.rest_state()                                          # [1, N, D]
         half = rest + 0.5 * (z.to(torch.float64) - rest)                  # z½ formed in float64: [B, N, D]
         zs = torch.cat([z.to(dtype), half.to(dtype)], 0)                                          # [2B, N, D]
         fs = torch.cat([f.to(dtype), 0.5 * f.to(dtype)], 0)
@@ -149,8 +153,7 @@ class LinearPriorModel(nn.Module):
         tensors). Trained models are stepped anchored (``model_from_checkpoint``, validation);
         the training losses use the raw outputs. Block, session 13: per snapshot σ 2.34 % ->
         1.45 %, v 2.36 % -> 1.85 % with the same weights (docs/accuracy.md)."""
-        rest = torch.cat([self.reference_positions, torch.zeros(self.reference_positions.shape[0], self.dim - 3,
-                                                                   dtype=torch.float64)], 1).unsqueeze(0)
+        rest = self.rest_state()
         self.anchored = False
         with torch.enable_grad():
             G, H = self.remainders(rest, torch.zeros_like(rest[:, :, 0:3]), edge_index, node_type, ref_pos, False)
