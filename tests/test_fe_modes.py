@@ -2,6 +2,7 @@
 against analytic values and invariants, the linearised re-simulation, and generate's hook."""
 
 import dataclasses
+import io
 import json
 import tempfile
 from pathlib import Path
@@ -409,7 +410,8 @@ def test_second_order_remainders_make_gentle_loads_exactly_linear():
     damped 12 mm bend with a random network: along a ray of states and loads, halving the step
     quarters G and H (order 1, anchored: halves them); under loads scaled by ε the rollout
     differs from the linearised FE model's by O(ε) relative (order 1: by a share that does not
-    shrink); the scripted model steps as the eager one."""
+    shrink); the scripted model, saved and loaded, steps as the eager
+    one; r(z₀, 0) kept by ``anchor`` is the one evaluated afresh."""
     torch = pytest.importorskip("torch")
     from thermognn.train.hybrid import LinearPriorModel
     from thermognn.train.model import TIGNN
@@ -449,9 +451,57 @@ def test_second_order_remainders_make_gentle_loads_exactly_linear():
             assert gaps[2] > 0.3 * gaps[1], gaps
         else:
             assert gaps[2] == pytest.approx(0.1 * gaps[1], rel=0.05) and gaps[1] < 0.2 * gaps[0], gaps
-    scripted = torch.jit.script(model)
+            with torch.enable_grad():      # r(z₀, 0) as ``anchor`` kept it, and evaluated afresh
+                kept = model.remainders(z[-1:], f[-1:], edges, node_type, ref, False)
+                fresh = model.remainders(z[-1:], f[-1:], edges, node_type, ref, True)
+            assert rel(kept[0], fresh[0].detach()) < 1e-12 and rel(kept[1], fresh[1].detach()) < 1e-12
+    buffer = io.BytesIO()
+    torch.jit.save(torch.jit.script(model), buffer)          # as export writes it, with what anchor kept
+    buffer.seek(0)
+    scripted = torch.jit.load(buffer)
     with torch.enable_grad():
         carried = model.carry(z[0], f[0], edges, node_type, ref)
         a = model.step(carried, f[1], edges, node_type, ref, torch.tensor(dt))
         b = scripted.step(carried, f[1], edges, node_type, ref, torch.tensor(dt))
     assert rel(b, a) < 1e-12
+
+
+def test_second_order_rollouts_take_the_rest_rates_once_with_the_same_gradients():
+    """A rollout of ``model.prior_order=2`` evaluates r(z₀, 0) once for all its steps
+    (``LinearPriorModel.rest_rates_once``), not at every step: on the damped 12 mm bend with a
+    random network, unanchored and with gradients as in training, two bodies' states and the
+    weights' gradients are those of steps that each evaluate it afresh."""
+    torch = pytest.importorskip("torch")
+    from thermognn.train.hybrid import LinearPriorModel
+    from thermognn.train.model import TIGNN
+    from thermognn.train.prior import NewmarkPrior
+
+    layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph()
+    ref = torch.as_tensor(X)
+    torch.manual_seed(0)
+    net = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, velocity_edges=True).double()
+    net.set_stats({"z_std": z.reshape(-1, 12).std(0) + 1e-3, "f_std": torch.full((3,), 0.1),
+                   "dzdt_std": torch.full((12,), 3e-2)})
+    model = LinearPriorModel(net, NewmarkPrior(linear, len(X), dt), ref, positions_only=False, order=2)
+    steps, N = 3, len(X)
+    mesh = (torch.cat([edges, edges + N], 1), torch.cat([node_type, node_type]), torch.cat([ref, ref]))
+    z0, forces = torch.stack([z[2], z[5]]), torch.stack([f[2:6], f[5:9]])          # [2, N, D], [2, 4, N, 3]
+
+    def states_and_gradients(once):
+        net.zero_grad()
+        with torch.enable_grad():
+            if once:
+                pred = model.rollouts(z0, forces, *mesh, steps, True)[:, 1:]
+            else:
+                u, v, a, G, H = model.begin(z0, forces[:, 0], *mesh, True)
+                out = []
+                for s in range(1, steps + 1):
+                    u, v, a, G, H = model.advance(u, v, a, G, H, forces[:, s], *mesh, True)
+                    out.append(model.state(u, v, H))
+                pred = torch.stack(out, 1)
+            pred[..., 3:6].pow(2).sum().backward()
+        return pred.detach(), torch.cat([p.grad.flatten() for p in net.parameters() if p.grad is not None])
+
+    (a, ga), (b, gb) = states_and_gradients(True), states_and_gradients(False)
+    assert float((a - b).norm() / b.norm()) < 1e-12
+    assert float(gb.norm()) > 0 and float((ga - gb).norm() / gb.norm()) < 1e-10

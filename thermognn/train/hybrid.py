@@ -41,7 +41,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import Dict, List, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import torch
 from omegaconf import OmegaConf
@@ -93,6 +93,10 @@ class LinearPriorModel(nn.Module):
         self.register_buffer("rest_G", torch.zeros(1, n, dtype=torch.float64), persistent=False)    # [1, n] N
         self.register_buffer("rest_H", torch.zeros(1, reference_positions.shape[0], 6, dtype=torch.float64),
                              persistent=False)                                                     # [1, N, 6] Pa
+        # order 2: the network's rates r(z₀, 0) at the rest state, kept by ``anchor`` so that a step
+        # without gradients evaluates the network on 2B copies of the mesh, not 2B + 1
+        self.register_buffer("rest_rates", torch.zeros(reference_positions.shape[0], self.dim,
+                                                       dtype=net.z_mean.dtype), persistent=False)   # [N, D]
         self.anchored = False
 
     def rest_state(self) -> Tensor:
@@ -101,7 +105,7 @@ class LinearPriorModel(nn.Module):
         return torch.cat([X, torch.zeros(X.shape[0], self.dim - 3, dtype=X.dtype, device=X.device)], 1).unsqueeze(0)
 
     def network_remainders(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
-                           create_graph: bool) -> Tuple[Tensor, Tensor]:
+                           create_graph: bool, rest_rates: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
         """The remainders in the network's units (its v columns G / dzdt_std, its σ columns
         H / dzdt_std) at states z [B, N, D] under the loads f [B, N, 3] [N], and the network's
         degeneracy loss (0-dim): (r [B, N, D] in the network's dtype, degeneracy).
@@ -112,8 +116,10 @@ class LinearPriorModel(nn.Module):
         constant and linear parts in (z − z₀, f) cancel (a quadratic r is returned unchanged), as
         the true G = K u − f_int(u) and H = σ − Σ u start at second order in u. So under small loads
         the model is the linearised FE model, with an error O(load²); each call evaluates the
-        network on 2B + 1 copies of the mesh (the degeneracy loss is that of the 2B loaded ones,
-        so that it weighs every sample alike whatever the batch)."""
+        network on 2B + 1 copies of the mesh, or 2B given ``rest_rates`` r(z₀, 0) [N, D] (what
+        ``rest_rates_once`` gives a rollout, once for all its steps) or once anchored and without
+        gradients (then ``anchor`` kept it). The degeneracy loss is that of the 2B loaded copies, so that
+        it weighs every sample alike whatever the batch."""
         B, N, D = z.shape[0], z.shape[1], z.shape[2]
         dtype = self.net.z_mean.dtype
         if self.order == 1:
@@ -127,17 +133,43 @@ class LinearPriorModel(nn.Module):
         out = self.net.rates((zs * self.seen).reshape(2 * B * N, D), fs.reshape(2 * B * N, 3),
                              torch.cat([edge_index, edge_index + B * N], 1), torch.cat([node_type, node_type]),
                              torch.cat([ref_pos, ref_pos]), create_graph)
-        E = edge_index.shape[1] // B                                      # edges of one copy (copies in order)
-        r0 = self.net.rates((rest.to(dtype) * self.seen).reshape(N, D), torch.zeros(N, 3, dtype=dtype),
-                            edge_index[:, :E], node_type[:N], ref_pos[:N], create_graph)[0]                # [N, D]
+        if rest_rates is not None:
+            r0 = rest_rates                                               # [N, D]
+        elif self.anchored and not create_graph:
+            r0 = self.rest_rates                                          # kept by ``anchor``: [N, D]
+        else:
+            E = edge_index.shape[1] // B                                  # edges of one copy (copies in order)
+            r0 = self.rest_network_rates(edge_index[:, :E], node_type[:N], ref_pos[:N], create_graph)
         r = out[0].reshape(2 * B, N, D)
         return 2.0 * (r[:B] - 2.0 * r[B:] + r0.unsqueeze(0)), out[5]                             # [B, N, D]
 
+    def rest_network_rates(self, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
+                           create_graph: bool) -> Tensor:
+        """The network's rates r(z₀, 0) [N, D] (its dtype) at the unloaded rest state, on one copy
+        of the mesh (its graph tensors)."""
+        N, D = self.reference_positions.shape[0], self.dim
+        dtype = self.net.z_mean.dtype
+        return self.net.rates((self.rest_state().to(dtype) * self.seen).reshape(N, D),
+                              torch.zeros(N, 3, dtype=dtype, device=self.seen.device),
+                              edge_index, node_type, ref_pos, create_graph)[0]
+
+    def rest_rates_once(self, B: int, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
+                        create_graph: bool) -> Optional[Tensor]:
+        """r(z₀, 0) [N, D] for every step of one rollout of B bodies (graph tensors of B copies),
+        evaluated once: the weights do not change within it. None where the steps need none
+        (order 1) or take the one ``anchor`` kept (anchored, without gradients)."""
+        if self.order == 1 or (self.anchored and not create_graph):
+            return None
+        N = self.reference_positions.shape[0]
+        E = edge_index.shape[1] // B                                      # edges of one copy (copies in order)
+        return self.rest_network_rates(edge_index[:, :E], node_type[:N], ref_pos[:N], create_graph)
+
     def remainders(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
-                   create_graph: bool) -> Tuple[Tensor, Tensor]:
+                   create_graph: bool, rest_rates: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
         """The network's remainders at states z [B, N, D] under the loads f [B, N, 3] [N]:
-        G [B, n] N over the free DOFs and H [B, N, 6] Pa (float64)."""
-        r = self.network_remainders(z, f, edge_index, node_type, ref_pos, create_graph)[0]
+        G [B, n] N over the free DOFs and H [B, N, 6] Pa (float64); ``rest_rates`` as for
+        ``network_remainders``."""
+        r = self.network_remainders(z, f, edge_index, node_type, ref_pos, create_graph, rest_rates)[0]
         if not create_graph:
             r = r.detach()
         r = r.to(torch.float64) * self.net.dzdt_std.to(torch.float64)              # [B, N, D] SI
@@ -156,6 +188,8 @@ class LinearPriorModel(nn.Module):
         rest = self.rest_state()
         self.anchored = False
         with torch.enable_grad():
+            if self.order == 2:
+                self.rest_rates.copy_(self.rest_network_rates(edge_index, node_type, ref_pos, False).detach())
             G, H = self.remainders(rest, torch.zeros_like(rest[:, :, 0:3]), edge_index, node_type, ref_pos, False)
         self.rest_G.copy_(G.detach())
         self.rest_H.copy_(H.detach())
@@ -168,12 +202,12 @@ class LinearPriorModel(nn.Module):
                           self.prior.stress(U, H)], -1)
 
     def begin(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
-              create_graph: bool) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+              create_graph: bool, rest_rates: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """(u, v, a, G, H) at the physical states z [B, N, D] under f [B, N, 3]: a from the
         balance of forces there, G and H from the network."""
         z, f = z.to(torch.float64), f.to(torch.float64)
         u, v, H = self.unpack(z)
-        G, _ = self.remainders(z, f, edge_index, node_type, ref_pos, create_graph)
+        G, _ = self.remainders(z, f, edge_index, node_type, ref_pos, create_graph, rest_rates)
         a = self.prior.initial_acceleration(u, v, self.prior.gather(f), G)
         return u, v, a, G, H
 
@@ -195,7 +229,8 @@ class LinearPriorModel(nn.Module):
         return torch.cat([self.state(u, v, H)[0], self.prior.scatter(a)[0], self.prior.scatter(G)[0]], -1)
 
     def advance(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, f1: Tensor, edge_index: Tensor,
-                node_type: Tensor, ref_pos: Tensor, create_graph: bool) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+                node_type: Tensor, ref_pos: Tensor, create_graph: bool,
+                rest_rates: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """One step under the loads f1 [B, N, 3] at its end: predict with the last G, evaluate
         the network there (``sweeps`` times), step with its G1."""
         f1 = f1.to(torch.float64)
@@ -203,7 +238,8 @@ class LinearPriorModel(nn.Module):
         G1 = G
         for _ in range(self.sweeps):
             u1, v1, _a1 = self.prior.step(u, v, a, f1_rows, G, G1)
-            G1, H = self.remainders(self.state(u1, v1, H), f1, edge_index, node_type, ref_pos, create_graph)
+            G1, H = self.remainders(self.state(u1, v1, H), f1, edge_index, node_type, ref_pos, create_graph,
+                                    rest_rates)
         u1, v1, a1 = self.prior.step(u, v, a, f1_rows, G, G1)
         return u1, v1, a1, G1, H
 
@@ -230,17 +266,22 @@ class LinearPriorModel(nn.Module):
                  steps: int, create_graph: bool) -> Tensor:
         """Physical states [B, steps + 1, N, D] (float64) from z0 [B, N, D] under the loads
         forces [B, S, N, 3] (forces[:, s] at t_s; the last one held beyond S - 1 steps)."""
-        u, v, a, G, H = self.begin(z0, forces[:, 0], edge_index, node_type, ref_pos, create_graph)
-        return self.roll(u, v, a, G, H, forces, edge_index, node_type, ref_pos, steps, create_graph)
+        r0 = self.rest_rates_once(z0.shape[0], edge_index, node_type, ref_pos, create_graph)
+        u, v, a, G, H = self.begin(z0, forces[:, 0], edge_index, node_type, ref_pos, create_graph, r0)
+        return self.roll(u, v, a, G, H, forces, edge_index, node_type, ref_pos, steps, create_graph, r0)
 
     def roll(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, forces: Tensor, edge_index: Tensor,
-             node_type: Tensor, ref_pos: Tensor, steps: int, create_graph: bool) -> Tensor:
-        """``rollouts`` from its start (u, v, a, G, H), e.g. ``begin``'s with another acceleration."""
+             node_type: Tensor, ref_pos: Tensor, steps: int, create_graph: bool,
+             rest_rates: Optional[Tensor] = None) -> Tensor:
+        """``rollouts`` from its start (u, v, a, G, H), e.g. ``begin``'s with another acceleration;
+        ``rest_rates`` as ``rest_rates_once`` gives them (evaluated here if not given)."""
         S = forces.shape[1]
+        if rest_rates is None:
+            rest_rates = self.rest_rates_once(u.shape[0], edge_index, node_type, ref_pos, create_graph)
         out = [self.state(u, v, H)]
         for s in range(1, steps + 1):
             u, v, a, G, H = self.advance(u, v, a, G, H, forces[:, min(s, S - 1)], edge_index, node_type,
-                                         ref_pos, create_graph)
+                                         ref_pos, create_graph, rest_rates)
             out.append(self.state(u, v, H))
         return torch.stack(out, 1)
 
@@ -400,10 +441,11 @@ class _RolloutPhase:
         truth = torch.stack([self.Z[i][s:s + W + 1] for i, s in chosen])                  # [k, W + 1, N, D]
         forces = torch.stack([self.trajs[i].force[s:s + W + 1] for i, s in chosen])       # [k, W + 1, N, 3]
         mesh = (g.edge_index, g.node_type, g.ref_pos)
-        u, v, a, G, H = self.model.begin(truth[:, 0], forces[:, 0], *mesh, True)
+        r0 = self.model.rest_rates_once(len(chosen), *mesh, True)        # once per batch: weights fixed within it
+        u, v, a, G, H = self.model.begin(truth[:, 0], forces[:, 0], *mesh, True, r0)
         if any(s > 0 for _, s in chosen):
             a = torch.stack([self.accelerations[i][s] if s > 0 else a[j] for j, (i, s) in enumerate(chosen)])
-        pred = self.model.roll(u, v, a, G, H, forces, *mesh, W, True)
+        pred = self.model.roll(u, v, a, G, H, forces, *mesh, W, True, r0)
         loss = sum(((pred[:, 1:, :, sl] - truth[:, 1:, :, sl]) / sc).pow(2).mean() for sl, sc in self.scales)
         return loss, float(loss.detach()), 0.0
 
