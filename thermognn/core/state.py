@@ -99,7 +99,7 @@ def describe_step(step) -> str:
         return (f"the data's Newmark step of the linearised solid with learned remainders"
                 + (" of second order" if second else "")
                 + f" ({calls} network call{'s' if calls > 1 else ''} a step"
-                + (", each on 2 states and the rest state" if second else "") + ")")
+                + (", each on the state and its half-way state" if second else "") + ")")
     integrator = str(step.get("integrator", "?"))
     if integrator == "midpoint":
         integrator += f" ({step.get('implicit_iterations', '?')} sweeps)"
