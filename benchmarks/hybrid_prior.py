@@ -40,7 +40,7 @@ def main() -> None:
     from thermognn.core.schema import Dataset
     from thermognn.export.exporter import build_exported, script
     from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint
-    from thermognn.train.data import TrajectoryTensors, load_data
+    from thermognn.train.data import load_data
     from thermognn.train.evaluation import linear_baseline
     from thermognn.train.model import parameter_count
     from thermognn.train.rollout import rollout, rrmse_per_step, trajectory_error, trajectory_rrmse
@@ -50,13 +50,11 @@ def main() -> None:
     if not ckpt.get("prior"):
         raise SystemExit(f"{run / 'model.ckpt'}: not a model.prior=linear checkpoint")
     ds_path = Path(args.dataset or ckpt["dataset"])
-    data = load_data(ds_path, [0.8, 0.1, 0.1], 0, torch.float32, parts=())
+    # states and loads in float64, as evaluate reads them for a prior model (session 15)
+    data = load_data(ds_path, [0.8, 0.1, 0.1], 0, torch.float32, parts=(), state_dtype=torch.float64)
     data.split = {k: list(v) for k, v in ckpt["split"].items()}
     for n in data.split["test"]:
-        t = data.dataset.read(n)
-        data.trajectories[n] = TrajectoryTensors(n, torch.as_tensor(t.z, dtype=torch.float32),
-                                                 torch.as_tensor(t.force, dtype=torch.float32),
-                                                 torch.as_tensor(t.time, dtype=torch.float64))
+        data.read(n)
     test, layout, g = data.of("test"), data.layout, data.graph
     mean = lambda rows: {k: float(np.mean([r[k] for r in rows])) for k in layout.names}  # noqa: E731
 
