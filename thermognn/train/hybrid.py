@@ -138,20 +138,20 @@ class LinearPriorModel(nn.Module):
         elif self.anchored and not create_graph:
             r0 = self.rest_rates                                          # kept by ``anchor``: [N, D]
         else:
-            E = edge_index.shape[1] // B                                  # edges of one copy (copies in order)
-            r0 = self.rest_network_rates(edge_index[:, :E], node_type[:N], ref_pos[:N], create_graph)
+            r0 = self.rest_network_rates(B, edge_index, node_type, ref_pos, create_graph)
         r = out[0].reshape(2 * B, N, D)
         return 2.0 * (r[:B] - 2.0 * r[B:] + r0.unsqueeze(0)), out[5]                             # [B, N, D]
 
-    def rest_network_rates(self, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
+    def rest_network_rates(self, B: int, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                            create_graph: bool) -> Tensor:
-        """The network's rates r(z₀, 0) [N, D] (its dtype) at the unloaded rest state, on one copy
-        of the mesh (its graph tensors)."""
+        """The network's rates r(z₀, 0) [N, D] (its dtype) at the unloaded rest state, on the first
+        of the B copies of the mesh that the graph tensors hold."""
         N, D = self.reference_positions.shape[0], self.dim
+        E = edge_index.shape[1] // B                                      # edges of one copy (copies in order)
         dtype = self.net.z_mean.dtype
         return self.net.rates((self.rest_state().to(dtype) * self.seen).reshape(N, D),
                               torch.zeros(N, 3, dtype=dtype, device=self.seen.device),
-                              edge_index, node_type, ref_pos, create_graph)[0]
+                              edge_index[:, :E], node_type[:N], ref_pos[:N], create_graph)[0]
 
     def rest_rates_once(self, B: int, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                         create_graph: bool) -> Optional[Tensor]:
@@ -160,9 +160,7 @@ class LinearPriorModel(nn.Module):
         (order 1) or take the one ``anchor`` kept (anchored, without gradients)."""
         if self.order == 1 or (self.anchored and not create_graph):
             return None
-        N = self.reference_positions.shape[0]
-        E = edge_index.shape[1] // B                                      # edges of one copy (copies in order)
-        return self.rest_network_rates(edge_index[:, :E], node_type[:N], ref_pos[:N], create_graph)
+        return self.rest_network_rates(B, edge_index, node_type, ref_pos, create_graph)
 
     def remainders(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                    create_graph: bool, rest_rates: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
@@ -188,9 +186,10 @@ class LinearPriorModel(nn.Module):
         rest = self.rest_state()
         self.anchored = False
         with torch.enable_grad():
-            if self.order == 2:
-                self.rest_rates.copy_(self.rest_network_rates(edge_index, node_type, ref_pos, False).detach())
-            G, H = self.remainders(rest, torch.zeros_like(rest[:, :, 0:3]), edge_index, node_type, ref_pos, False)
+            r0 = self.rest_rates_once(1, edge_index, node_type, ref_pos, False)             # order 2: [N, D]
+            if r0 is not None:
+                self.rest_rates.copy_(r0.detach())
+            G, H = self.remainders(rest, torch.zeros_like(rest[:, :, 0:3]), edge_index, node_type, ref_pos, False, r0)
         self.rest_G.copy_(G.detach())
         self.rest_H.copy_(H.detach())
         self.anchored = True
@@ -274,10 +273,9 @@ class LinearPriorModel(nn.Module):
              node_type: Tensor, ref_pos: Tensor, steps: int, create_graph: bool,
              rest_rates: Optional[Tensor] = None) -> Tensor:
         """``rollouts`` from its start (u, v, a, G, H), e.g. ``begin``'s with another acceleration;
-        ``rest_rates`` as ``rest_rates_once`` gives them (evaluated here if not given)."""
+        ``rest_rates`` as ``rest_rates_once`` gives them (None: each step evaluates its own where
+        it needs them, as ``network_remainders`` says)."""
         S = forces.shape[1]
-        if rest_rates is None:
-            rest_rates = self.rest_rates_once(u.shape[0], edge_index, node_type, ref_pos, create_graph)
         out = [self.state(u, v, H)]
         for s in range(1, steps + 1):
             u, v, a, G, H = self.advance(u, v, a, G, H, forces[:, min(s, S - 1)], edge_index, node_type,
