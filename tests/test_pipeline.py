@@ -151,6 +151,28 @@ def test_linear_prior_early_stopping_ends_each_phase(tmp_path, tiny_block):
     assert "at epoch 8" in res.stdout and len((tmp_path / "metrics.csv").read_text().splitlines()) == 5
 
 
+def test_linear_prior_warm_start_straight_into_rollouts(tmp_path, tiny_block):
+    """train.epochs=0 with model=linear_prior and train.init: a fine-tune of rollouts only (say,
+    whole trajectories after training on windows). At a zero rate its one epoch validates the
+    source's weights: the source's own validation error. No epochs at all is a one-line error."""
+    from thermognn.train.checkpoint import load_checkpoint
+
+    _train_prior(tmp_path / "src", tiny_block, "train.epochs=1", "train.rollout_epochs=1", "train.rollout_window=1")
+    src = load_checkpoint(tmp_path / "src" / "model.last.ckpt")
+    res = _train_prior(tmp_path / "tuned", tiny_block, "train.epochs=0", "train.rollout_epochs=1", "train.rollout_lr=0",
+                       f"train.init={tmp_path / 'src' / 'model.last.ckpt'}")
+    assert "0 fit + 1 rollout epochs" in res.stdout
+    tuned = load_checkpoint(tmp_path / "tuned" / "model.last.ckpt")
+    assert [r["phase"] for r in tuned["history"]] == ["rollout"]
+    assert abs(tuned["history"][0]["val_error"] - src["history"][-1]["val_error"]) <= 1e-6 * src["history"][-1]["val_error"]
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'none'}",
+                          f"paths.dataset={tiny_block}", "model=linear_prior", "train.epochs=0", "train.rollout_epochs=0"],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode != 0
+    assert res.stderr.strip() == ("error: train.epochs = 0, train.rollout_epochs = 0: expected >= 0 each and >= 1 "
+                                  "together"), res.stderr[-2000:]
+
+
 def test_linear_prior_of_first_order_trains_evaluates_and_exports(tmp_path, tiny_block):
     """`model.prior_order=1` (the remainders are the network's outputs, as before session 15)
     through train, evaluate and export: the checkpoint records no order (older checkpoints load

@@ -312,11 +312,15 @@ def train(cfg) -> Path:
     dtype = torch_dtype(dtype_name)
     seed = int(_sel(cfg, "seed", 0))
     epochs = int(tc.epochs)
-    if epochs < 1:
+    prior = prior_kind(cfg.model)
+    if prior == "linear":            # fit epochs may be 0: a warm start (train.init) straight into rollouts
+        if epochs < 0 or epochs + int(_sel(tc, "rollout_epochs", 0)) < 1:
+            raise ConfigError(f"train.epochs = {epochs}, train.rollout_epochs = {_sel(tc, 'rollout_epochs', 0)}: "
+                              f"expected >= 0 each and >= 1 together")
+    elif epochs < 1:
         raise ConfigError(f"train.epochs = {epochs}, expected >= 1")
     ckpt_path = project_path(cfg.paths.checkpoint)
     out_dir = project_path(cfg.out)
-    prior = prior_kind(cfg.model)
     data = load_data(project_path(cfg.paths.dataset), tc.split, seed, dtype,
                      state_dtype=torch.float64 if prior == "linear" else dtype)   # the prior steps float64 states
     ds = data.dataset
