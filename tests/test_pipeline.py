@@ -173,6 +173,28 @@ def test_linear_prior_warm_start_straight_into_rollouts(tmp_path, tiny_block):
                                   "together"), res.stderr[-2000:]
 
 
+def test_linear_prior_ends_on_whole_trajectories(tmp_path, tiny_block):
+    """train.whole_epochs: after the (windowed) rollout phase, epochs on whole trajectories from
+    rest with their own Adam and rate, in one command. At a zero rate its epoch validates the
+    rollout phase's last weights; a resumed run with more of them goes on from there."""
+    from thermognn.train.checkpoint import load_checkpoint
+
+    run = ["train.epochs=1", "train.rollout_epochs=1", "train.rollout_window=1", "train.whole_lr=0"]
+    res = _train_prior(tmp_path, tiny_block, *run, "train.whole_epochs=1")
+    assert "1 fit + 1 rollout epochs + 1 whole-trajectory epochs" in res.stdout
+    history = load_checkpoint(tmp_path / "model.last.ckpt")["history"]
+    assert [r["phase"] for r in history] == ["fit", "rollout", "whole"]
+    assert abs(history[2]["val_error"] - history[1]["val_error"]) <= 1e-6 * history[1]["val_error"]
+    res = _train_prior(tmp_path, tiny_block, *run, "train.whole_epochs=2")
+    assert "at epoch 3" in res.stdout
+    phases = [r.split(",")[1] for r in (tmp_path / "metrics.csv").read_text().splitlines()[1:]]
+    assert phases == ["fit", "rollout", "whole", "whole"]
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'bad'}",
+                          f"paths.dataset={tiny_block}", "model=linear_prior", "train.whole_epochs=-1"],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode != 0 and res.stderr.strip() == "error: train.whole_epochs = -1, expected >= 0", res.stderr
+
+
 def test_linear_prior_of_first_order_trains_evaluates_and_exports(tmp_path, tiny_block):
     """`model.prior_order=1` (the remainders are the network's outputs, as before session 15)
     through train, evaluate and export: the checkpoint records no order (older checkpoints load

@@ -451,11 +451,15 @@ class _RolloutPhase:
 def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str, ckpt_path: Path,
                        out_dir: Path, dist) -> Path:
     """``thermognn train`` with ``model.prior=linear`` (module docstring): ``train.epochs`` fit
-    epochs on the exact remainders, then ``train.rollout_epochs`` epochs on whole rollouts; best
+    epochs on the exact remainders, then ``train.rollout_epochs`` epochs on rollouts (windows of
+    ``train.rollout_window`` steps, or whole), then ``train.whole_epochs`` epochs on whole
+    trajectories at a restarted rate (``train.whole_lr``; session 17: after windows this lowered the
+    block's σ by 15 %); best
     checkpoint by the validation rollout error, ``model.last.ckpt`` after every epoch (resumed),
     ``metrics.csv`` with the phase of each epoch. Validation runs every epoch; with
     ``train.patience`` p > 0 a phase ends after p epochs without improving on its own best (the
-    fit phase hands over to the rollouts, the rollout phase ends training).
+    fit phase hands over to the rollouts, the rollouts to the whole trajectories, the last phase
+    ends training).
 
     Under torchrun (``dist``: ``loop._Dist``) each of the W processes takes every W-th sample of
     an epoch's shuffled order (the same order everywhere: one seeded generator) and the gradients
@@ -477,7 +481,11 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     roll_epochs = int(_sel(tc, "rollout_epochs", 0))
     if roll_epochs < 0:
         raise ConfigError(f"train.rollout_epochs = {roll_epochs}, expected >= 0")
-    epochs = fit_epochs + roll_epochs
+    whole_epochs = int(_sel(tc, "whole_epochs", 0))
+    if whole_epochs < 0:
+        raise ConfigError(f"train.whole_epochs = {whole_epochs}, expected >= 0")
+    roll_end = fit_epochs + roll_epochs
+    epochs = roll_end + whole_epochs
     window = int(_sel(tc, "rollout_window", 0))
     if window < 0:
         raise ConfigError(f"train.rollout_window = {window}, expected >= 0 (0: whole rollouts)")
@@ -505,11 +513,14 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     identity = {**training_identity(cfg, hparams, dtype_name), "prior": settings,
                 "rollout_lr": float(_sel(tc, "rollout_lr", 1e-3)),
                 "rollout_lr_decay": float(_sel(tc, "rollout_lr_decay", 0.01)),
-                **({"rollout_window": window} if window else {})}
+                **({"rollout_window": window} if window else {}),
+                **({"whole_lr": float(_sel(tc, "whole_lr", 1e-4)), "whole_lr_decay": float(_sel(tc, "whole_lr_decay", 0.1))}
+                   if whole_epochs else {})}
 
     fit = _FitPhase(model, train_trajs, G_true, H_true, float(_sel(tc, "noise", 0.1)),
                     float(_sel(tc, "lambda_data", 100.0)), float(_sel(tc, "lambda_degeneracy", 1.0)))
     rollouts = _RolloutPhase(model, train_trajs, window)
+    whole = _RolloutPhase(model, train_trajs, 0) if whole_epochs else rollouts   # phase 3: whole trajectories
     batch_size = max(1, int(tc.batch_size))
     copies: Dict[int, object] = {}
 
@@ -520,7 +531,9 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
         return copies[k]
 
     def optimizer(epoch: int) -> torch.optim.Adam:
-        return torch.optim.Adam(net.parameters(), lr=float(tc.lr) if epoch < fit_epochs else identity["rollout_lr"])
+        lr = (float(tc.lr) if epoch < fit_epochs else identity["rollout_lr"] if epoch < roll_end
+              else identity["whole_lr"])
+        return torch.optim.Adam(net.parameters(), lr=lr)
 
     gen = torch.Generator().manual_seed(seed)
     start, history, best_val = 0, [], math.inf
@@ -544,9 +557,10 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
             torch.set_rng_state(state["rng"]["torch"])
             if dist.main:
                 print(f"resuming from {last} at epoch {start}")
+    more = f" + {whole_epochs} whole-trajectory epochs" if whole_epochs else ""
     if dist.main:
         print(f"train (model.prior=linear): {len(train_trajs)} train / {len(val_trajs)} val / "
-              f"{len(data.split['test'])} test trajectories, {fit_epochs} fit + {roll_epochs} rollout epochs, "
+              f"{len(data.split['test'])} test trajectories, {fit_epochs} fit + {roll_epochs} rollout epochs{more}, "
               f"{parameter_count(model)} parameters, {model.prior.free_index.numel()} free DOFs"
               + (f", {dist.world} processes" if dist.world > 1 else ""))
 
@@ -557,17 +571,21 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
         epoch = start
         while epoch < epochs:
             t0 = time.perf_counter()
-            if epoch == fit_epochs:
-                opt = optimizer(epoch)                               # phase 2 starts its own Adam
+            if epoch == fit_epochs or (whole_epochs and epoch == roll_end):
+                opt = optimizer(epoch)                               # phases 2 and 3 start their own Adam
                 phase_best, stale = math.inf, 0
             model.train()
             if epoch < fit_epochs:          # phase 1: one step from the data's states, exact remainders
                 phase, items, base_lr, decay = "fit", fit.samples, float(tc.lr), float(_sel(tc, "lr_decay", 0.1))
                 progress_at = lambda b: (epoch + b / nb) / fit_epochs  # noqa: E731
-            else:                           # phase 2: whole rollouts through the linear solves
+            elif epoch < roll_end:          # phase 2: rollouts (or windows) through the linear solves
                 phase, items, base_lr, decay = ("rollout", rollouts.samples, identity["rollout_lr"],
                                                 identity["rollout_lr_decay"])
                 progress_at = lambda b: (epoch - fit_epochs + b / nb) / roll_epochs  # noqa: E731
+            else:                           # phase 3: whole trajectories from rest, at a restarted rate
+                phase, items, base_lr, decay = ("whole", whole.samples, identity["whole_lr"],
+                                                identity["whole_lr_decay"])
+                progress_at = lambda b: (epoch - roll_end + b / nb) / whole_epochs  # noqa: E731
             perm = torch.randperm(len(items), generator=gen).tolist()
             perm = perm[dist.rank:len(perm) // dist.world * dist.world:dist.world]   # this process's share
             nb = max(1, len(perm) // batch_size)
@@ -577,7 +595,8 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                     group["lr"] = _lr(base_lr, decay, progress_at(b))
                 chosen = [items[j] for j in perm[b * batch_size:(b + 1) * batch_size]]
                 g = mesh(len(chosen))
-                loss, data_loss, deg = fit.loss(chosen, g, gen) if phase == "fit" else rollouts.loss(chosen, g)
+                loss, data_loss, deg = (fit.loss(chosen, g, gen) if phase == "fit" else
+                                        (rollouts if phase == "rollout" else whole).loss(chosen, g))
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 dist.average_gradients(net)
@@ -601,7 +620,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
             phase_best = min(val, phase_best)
             epoch = done
             if patience > 0 and stale >= patience and done < epochs:    # early stopping ends the phase
-                epoch = fit_epochs if done < fit_epochs else epochs
+                epoch = fit_epochs if done < fit_epochs else roll_end if done < roll_end else epochs
                 if dist.main:
                     print(f"early stopping: the {phase} phase ends at epoch {done} "
                           f"(no improvement in {patience} epochs)")
