@@ -193,6 +193,12 @@ def test_linear_prior_ends_on_whole_trajectories(tmp_path, tiny_block):
                           f"paths.dataset={tiny_block}", "model=linear_prior", "train.whole_epochs=-1"],
                          capture_output=True, text=True, timeout=600)
     assert res.returncode != 0 and res.stderr.strip() == "error: train.whole_epochs = -1, expected >= 0", res.stderr
+    from omegaconf import OmegaConf
+
+    from thermognn.train.hybrid import phase_epochs
+
+    # a fine-tune (train.init) may go straight to the whole trajectories
+    assert phase_epochs(OmegaConf.create({"epochs": 0, "rollout_epochs": 0, "whole_epochs": 2})) == (0, 0, 2)
 
 
 def test_linear_prior_of_first_order_trains_evaluates_and_exports(tmp_path, tiny_block):

@@ -448,8 +448,27 @@ class _RolloutPhase:
         return loss, float(loss.detach()), 0.0
 
 
+def phase_epochs(tc) -> Tuple[int, int, int]:
+    """The epochs of the three phases of ``train_linear_prior`` from ``cfg.train``: (fit
+    ``train.epochs``, rollout ``train.rollout_epochs``, whole-trajectory ``train.whole_epochs``),
+    each >= 0 and at least one epoch in all (the fit phase may be skipped: a fine-tune of rollouts
+    from ``train.init``), else a one-line ``ConfigError``. Checked before the dataset is read."""
+    fit = int(tc.epochs)
+    roll = int(OmegaConf.select(tc, "rollout_epochs", default=0))
+    whole = int(OmegaConf.select(tc, "whole_epochs", default=0))
+    if roll < 0:
+        raise ConfigError(f"train.rollout_epochs = {roll}, expected >= 0")
+    if whole < 0:
+        raise ConfigError(f"train.whole_epochs = {whole}, expected >= 0")
+    if fit < 0 or fit + roll + whole < 1:
+        raise ConfigError(f"train.epochs = {fit}, train.rollout_epochs = {roll}"
+                          + (f", train.whole_epochs = {whole}" if whole else "")
+                          + ": expected >= 0 each and >= 1 together")
+    return fit, roll, whole
+
+
 def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str, ckpt_path: Path,
-                       out_dir: Path, dist) -> Path:
+                       out_dir: Path, dist, epochs_of: Tuple[int, int, int]) -> Path:
     """``thermognn train`` with ``model.prior=linear`` (module docstring): ``train.epochs`` fit
     epochs on the exact remainders, then ``train.rollout_epochs`` epochs on rollouts (windows of
     ``train.rollout_window`` steps, or whole), then ``train.whole_epochs`` epochs on whole
@@ -464,7 +483,8 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     Under torchrun (``dist``: ``loop._Dist``) each of the W processes takes every W-th sample of
     an epoch's shuffled order (the same order everywhere: one seeded generator) and the gradients
     are averaged before clipping, so W processes with ``train.batch_size`` k take the steps one
-    process takes with batch size W k. Rank 0 writes the checkpoints, metrics and the test table."""
+    process takes with batch size W k. Rank 0 writes the checkpoints, metrics and the test table.
+    ``epochs_of``: the three phases' epochs, as ``phase_epochs`` checked them."""
     from thermognn.core.config import project_path
 
     from .checkpoint import last_path, load_checkpoint, save_checkpoint, torch_dtype
@@ -477,13 +497,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     tc, ds = cfg.train, data.dataset
     dtype = torch_dtype(dtype_name)
     seed = int(_sel(cfg, "seed", 0))
-    fit_epochs = int(tc.epochs)
-    roll_epochs = int(_sel(tc, "rollout_epochs", 0))
-    if roll_epochs < 0:
-        raise ConfigError(f"train.rollout_epochs = {roll_epochs}, expected >= 0")
-    whole_epochs = int(_sel(tc, "whole_epochs", 0))
-    if whole_epochs < 0:
-        raise ConfigError(f"train.whole_epochs = {whole_epochs}, expected >= 0")
+    fit_epochs, roll_epochs, whole_epochs = epochs_of
     roll_end = fit_epochs + roll_epochs
     epochs = roll_end + whole_epochs
     window = int(_sel(tc, "rollout_window", 0))
