@@ -337,7 +337,7 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
     from thermognn.train.data import Graph, TrajectoryTensors
     from thermognn.train.hybrid import LinearPriorModel, _RolloutPhase
     from thermognn.train.model import TIGNN
-    from thermognn.train.rollout import one_step_errors
+    from thermognn.train.rollout import one_step_errors, trajectory_error
     from thermognn.train.prior import NewmarkPrior
 
     layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph()
@@ -377,6 +377,22 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
         whole = _RolloutPhase(model, [TrajectoryTensors("fe", z, f, times)])
         assert fe_windows.window == whole.window == len(f) - 1
         assert float(fe_windows.loss([(0, 0)], graph.copies(1))[0]) == float(whole.loss([(0, 0)], graph.copies(1))[0]) > 0
+        # train.rollout_scale=trajectory: each group's error relative to the RMS of its own
+        # trajectory, whatever the others' sizes (with "data": one scale for all), so a whole
+        # trajectory's loss is the sum of its squared whole-rollout errors (trajectory_error, q as
+        # the displacement), times (S + 1) / S as its RMS counts the rest state it starts from
+        fe = TrajectoryTensors("fe", z, f, times)
+        louder = TrajectoryTensors("louder", torch.cat([z[..., :3], 10 * z[..., 3:]], -1), f, times)
+        assert all(float(sc.std()) == 0 for _, sc in _RolloutPhase(model, [louder, fe]).scales)
+        own_scale = _RolloutPhase(model, [louder, fe], scale="trajectory")
+        assert all(float(sc[0] / sc[1]) == pytest.approx(10.0) for _, sc in own_scale.scales[1:])
+        S, Xt = len(f) - 1, torch.as_tensor(X)
+        displacement = lambda s: torch.cat([s[..., :3] - Xt, s[..., 3:]], -1)  # noqa: E731
+        assert float(displacement(z[0]).abs().max()) < 1e-9 * float(displacement(z).abs().max())  # from rest
+        pred = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, S, True)[0]
+        errors = trajectory_error(displacement(pred), displacement(z), layout)
+        assert float(own_scale.loss([(1, 0)], graph.copies(1))[0]) == pytest.approx(
+            (S + 1) / S * sum(e ** 2 for e in errors.values()), rel=1e-9)
 
     net.load_state_dict(saved)                                 # a network that corrects something
     with torch.enable_grad():

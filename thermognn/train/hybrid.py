@@ -409,19 +409,29 @@ class _FitPhase:
         return self.lambda_data * data_loss + self.lambda_degeneracy * deg, float(data_loss.detach()), float(deg.detach())
 
 
+#: train.rollout_scale values: what a rollout's error in each group is relative to
+ROLLOUT_SCALES = ("data", "trajectory")
+
+
 class _RolloutPhase:
     """Phase 2: rollouts from true states, back-propagated through the linear solves (whole
     trajectories, or windows of ``window`` steps tiling them); each group's error relative to its
-    RMS in the training data (q: the displacement's). Samples are (trajectory, first state)."""
+    RMS (q: the displacement's) in the training data (``scale`` "data") or in the sample's own
+    trajectory ("trajectory": each trajectory weighs alike, as in the whole-rollout error that
+    validation and the test report, so gentle load cases are not drowned by the strong ones).
+    Samples are (trajectory, first state)."""
 
-    def __init__(self, model: LinearPriorModel, trajs, window: int = 0) -> None:
+    def __init__(self, model: LinearPriorModel, trajs, window: int = 0, scale: str = "data") -> None:
         self.model, self.trajs = model, trajs
         Z = [t.z.double() for t in trajs]
         X = model.reference_positions
         self.Z = Z
-        self.scales = [(slice(0, 3), torch.cat([z[..., 0:3] - X for z in Z]).pow(2).mean().sqrt()),
-                       (slice(3, 6), torch.cat([z[..., 3:6] for z in Z]).pow(2).mean().sqrt()),
-                       (slice(6, 12), torch.cat([z[..., 6:12] for z in Z]).pow(2).mean().sqrt())]
+        groups = [(slice(0, 3), [z[..., 0:3] - X for z in Z]), (slice(3, 6), [z[..., 3:6] for z in Z]),
+                  (slice(6, 12), [z[..., 6:12] for z in Z])]
+        rms = lambda xs: torch.cat(xs).pow(2).mean().sqrt()                           # noqa: E731
+        # per group: its scale for each trajectory [T]
+        self.scales = [(sl, torch.stack([rms([x]) for x in xs]) if scale == "trajectory"
+                        else rms(xs).expand(len(xs))) for sl, xs in groups]
         longest = max(z.shape[0] for z in Z) - 1
         self.window = window if 0 < window < longest else longest           # steps per sample
         # samples: (trajectory, first state) of windows tiling every trajectory
@@ -444,7 +454,9 @@ class _RolloutPhase:
         if any(s > 0 for _, s in chosen):
             a = torch.stack([self.accelerations[i][s] if s > 0 else a[j] for j, (i, s) in enumerate(chosen)])
         pred = self.model.roll(u, v, a, G, H, forces, *mesh, W, True, r0)
-        loss = sum(((pred[:, 1:, :, sl] - truth[:, 1:, :, sl]) / sc).pow(2).mean() for sl, sc in self.scales)
+        rows = torch.tensor([i for i, _ in chosen])
+        loss = sum(((pred[:, 1:, :, sl] - truth[:, 1:, :, sl]) / sc[rows].view(-1, 1, 1, 1)).pow(2).mean()
+                   for sl, sc in self.scales)
         return loss, float(loss.detach()), 0.0
 
 
@@ -503,6 +515,9 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     window = int(_sel(tc, "rollout_window", 0))
     if window < 0:
         raise ConfigError(f"train.rollout_window = {window}, expected >= 0 (0: whole rollouts)")
+    scale = str(_sel(tc, "rollout_scale", "data"))
+    if scale not in ROLLOUT_SCALES:
+        raise ConfigError(f"train.rollout_scale = '{scale}', expected one of: {' | '.join(ROLLOUT_SCALES)}")
     settings = prior_settings(cfg.model)
     torch.manual_seed(seed)
     net = build_model(hparams, dtype)
@@ -528,13 +543,14 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                 "rollout_lr": float(_sel(tc, "rollout_lr", 1e-3)),
                 "rollout_lr_decay": float(_sel(tc, "rollout_lr_decay", 0.01)),
                 **({"rollout_window": window} if window else {}),
+                **({"rollout_scale": scale} if scale != "data" else {}),     # older runs resume
                 **({"whole_lr": float(_sel(tc, "whole_lr", 1e-4)), "whole_lr_decay": float(_sel(tc, "whole_lr_decay", 0.1))}
                    if whole_epochs else {})}
 
     fit = _FitPhase(model, train_trajs, G_true, H_true, float(_sel(tc, "noise", 0.1)),
                     float(_sel(tc, "lambda_data", 100.0)), float(_sel(tc, "lambda_degeneracy", 1.0)))
-    rollouts = _RolloutPhase(model, train_trajs, window)
-    whole = _RolloutPhase(model, train_trajs, 0) if whole_epochs else rollouts   # phase 3: whole trajectories
+    rollouts = _RolloutPhase(model, train_trajs, window, scale)
+    whole = _RolloutPhase(model, train_trajs, 0, scale) if whole_epochs else rollouts   # phase 3: whole trajectories
     batch_size = max(1, int(tc.batch_size))
     copies: Dict[int, object] = {}
 
