@@ -31,8 +31,11 @@ a and G between ticks without knowing about them.
 Training (:func:`train_linear_prior`, from ``thermognn train`` with ``model.prior=linear``) runs
 in two phases (docs/accuracy.md, session 12: each alone fails): ``train.epochs`` epochs of a
 one-step regression of the network's outputs on the exact remainders of the training
-trajectories (``NewmarkPrior.remainders``), then ``train.rollout_epochs`` epochs on whole rollouts,
-back-propagated through the linear solves. Torch only; dense operators (meshes of a few thousand
+trajectories (``NewmarkPrior.remainders``), then ``train.rollout_epochs`` epochs on rollouts
+(whole, or windows of ``train.rollout_window`` steps), back-propagated through the linear solves;
+optionally a third, ``train.whole_epochs`` epochs on whole trajectories from rest at a restarted
+rate. ``train.rollout_scale`` sets what each rollout group's error is relative to (the training
+data's RMS, or its own trajectory's). Torch only; dense operators (meshes of a few thousand
 free DOFs).
 """
 
@@ -550,7 +553,9 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     fit = _FitPhase(model, train_trajs, G_true, H_true, float(_sel(tc, "noise", 0.1)),
                     float(_sel(tc, "lambda_data", 100.0)), float(_sel(tc, "lambda_degeneracy", 1.0)))
     rollouts = _RolloutPhase(model, train_trajs, window, scale)
-    whole = _RolloutPhase(model, train_trajs, 0, scale) if whole_epochs else rollouts   # phase 3: whole trajectories
+    # phase 3: whole trajectories; the rollout phase's own where its samples already are (no windows)
+    whole = (rollouts if not whole_epochs or all(s == 0 for _, s in rollouts.samples)
+             else _RolloutPhase(model, train_trajs, 0, scale))
     batch_size = max(1, int(tc.batch_size))
     copies: Dict[int, object] = {}
 
