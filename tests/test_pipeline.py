@@ -2,6 +2,7 @@
 -> TorchScript -> haptic loop in its own process against the simulated device."""
 
 import json
+import math
 import subprocess
 import sys
 
@@ -35,6 +36,7 @@ def test_demo_runs_every_stage_end_to_end(tmp_path):
     # the linearised FE model on the same test trajectories (generate stored its operators)
     for g in ("q", "v", "sigma"):
         assert 0 < errors[f"linear_fe_{g}"] < 1 and 0 < errors[f"linear_fe_whole_{g}"] < 1, g
+        assert math.isfinite(errors[f"whole_{g}"]) and errors[f"whole_{g}"] > 0, g   # the model's own, at full precision
     assert errors["linear_fe_ms_per_step"] > 0
     assert "| linearised FE, test |" in (tmp_path / "eval" / "summary.md").read_text()
     summary = json.loads((tmp_path / "serve_summary.json").read_text())
@@ -195,10 +197,11 @@ def test_linear_prior_ends_on_whole_trajectories(tmp_path, tiny_block):
     assert res.returncode != 0 and res.stderr.strip() == "error: train.whole_epochs = -1, expected >= 0", res.stderr
     from omegaconf import OmegaConf
 
-    from thermognn.train.hybrid import phase_epochs
+    from thermognn.train.hybrid import Phases, training_phases
 
     # a fine-tune (train.init) may go straight to the whole trajectories
-    assert phase_epochs(OmegaConf.create({"epochs": 0, "rollout_epochs": 0, "whole_epochs": 2})) == (0, 0, 2)
+    assert training_phases(OmegaConf.create({"epochs": 0, "rollout_epochs": 0, "whole_epochs": 2})) == \
+        Phases(fit=0, rollout=0, whole=2, window=0, scale="data")
 
 
 def test_linear_prior_of_first_order_trains_evaluates_and_exports(tmp_path, tiny_block):

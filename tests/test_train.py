@@ -619,10 +619,12 @@ def test_linear_prior_settings_and_datasets_it_cannot_use(trained, tmp_path):
         train(_cfg(tmp_path, *data, "model=linear_prior", "model.prior_sweeps=0"))
     with pytest.raises(ConfigError, match=r"model.prior_order = 3, expected 1 \| 2"):
         train(_cfg(tmp_path, *data, "model=linear_prior", "model.prior_order=3"))
+    # the schedule is checked before any dataset is read (this one does not exist)
+    nowhere = [f"paths.dataset={tmp_path / 'none.h5'}", f"paths.checkpoint={tmp_path / 'model.ckpt'}"]
     with pytest.raises(ConfigError, match=r"train.rollout_window = -1, expected >= 0 \(0: whole rollouts\)"):
-        train(_cfg(tmp_path, *data, "model=linear_prior", "train.rollout_window=-1"))
+        train(_cfg(tmp_path, *nowhere, "model=linear_prior", "train.rollout_window=-1"))
     with pytest.raises(ConfigError, match=r"train.rollout_scale = 'own', expected one of: data \| trajectory"):
-        train(_cfg(tmp_path, *data, "model=linear_prior", "train.rollout_scale=own"))
+        train(_cfg(tmp_path, *nowhere, "model=linear_prior", "train.rollout_scale=own"))
     ckpt = {"prior": {"kind": "linear", "sweeps": 1, "positions_only": True}, "hparams": {}}
     with pytest.raises(ConfigError, match="rollout.integrator: a model.prior=linear model steps with"):
         with_rollout(ckpt, _cfg(tmp_path, "rollout.integrator=midpoint"))

@@ -251,7 +251,9 @@ def gentle_load_gaps(model: LinearPriorModel, data: LoadedData, traj: Trajectory
 def evaluate(cfg) -> dict:
     """Roll out the test trajectories with the checkpoint's model; print and write the errors.
 
-    Returns {group: mean test RRMSE, ..., "ms_per_step": wall time of one step [ms],
+    Returns {group: mean test RRMSE (per snapshot), ..., "whole_<group>": mean test whole-rollout
+    error (:func:`trajectory_error`, the model-selection metric), "ms_per_step": wall time of one
+    step [ms],
     "energy_balance": see :func:`energy_balance`, "rest_drift", "rest_growth",
     "one_step_<group>": the test one-step error of :func:`one_step_errors`, for linear-prior
     models "linear_gap_<group>" / "gentle_gap_<group>" (:func:`gentle_load_gaps` at full load and
@@ -411,6 +413,7 @@ def evaluate(cfg) -> dict:
     mean_test["rest_drift"] = drift
     mean_test["rest_growth"] = growth
     mean_test.update({f"one_step_{g}": step_test[g] for g in groups})
+    mean_test.update({f"whole_{g}": whole[g] for g in groups})
     rows = {"test": {g: mean_test[g] for g in groups}, "train": mean_train}
     if "snapshot" in linear:
         mean_test.update({f"linear_fe_{g}": linear["snapshot"][g] for g in groups})

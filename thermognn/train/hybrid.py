@@ -44,7 +44,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, NamedTuple, Optional, Tuple
 
 import torch
 from omegaconf import OmegaConf
@@ -463,11 +463,22 @@ class _RolloutPhase:
         return loss, float(loss.detach()), 0.0
 
 
-def phase_epochs(tc) -> Tuple[int, int, int]:
-    """The epochs of the three phases of ``train_linear_prior`` from ``cfg.train``: (fit
-    ``train.epochs``, rollout ``train.rollout_epochs``, whole-trajectory ``train.whole_epochs``),
-    each >= 0 and at least one epoch in all (the fit phase may be skipped: a fine-tune of rollouts
-    from ``train.init``), else a one-line ``ConfigError``. Checked before the dataset is read."""
+class Phases(NamedTuple):
+    """The schedule of ``train_linear_prior``, from ``cfg.train``: the epochs of its three phases
+    and how its rollouts are cut and scaled."""
+
+    fit: int        #: train.epochs: epochs on the exact remainders (0: a fine-tune from train.init)
+    rollout: int    #: train.rollout_epochs: epochs on rollouts (windows or whole)
+    whole: int      #: train.whole_epochs: epochs on whole trajectories at a restarted rate
+    window: int     #: train.rollout_window: steps per rollout window (0: whole rollouts)
+    scale: str      #: train.rollout_scale: one of ROLLOUT_SCALES
+
+
+def training_phases(tc) -> Phases:
+    """``Phases`` from ``cfg.train``: each phase's epochs >= 0 and at least one epoch in all (the
+    fit phase may be skipped: a fine-tune of rollouts from ``train.init``), the window >= 0 and
+    the scale one of ``ROLLOUT_SCALES``, else a one-line ``ConfigError``. Checked before the
+    dataset is read."""
     fit = int(tc.epochs)
     roll = int(OmegaConf.select(tc, "rollout_epochs", default=0))
     whole = int(OmegaConf.select(tc, "whole_epochs", default=0))
@@ -479,11 +490,17 @@ def phase_epochs(tc) -> Tuple[int, int, int]:
         raise ConfigError(f"train.epochs = {fit}, train.rollout_epochs = {roll}"
                           + (f", train.whole_epochs = {whole}" if whole else "")
                           + ": expected >= 0 each and >= 1 together")
-    return fit, roll, whole
+    window = int(OmegaConf.select(tc, "rollout_window", default=0))
+    if window < 0:
+        raise ConfigError(f"train.rollout_window = {window}, expected >= 0 (0: whole rollouts)")
+    scale = str(OmegaConf.select(tc, "rollout_scale", default="data"))
+    if scale not in ROLLOUT_SCALES:
+        raise ConfigError(f"train.rollout_scale = '{scale}', expected one of: {' | '.join(ROLLOUT_SCALES)}")
+    return Phases(fit, roll, whole, window, scale)
 
 
 def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str, ckpt_path: Path,
-                       out_dir: Path, dist, epochs_of: Tuple[int, int, int]) -> Path:
+                       out_dir: Path, dist, phases: Phases) -> Path:
     """``thermognn train`` with ``model.prior=linear`` (module docstring): ``train.epochs`` fit
     epochs on the exact remainders, then ``train.rollout_epochs`` epochs on rollouts (windows of
     ``train.rollout_window`` steps, or whole), then ``train.whole_epochs`` epochs on whole
@@ -499,7 +516,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     an epoch's shuffled order (the same order everywhere: one seeded generator) and the gradients
     are averaged before clipping, so W processes with ``train.batch_size`` k take the steps one
     process takes with batch size W k. Rank 0 writes the checkpoints, metrics and the test table.
-    ``epochs_of``: the three phases' epochs, as ``phase_epochs`` checked them."""
+    ``phases``: the schedule, as ``training_phases`` checked it."""
     from thermognn.core.config import project_path
 
     from .checkpoint import last_path, load_checkpoint, save_checkpoint, torch_dtype
@@ -512,15 +529,9 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     tc, ds = cfg.train, data.dataset
     dtype = torch_dtype(dtype_name)
     seed = int(_sel(cfg, "seed", 0))
-    fit_epochs, roll_epochs, whole_epochs = epochs_of
+    fit_epochs, roll_epochs, whole_epochs, window, scale = phases
     roll_end = fit_epochs + roll_epochs
     epochs = roll_end + whole_epochs
-    window = int(_sel(tc, "rollout_window", 0))
-    if window < 0:
-        raise ConfigError(f"train.rollout_window = {window}, expected >= 0 (0: whole rollouts)")
-    scale = str(_sel(tc, "rollout_scale", "data"))
-    if scale not in ROLLOUT_SCALES:
-        raise ConfigError(f"train.rollout_scale = '{scale}', expected one of: {' | '.join(ROLLOUT_SCALES)}")
     settings = prior_settings(cfg.model)
     torch.manual_seed(seed)
     net = build_model(hparams, dtype)

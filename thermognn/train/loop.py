@@ -22,7 +22,7 @@ from .checkpoint import (FORMAT, last_path, load_checkpoint, model_from_checkpoi
 from .data import (LoadedData, check_fingerprint, compute_stats, fingerprint, load_data, make_batch,
                    rest_rollout_steps, rest_samples, rest_trajectory, samples,
                    velocity_columns)
-from .hybrid import phase_epochs, prior_kind, train_linear_prior
+from .hybrid import prior_kind, train_linear_prior, training_phases
 from .model import TIGNN, build_model, hyperparameters, parameter_count
 from .rollout import rollout, rollout_errors, validation_error
 
@@ -313,8 +313,8 @@ def train(cfg) -> Path:
     seed = int(_sel(cfg, "seed", 0))
     epochs = int(tc.epochs)
     prior = prior_kind(cfg.model)
-    if prior == "linear":                    # its three phases' epochs (the fit phase's may be 0)
-        epochs_of = phase_epochs(tc)
+    if prior == "linear":                    # its three phases (the fit phase's epochs may be 0)
+        phases = training_phases(tc)
     elif epochs < 1:
         raise ConfigError(f"train.epochs = {epochs}, expected >= 1")
     ckpt_path = project_path(cfg.paths.checkpoint)
@@ -326,7 +326,7 @@ def train(cfg) -> Path:
     hparams = hyperparameters(cfg.model, ds.layout.dim, velocity_columns(ds.layout), structure == "hamiltonian")
     train_trajs, val_trajs = data.of("train"), data.of("val")
     if prior == "linear":                                # the linearised FE step + learned remainders
-        return train_linear_prior(cfg, data, hparams, dtype_name, structure, ckpt_path, out_dir, dist, epochs_of)
+        return train_linear_prior(cfg, data, hparams, dtype_name, structure, ckpt_path, out_dir, dist, phases)
 
     torch.manual_seed(seed)
     model = build_model(hparams, dtype)
