@@ -143,10 +143,14 @@ def test_evaluate_writes_figures_tables_and_vtu(trained):
     out, cfg, _ = trained
     res = evaluate(cfg)
     assert set(res) == {"q", "v", "sigma", "ms_per_step", "energy_balance", "rest_drift", "rest_growth",
-                        "one_step_q", "one_step_v", "one_step_sigma"}
+                        "one_step_q", "one_step_v", "one_step_sigma", "whole_q", "whole_v", "whole_sigma"}
     assert all(math.isfinite(v) for v in res.values())
     ev = out / "eval"
     summary = (ev / "summary.md").read_text()
+    from thermognn.train.evaluation import _fmt
+
+    # the whole-rollout errors of summary.md's second table, at full precision in rrmse.json
+    assert "| test | " + " | ".join(_fmt(res[f"whole_{g}"]) for g in ("q", "v", "sigma")) + " |" in summary
     assert "One step from every true state" in summary and f"| test | {res['one_step_q']:.3g}" in summary
     assert "Linearised FE baseline: not computed, the dataset holds no linearised FE operators" in summary
     with open(ev / "one_step_vs_time.csv") as fh:
