@@ -121,3 +121,16 @@ def test_split_attribute_round_trip(tmp_path):
         w.set_split({"train": ["a"], "val": [], "test": []})
     assert Dataset(tmp_path / "s.h5").split == {"train": ["a"], "val": [], "test": []}
     assert json.loads(json.dumps(Dataset(tmp_path / "s.h5").split))
+
+
+def test_split_group_round_trip(tmp_path):
+    """A trajectory's split group is stored when set and read back; files without one have none."""
+    mesh, layout = unit_cube_mesh(), state_layout(["elastic"])
+    grouped = make_traj("a", mesh, layout)
+    grouped.split_group = "point_3"
+    with DatasetWriter(tmp_path / "g.h5", mesh, layout, 0.1, "c: 1\n", "{}", "t", ["elastic"]) as w:
+        w.write(grouped)
+        w.write(make_traj("b", mesh, layout))
+    ds = Dataset(tmp_path / "g.h5")
+    assert ds.split_groups == {"a": "point_3"}
+    assert ds.read("a").split_group == "point_3" and ds.read("b").split_group == ""

@@ -49,6 +49,7 @@ def test_generate_tiny_block_writes_valid_dataset(tmp_path):
         assert np.all(moved < 0)  # pressed in
         assert np.abs(t.z[-1, :, 6:]).max() > 100.0  # stresses of order 1 N / (1 cm)^2
     assert len({tuple(d.read(name).load_point) for name in d.names}) == 3   # each case its own point
+    assert d.split_groups == {f"traj_{k}": f"point_{k}" for k in range(3)}  # train splits by point
     # the solid linearised at rest (/linear), the physics baseline evaluate reports
     lin = d.linear_solid()
     free = np.repeat(d.mesh.node_type != NODE_CLAMPED, 3)
@@ -155,6 +156,24 @@ def test_load_cases_press_distinct_points():
     loads.n_trajectories = 13
     with pytest.raises(ConfigError, match=r"scene.loads.n_trajectories = 13: at most 12"):
         load_case(0, nodes, node_type, normals, loads)
+    # several magnitudes: the first round is the cases above, the next presses the same points harder
+    loads.magnitude, loads.n_trajectories = (2.0, 3.0), 24
+    again = [load_case(k, nodes, node_type, normals, loads) for k in range(24)]
+    assert [int(c[1][0]) for c in again] == centres + centres
+    assert all(np.allclose(a[2], b[2]) for a, b in zip(again, cases))
+    assert all(np.allclose(c[2].sum(0), [0, 0, -3.0]) for c in again[12:])
+    loads.n_trajectories = 25
+    with pytest.raises(ConfigError, match=r"scene.loads.n_trajectories = 25: at most 24 \(12 loadable"):
+        load_case(0, nodes, node_type, normals, loads)
+
+
+@pytest.mark.parametrize("value", [[], "hard", [1.0, float("nan")], [[1.0]]])
+def test_bad_load_magnitude_names_the_key(value):
+    from thermognn.generate.scene import _magnitudes
+
+    with pytest.raises(ConfigError, match=r"^scene.loads.magnitude = .*: expected a force \[N\] or a list"):
+        _magnitudes(value)
+    assert _magnitudes(2) == 2.0 and _magnitudes([1, 1.3]) == (1.0, 1.3)
 
 
 def test_generate_failed_trajectory_is_recorded_without_nan(tmp_path):
@@ -178,6 +197,7 @@ def test_generate_failed_trajectory_is_recorded_without_nan(tmp_path):
     ("scene.mesh.clamp=left", "scene.mesh.clamp"),
     ("scene.loads.ramp_shape=step", "scene.loads.ramp_shape"),
     ("scene.loads.n_trajectories=1000", "scene.loads.n_trajectories"),
+    ("scene.loads.magnitude=[]", "scene.loads.magnitude"),
 ])
 def test_bad_scene_config_gives_one_line_error(tmp_path, override, needle):
     pytest.importorskip("dolfinx")

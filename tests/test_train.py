@@ -35,6 +35,28 @@ def trained(tmp_path_factory):
     return out, cfg, ckpt
 
 
+def test_split_keeps_each_load_point_in_one_part():
+    """Cases pressing one point at several magnitudes share a part, fractions count points, and
+    trajectories without groups split as a permutation of themselves (the split before groups)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from thermognn.train.data import split_names
+
+    names = [f"traj_{k}" for k in range(40)]
+    plain = SimpleNamespace(ok_names=names[:20], split=None, split_groups={})
+    parts = split_names(plain, [0.8, 0.1, 0.1], 0)
+    perm = [names[i] for i in np.random.default_rng(0).permutation(20)]
+    assert parts == {"train": sorted(perm[:16], key=names.index), "val": sorted(perm[16:18], key=names.index),
+                     "test": sorted(perm[18:], key=names.index)}
+    grouped = SimpleNamespace(ok_names=names, split=None, split_groups={n: f"point_{k % 20}" for k, n in enumerate(names)})
+    both = split_names(grouped, [0.8, 0.1, 0.1], 0)
+    assert {k: len(v) for k, v in both.items()} == {"train": 32, "val": 4, "test": 4}
+    for part, members in both.items():      # the same points as without the second round, both rounds
+        assert members == sorted(parts[part] + [f"traj_{names.index(n) + 20}" for n in parts[part]], key=names.index)
+
+
 def test_training_lowers_loss_and_writes_outputs(trained):
     out, cfg, ckpt = trained
     assert ckpt.exists() and last_path(ckpt).exists()

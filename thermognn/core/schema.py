@@ -28,7 +28,9 @@ Layout (units SI)::
                             attrs: rayleigh (αM [1/s], βK [s]), integrator, beta, gamma,
                             prony (JSON [[ḡ_i, τ_i [s]], ...]; viscous solids)
                             (``thermognn.core.linear.LinearSolid``: the physics baseline)
-    /trajectories/<name>/   attrs: status ('ok' | 'failed'), reason (str), load_point (3,) [m]
+    /trajectories/<name>/   attrs: status ('ok' | 'failed'), reason (str), load_point (3,) [m],
+                                   split_group (optional str: trajectories sharing one land in
+                                   the same split part; ``generate``: the point pressed)
         time                (S,)        float64  [s]
         z                   (S, N, D)   float64  state per node, columns as in state_layout
         force               (S, N, 3)   float64  external nodal force [N]
@@ -100,6 +102,9 @@ class Trajectory:
     load_point: np.ndarray = field(default_factory=lambda: np.zeros(3))
     status: str = "ok"
     reason: str = ""
+    #: trajectories with the same non-empty group land in the same train/val/test part
+    #: (``generate``: ``point_<i>``, the load point pressed, whatever the magnitude)
+    split_group: str = ""
 
 
 def config_hash(config_yaml: str) -> str:
@@ -208,6 +213,8 @@ class DatasetWriter:
         g.attrs["status"] = traj.status
         g.attrs["reason"] = traj.reason
         g.attrs["load_point"] = np.asarray(traj.load_point, np.float64)
+        if traj.split_group:
+            g.attrs["split_group"] = traj.split_group
         self._f.flush()
 
     def close(self, finalize: bool) -> None:
@@ -249,6 +256,9 @@ class Dataset:
                              f["mesh/edges"][()] if "mesh/edges" in f else None)
             self.names = sorted(f["trajectories"].keys(), key=_natural_key)
             self.status = {n: str(f["trajectories"][n].attrs.get("status", "ok")) for n in self.names}
+            #: each trajectory's split group where the file records one (``Trajectory.split_group``)
+            self.split_groups = {n: str(f["trajectories"][n].attrs["split_group"]) for n in self.names
+                                 if f["trajectories"][n].attrs.get("split_group", "")}
         self.layout = StateLayout.from_json(str(attrs["state_layout"]))
         self.dt = float(attrs["dt"])
         self.config_yaml = str(attrs["config"])
@@ -341,7 +351,8 @@ def _trajectory_from_group(g, name: str) -> Trajectory:
                       load_nodes=g["load_nodes"][()],
                       load_point=np.asarray(g.attrs.get("load_point", np.zeros(3))),
                       status=str(g.attrs.get("status", "ok")),
-                      reason=str(g.attrs.get("reason", "")))
+                      reason=str(g.attrs.get("reason", "")),
+                      split_group=str(g.attrs.get("split_group", "")))
 
 
 def _natural_key(s: str):

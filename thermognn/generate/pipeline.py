@@ -96,7 +96,8 @@ def simulate(solid, spec: SceneSpec, layout: StateLayout, k: int, ntype: np.ndar
         zs.append(z)
         forces.append(ramp(s * dt, dt, ramp_steps, shape) * full_force)
     traj = Trajectory(name=f"traj_{k}", time=np.asarray(times), z=np.stack(zs), force=np.stack(forces),
-                      load_nodes=load_nodes, load_point=point, status=status, reason=reason)
+                      load_nodes=load_nodes, load_point=point, status=status, reason=reason,
+                      split_group=f"point_{k % int((ntype == NODE_SURFACE).sum())}")
     return traj, TrajectoryCost(time.perf_counter() - t0, len(times) - 1, iterations, cuts)
 
 

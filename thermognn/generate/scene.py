@@ -8,10 +8,14 @@ optionally with a band ``zmin:0.1`` (nodes within 10 % of the extent from that s
 n_z > 0.5: the top of a curved shell). Clamped wins over loadable.
 
 Loads: the load points are the loadable nodes in one seeded order
-(``numpy.random.default_rng(loads.seed).permutation``), case k pressing the k-th: every case has
-its own point, so no test trajectory repeats a training one (``loads.n_trajectories`` can be at most
-the number of loadable nodes). The loadable nodes within ``loads.radius`` of it share the total force
-``loads.magnitude`` [N] equally, directed along the inward surface normal at the load point;
+(``numpy.random.default_rng(loads.seed).permutation``), case k pressing the k-th. ``loads.magnitude``
+is the total force [N], or a list of them: with P loadable nodes, case k presses point k mod P with
+the (k // P)-th magnitude, so the first P cases press P distinct points at the first magnitude and
+the next P press them again harder or softer (``loads.n_trajectories`` can be at most P times the
+number of magnitudes). Cases that share a point share a split in ``train`` (trajectories are split
+by load point), so no test trajectory repeats a training point. The loadable nodes within
+``loads.radius`` of the point share the force equally, directed along the inward surface normal at
+the load point;
 the force ramps over ``ramp_steps`` steps and is then held. ``ramp_shape``: ``linear`` or
 ``smooth`` (cubic smoothstep 3s² − 2s³: zero load rate at start and end, so the dynamic response
 is not kicked by a jump in load rate, which the undamped trapezoidal rule would keep ringing in
@@ -38,11 +42,17 @@ RAMP_SHAPES = ("linear", "smooth")
 @dataclass
 class LoadSpec:
     n_trajectories: int
-    magnitude: float        # [N]
+    magnitude: float | tuple[float, ...]  # [N] total force of every case, or one per round of points
     radius: float           # [m]
     ramp_steps: int
     ramp_shape: str         # linear | smooth
     seed: int
+
+    @property
+    def magnitudes(self) -> tuple[float, ...]:
+        """The total forces [N] of the rounds of load points (one value: every case alike)."""
+        m = self.magnitude
+        return tuple(float(x) for x in m) if isinstance(m, (tuple, list)) else (float(m),)
 
 
 @dataclass
@@ -118,7 +128,7 @@ def scene_from_config(sc) -> SceneSpec:
     ld = _get(sc, "loads", {})
     loads = LoadSpec(
         n_trajectories=_positive(_get(ld, "n_trajectories"), "loads.n_trajectories", int),
-        magnitude=float(_get(ld, "magnitude", 1.0)),
+        magnitude=_magnitudes(_get(ld, "magnitude", 1.0)),
         radius=float(_get(ld, "radius", 0.0)),
         ramp_steps=max(1, int(_get(ld, "ramp_steps", 1))),
         ramp_shape=str(_get(ld, "ramp_shape", "linear")),
@@ -216,17 +226,31 @@ def node_types(nodes: np.ndarray, tets: np.ndarray, mesh_cfg) -> np.ndarray:
     return t
 
 
+def _magnitudes(value) -> float | tuple[float, ...]:
+    """``scene.loads.magnitude``: a force [N] or a non-empty list of them, every one finite."""
+    many = not isinstance(value, (int, float, str)) and hasattr(value, "__iter__")
+    try:
+        values = [float(x) for x in value] if many else [float(value)]
+    except (TypeError, ValueError):
+        values = []
+    if not values or not all(np.isfinite(values)):
+        raise ConfigError(f"scene.loads.magnitude = {value!r}: expected a force [N] or a list of forces")
+    return tuple(values) if many else values[0]
+
+
 def load_case(k: int, nodes: np.ndarray, node_type: np.ndarray, normals: np.ndarray,
               loads: LoadSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(load_point (3,) [m], load_nodes (K,), nodal force at full magnitude (N, 3) [N]) of case k.
 
-    Case k presses the k-th loadable node of one seeded order, so cases 0..n-1 press n distinct
-    points (``check_load_cases``)."""
+    With P loadable nodes, case k presses the (k mod P)-th of one seeded order with the
+    (k // P)-th magnitude, so cases 0..P-1 press P distinct points (``check_load_cases``)."""
     candidates = np.flatnonzero(node_type == NODE_SURFACE)
     check_load_cases(loads, len(candidates))
-    if not 0 <= k < len(candidates):
-        raise ConfigError(f"load case {k}: expected 0 <= k < {len(candidates)} (the loadable nodes)")
-    centre = int(np.random.default_rng(loads.seed).permutation(candidates)[k])
+    n_cases = len(candidates) * len(loads.magnitudes)
+    if not 0 <= k < n_cases:
+        raise ConfigError(f"load case {k}: expected 0 <= k < {n_cases} (the loadable nodes times the magnitudes)")
+    round_, index = divmod(k, len(candidates))
+    centre = int(np.random.default_rng(loads.seed).permutation(candidates)[index])
     point = nodes[centre].copy()
     dist = np.linalg.norm(nodes[candidates] - point, axis=1)
     load_nodes = np.sort(candidates[dist <= loads.radius]) if loads.radius > 0 else np.array([centre])
@@ -234,17 +258,18 @@ def load_case(k: int, nodes: np.ndarray, node_type: np.ndarray, normals: np.ndar
         load_nodes = np.sort(np.append(load_nodes, centre))
     direction = -normals[centre]
     force = np.zeros_like(nodes)
-    force[load_nodes] = loads.magnitude / len(load_nodes) * direction
+    force[load_nodes] = loads.magnitudes[round_] / len(load_nodes) * direction
     return point, load_nodes.astype(np.int64), force
 
 
 def check_load_cases(loads: LoadSpec, n_loadable: int) -> None:
-    """ConfigError unless every load case can press a point of its own."""
-    if loads.n_trajectories > n_loadable:
+    """ConfigError unless the load cases fit: each magnitude presses every point at most once."""
+    rounds = len(loads.magnitudes)
+    if loads.n_trajectories > n_loadable * rounds:
         raise ConfigError(
-            f"scene.loads.n_trajectories = {loads.n_trajectories}: at most {n_loadable} (the loadable "
-            f"nodes of scene.mesh.loadable; each case presses its own point): refine scene.mesh.cell_size "
-            f"or widen scene.mesh.loadable")
+            f"scene.loads.n_trajectories = {loads.n_trajectories}: at most {n_loadable * rounds} ({n_loadable} "
+            f"loadable nodes of scene.mesh.loadable, each pressed once per magnitude of scene.loads.magnitude, "
+            f"{rounds} here): refine scene.mesh.cell_size, widen scene.mesh.loadable or list more magnitudes")
 
 
 def ramp(t: float, dt: float, ramp_steps: int, shape: str = "linear") -> float:

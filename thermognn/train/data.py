@@ -107,8 +107,11 @@ def split_names(ds: Dataset, fractions, seed: int) -> dict[str, list[str]]:
     """Trajectory-wise train/val/test split of the 'ok' trajectories.
 
     A fixed split stored in the dataset (``Dataset.split``) wins; otherwise a seeded permutation
-    with the fractions (train, val, test). With fewer than 3 trajectories all three parts are the
-    same list (nothing to hold out)."""
+    of the split groups (``Dataset.split_groups``; a trajectory without one is its own group) with
+    the fractions (train, val, test) counted in groups: the cases ``generate`` presses at one point
+    with several magnitudes land in the same part, so no validation or test trajectory repeats a
+    training point; without shared groups this is a permutation of the trajectories. With fewer
+    than 3 groups all three parts are the same list (nothing to hold out)."""
     ok = ds.ok_names
     if not ok:
         raise DataError(f"{ds.path}: no trajectory with status 'ok'")
@@ -123,7 +126,8 @@ def split_names(ds: Dataset, fractions, seed: int) -> dict[str, list[str]]:
     fr = [float(x) for x in fractions]
     if len(fr) != 3 or min(fr) < 0 or sum(fr) <= 0:
         raise DataError(f"train.split = {fractions}: expected three non-negative fractions")
-    n = len(ok)
+    groups = _split_groups(ok, getattr(ds, "split_groups", {}))
+    n = len(groups)
     if n < 3:
         return {"train": list(ok), "val": list(ok), "test": list(ok)}
     total = sum(fr)
@@ -131,10 +135,20 @@ def split_names(ds: Dataset, fractions, seed: int) -> dict[str, list[str]]:
     n_test = max(1, int(round(fr[2] / total * n)))
     n_train = max(1, n - n_val - n_test)
     perm = np.random.default_rng(seed).permutation(n)
-    names = [ok[i] for i in perm]
-    return {"train": sorted(names[:n_train], key=ok.index),
-            "val": sorted(names[n_train:n_train + n_val], key=ok.index),
-            "test": sorted(names[n_train + n_val:n_train + n_val + n_test], key=ok.index)}
+    bounds = {"train": (0, n_train), "val": (n_train, n_train + n_val),
+              "test": (n_train + n_val, n_train + n_val + n_test)}
+    return {part: sorted((name for i in perm[a:b] for name in groups[i]), key=ok.index)
+            for part, (a, b) in bounds.items()}
+
+
+def _split_groups(names: list[str], split_groups: dict[str, str]) -> list[list[str]]:
+    """``names`` grouped by their split group, in order of first appearance; a trajectory
+    without one is a group of its own."""
+    groups: dict[tuple[str, str], list[str]] = {}
+    for name in names:
+        group = split_groups.get(name)
+        groups.setdefault(("group", group) if group else ("name", name), []).append(name)
+    return list(groups.values())
 
 
 def load_graph(ds: Dataset, dtype: torch.dtype) -> Graph:
