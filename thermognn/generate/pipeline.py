@@ -15,8 +15,8 @@ from thermognn.core.io import versions_json
 from thermognn.core.schema import NODE_CLAMPED, NODE_SURFACE, DatasetWriter, Trajectory
 from thermognn.core.state import StateLayout, state_layout
 
-from .scene import SceneSpec, check_load_cases, dataset_mesh, load_case, node_types, ramp, scene_from_config, \
-    boundary_faces_outward, vertex_normals
+from .scene import SceneSpec, check_load_cases, dataset_mesh, load_case, load_round_and_point, node_types, ramp, \
+    scene_from_config, boundary_faces_outward, vertex_normals
 
 
 @dataclass
@@ -97,7 +97,7 @@ def simulate(solid, spec: SceneSpec, layout: StateLayout, k: int, ntype: np.ndar
         forces.append(ramp(s * dt, dt, ramp_steps, shape) * full_force)
     traj = Trajectory(name=f"traj_{k}", time=np.asarray(times), z=np.stack(zs), force=np.stack(forces),
                       load_nodes=load_nodes, load_point=point, status=status, reason=reason,
-                      split_group=f"point_{k % int((ntype == NODE_SURFACE).sum())}")
+                      split_group=f"point_{load_round_and_point(k, ntype)[1]}")
     return traj, TrajectoryCost(time.perf_counter() - t0, len(times) - 1, iterations, cuts)
 
 

@@ -238,6 +238,12 @@ def _magnitudes(value) -> float | tuple[float, ...]:
     return tuple(values) if many else values[0]
 
 
+def load_round_and_point(k: int, node_type: np.ndarray) -> tuple[int, int]:
+    """(r, i) of load case k: it presses the i-th loadable node of the seeded order with the r-th
+    magnitude of ``loads.magnitudes`` (with P loadable nodes, r = k // P and i = k mod P)."""
+    return divmod(k, int((node_type == NODE_SURFACE).sum()))
+
+
 def load_case(k: int, nodes: np.ndarray, node_type: np.ndarray, normals: np.ndarray,
               loads: LoadSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(load_point (3,) [m], load_nodes (K,), nodal force at full magnitude (N, 3) [N]) of case k.
@@ -249,7 +255,7 @@ def load_case(k: int, nodes: np.ndarray, node_type: np.ndarray, normals: np.ndar
     n_cases = len(candidates) * len(loads.magnitudes)
     if not 0 <= k < n_cases:
         raise ConfigError(f"load case {k}: expected 0 <= k < {n_cases} (the loadable nodes times the magnitudes)")
-    round_, index = divmod(k, len(candidates))
+    round_, index = load_round_and_point(k, node_type)
     centre = int(np.random.default_rng(loads.seed).permutation(candidates)[index])
     point = nodes[centre].copy()
     dist = np.linalg.norm(nodes[candidates] - point, axis=1)

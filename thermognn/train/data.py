@@ -126,7 +126,7 @@ def split_names(ds: Dataset, fractions, seed: int) -> dict[str, list[str]]:
     fr = [float(x) for x in fractions]
     if len(fr) != 3 or min(fr) < 0 or sum(fr) <= 0:
         raise DataError(f"train.split = {fractions}: expected three non-negative fractions")
-    groups = _split_groups(ok, getattr(ds, "split_groups", {}))
+    groups = _split_groups(ok, ds.split_groups)
     n = len(groups)
     if n < 3:
         return {"train": list(ok), "val": list(ok), "test": list(ok)}
