@@ -194,6 +194,49 @@ def test_evaluate_writes_figures_tables_and_vtu(trained):
     assert splits == {"train", "test"}
 
 
+def test_evaluate_tabulates_the_test_errors_by_peak_load(tmp_path):
+    """Test trajectories pressed at two load magnitudes (the oscillator's loads rescaled to peak
+    loads of 1 N and 1.3 N): rrmse_per_trajectory.csv gives each trajectory's peak load and errors,
+    rrmse.json and summary.md their means at each load; one load, or many, give no table."""
+    import h5py
+
+    from thermognn.core.schema import Dataset
+    from thermognn.train import evaluate
+    from thermognn.train.data import split_names
+    from thermognn.train.evaluation import MAX_LOAD_GROUPS, _fmt, by_peak_load, peak_load
+
+    path = write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=20, steps=6)
+    cfg = _cfg(tmp_path, "train.epochs=1")
+    test = split_names(Dataset(path), cfg.train.split, int(cfg.seed))["test"]
+    assert len(test) == 2
+    with h5py.File(path, "r+") as f:
+        for k, name in enumerate(f["trajectories"]):
+            force = f["trajectories"][name]["force"]
+            target = 1.0 if name == test[0] else 1.3 if name in test else (1.0, 1.3)[k % 2]      # [N]
+            force[...] = force[()] * (target / peak_load(torch.as_tensor(force[()])))
+    train(cfg)
+    res = evaluate(cfg)
+    with open(tmp_path / "eval" / "rrmse_per_trajectory.csv") as fh:
+        rows = {r["trajectory"]: r for r in csv.DictReader(fh) if r["split"] == "test"}
+    assert set(rows) == set(test) and float(rows[test[1]]["peak_load_N"]) == pytest.approx(1.3)
+    for name, load in ((test[0], "1"), (test[1], "1.3")):
+        for g in ("q", "v", "sigma"):
+            assert res[f"{g}@{load}N"] == pytest.approx(float(rows[name][g]), rel=1e-12), (name, g)
+            assert res[f"whole_{g}@{load}N"] == pytest.approx(float(rows[name][f"whole_{g}"]), rel=1e-12)
+    assert res["whole_sigma"] == pytest.approx((res["whole_sigma@1N"] + res["whole_sigma@1.3N"]) / 2, rel=1e-12)
+    summary = (tmp_path / "eval" / "summary.md").read_text()
+    assert "| peak load [N] | test trajectories | q | v | sigma | whole q | whole v | whole sigma |" in summary
+    assert (f"| 1.3 | 1 | {_fmt(res['q@1.3N'])} | {_fmt(res['v@1.3N'])} | {_fmt(res['sigma@1.3N'])} | "
+            f"{_fmt(res['whole_q@1.3N'])} |") in summary
+    # rounded to 3 significant figures; one load or more than MAX_LOAD_GROUPS: nothing to tabulate
+    errs = [{"q": 1.0}, {"q": 3.0}, {"q": 5.0}]
+    grouped = by_peak_load([1.0002, 0.9998, 1.3], errs, errs, ["q"])
+    assert list(grouped) == [1.0, 1.3] and grouped[1.0] == {"trajectories": 2.0, "q": 2.0, "whole_q": 2.0}
+    assert by_peak_load([1.0, 1.0], errs[:2], errs[:2], ["q"]) == {}
+    many = [float(k) for k in range(1, MAX_LOAD_GROUPS + 2)]
+    assert by_peak_load(many, [errs[0]] * len(many), [errs[0]] * len(many), ["q"]) == {}
+
+
 def test_one_step_errors_vanish_on_the_models_own_rollout(trained):
     """Stepping each state of the model's own rollout once reproduces the next state: the batched
     one-step pass (mesh copies, chunked) agrees with the sequential rollout to round-off."""

@@ -4,14 +4,16 @@ initial states, relative errors per variable group, figures and tables in ``cfg.
 Files written (all atomically)::
 
     rrmse_vs_time.csv / .png        mean RRMSE over the test trajectories per step and group (paper Fig. 8)
-    rrmse_per_trajectory.csv / .png box plots of per-trajectory RRMSE, train vs test, per group
+    rrmse_per_trajectory.csv / .png per-trajectory errors (per snapshot and whole rollout) with each
+                                    trajectory's peak load; box plots of the per-snapshot ones, train vs test
     one_step_vs_time.csv            one step from each true state: error of its change per step and group
                                     (what the network learned, apart from the rollout's drift)
     energy_entropy.csv / .png       learned E, S and the degeneracy residual along each test rollout
     rest_drift.csv                  the unloaded body left at rest for 10x the horizon: how far it drifts
                                     (the summary adds the growth factor of a disturbance at rest)
     snapshot_<traj>_<step>.vtu      predicted vs ground truth point data (datasets with tets only)
-    summary.md                      the numbers above in one page
+    summary.md                      the numbers above in one page (and, for datasets made with a list of
+                                    load magnitudes, the test errors at each peak load)
 """
 
 from __future__ import annotations
@@ -186,6 +188,38 @@ def _mean_groups(per_traj: list[dict[str, float]], groups: list[str]) -> dict[st
     return out
 
 
+#: evaluate tabulates the test errors by peak load when the test trajectories have from 2 to this
+#: many distinct ones (a dataset generated with a list of magnitudes); random loads are not grouped
+MAX_LOAD_GROUPS = 8
+
+
+def peak_load(force: torch.Tensor) -> float:
+    """A trajectory's peak load [N]: the largest over its snapshots of the sum of the nodal load
+    magnitudes, from its loads ``force`` [S, N*3] or [S, N, 3] [N] (for ``generate``'s pressing
+    loads, the scene's ``loads.magnitude`` the case was pressed with)."""
+    nodal = force.reshape(force.shape[0], -1, 3)                       # [S, N, 3]
+    return float(nodal.norm(dim=-1).sum(-1).max()) if nodal.numel() else 0.0
+
+
+def by_peak_load(loads: list[float], snapshot: list[dict[str, float]], whole: list[dict[str, float]],
+                 groups: list[str]) -> dict[float, dict[str, float]]:
+    """Per-trajectory errors (per snapshot, whole rollout; one dict per trajectory) grouped by the
+    trajectories' peak loads ``loads`` [N], each rounded to 3 significant figures:
+    {load: {"trajectories": count, g: mean per-snapshot error, "whole_" + g: mean whole-rollout
+    error}}, in increasing load. Empty unless there are 2 to ``MAX_LOAD_GROUPS`` distinct loads."""
+    keys = [float(f"{x:.3g}") for x in loads]
+    distinct = sorted(set(keys))
+    if not 2 <= len(distinct) <= MAX_LOAD_GROUPS:
+        return {}
+    out = {}
+    for load in distinct:
+        rows = [k for k, key in enumerate(keys) if key == load]
+        out[load] = {"trajectories": float(len(rows)),
+                     **_mean_groups([snapshot[k] for k in rows], groups),
+                     **{f"whole_{g}": v for g, v in _mean_groups([whole[k] for k in rows], groups).items()}}
+    return out
+
+
 def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors]) -> dict:
     """The linearised FE model (the dataset's ``/linear`` operators, ``thermognn.core.linear``; no
     learning) rolled out over the same trajectories, from the same first states under the same
@@ -253,7 +287,8 @@ def evaluate(cfg) -> dict:
 
     Returns {group: mean test RRMSE (per snapshot), ..., "whole_<group>": mean test whole-rollout
     error (:func:`trajectory_error`, the model-selection metric), "ms_per_step": wall time of one
-    step [ms],
+    step [ms], for test trajectories of 2 to ``MAX_LOAD_GROUPS`` distinct peak loads F
+    (:func:`by_peak_load`) "<group>@<F>N" and "whole_<group>@<F>N" (their means at each load),
     "energy_balance": see :func:`energy_balance`, "rest_drift", "rest_growth",
     "one_step_<group>": the test one-step error of :func:`one_step_errors`, for linear-prior
     models "linear_gap_<group>" / "gentle_gap_<group>" (:func:`gentle_load_gaps` at full load and
@@ -283,9 +318,13 @@ def evaluate(cfg) -> dict:
     test = data.of("test")
     train_trajs = [data.trajectories[n] for n in data.split["train"][:max_train]]
     preds, per_step, per_traj, ms = _rollouts(model, data, test)
-    _, _, per_traj_train, _ = _rollouts(model, data, train_trajs)
+    preds_train, _, per_traj_train, _ = _rollouts(model, data, train_trajs)
     mean_test, mean_train = _mean_groups(per_traj, groups), _mean_groups(per_traj_train, groups)
-    whole = _mean_groups([trajectory_error(p, t.z, data.layout) for p, t in zip(preds, test)], groups)
+    whole_traj = [trajectory_error(p, t.z, data.layout) for p, t in zip(preds, test)]
+    whole_traj_train = [trajectory_error(p, t.z, data.layout) for p, t in zip(preds_train, train_trajs)]
+    whole = _mean_groups(whole_traj, groups)
+    loads, loads_train = [peak_load(t.force) for t in test], [peak_load(t.force) for t in train_trajs]
+    by_load = by_peak_load(loads, per_traj, whole_traj, groups)
     linear = linear_baseline(data, test)
 
     out = project_path(cfg.paths.eval_dir)
@@ -314,9 +353,12 @@ def evaluate(cfg) -> dict:
     files += ["rrmse_vs_time.csv", "rrmse_vs_time.png"]
 
     # per-trajectory errors, train vs test
-    rows = [["train", t.name, *[r[g] for g in groups]] for t, r in zip(train_trajs, per_traj_train)]
-    rows += [["test", t.name, *[r[g] for g in groups]] for t, r in zip(test, per_traj)]
-    _write_csv(out / "rrmse_per_trajectory.csv", ["split", "trajectory", *groups], rows)
+    rows = [["train", t.name, f, *[r[g] for g in groups], *[w[g] for g in groups]]
+            for t, f, r, w in zip(train_trajs, loads_train, per_traj_train, whole_traj_train)]
+    rows += [["test", t.name, f, *[r[g] for g in groups], *[w[g] for g in groups]]
+             for t, f, r, w in zip(test, loads, per_traj, whole_traj)]
+    _write_csv(out / "rrmse_per_trajectory.csv",
+               ["split", "trajectory", "peak_load_N", *groups, *[f"whole_{g}" for g in groups]], rows)
     fig, axes = plt.subplots(1, len(groups), figsize=(3.2 * len(groups), 3.5), squeeze=False)
     for ax, g in zip(axes[0], groups):
         series = [[r[g] for r in per_traj_train if math.isfinite(r[g])],
@@ -421,6 +463,11 @@ def evaluate(cfg) -> dict:
         mean_test["linear_fe_ms_per_step"] = linear["ms_per_step"]
         rows["linearised FE, test"] = linear["snapshot"]
     print_rrmse_table(f"rollout RRMSE ({len(test)} test, {len(train_trajs)} train trajectories)", rows)
+    for load, e in by_load.items():              # the test errors at each peak load
+        mean_test.update({f"{k}@{load:g}N": v for k, v in e.items() if k != "trajectories"})
+        print(f"evaluate: at {load:g} N peak load ({int(e['trajectories'])} test trajectories): per snapshot "
+              + ", ".join(f"{g} {_fmt(e[g])}" for g in groups) + "; whole rollout "
+              + ", ".join(f"{g} {_fmt(e['whole_' + g])}" for g in groups))
     print(f"evaluate: {ms:.2f} ms per step ({data.graph.n_nodes} nodes, {torch.get_num_threads()} threads); "
           f"wrote {out}")
 
@@ -463,6 +510,14 @@ def evaluate(cfg) -> dict:
              "comes to rest):", "",
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
              "| test | " + " | ".join(_fmt(whole[g]) for g in groups) + " |", *linear_rows("whole"), "",
+             *(["The test errors at each peak load (the largest sum of the nodal load magnitudes over a "
+                "trajectory, to 3 significant figures; `peak_load_N` in `rrmse_per_trajectory.csv`), "
+                "per snapshot and over the whole rollout:", "",
+                "| peak load [N] | test trajectories | " + " | ".join(groups) + " | "
+                + " | ".join(f"whole {g}" for g in groups) + " |", "|---|---|" + "---|" * (2 * len(groups)),
+                *(f"| {load:g} | {int(e['trajectories'])} | " + " | ".join(_fmt(e[g]) for g in groups) + " | "
+                  + " | ".join(_fmt(e['whole_' + g]) for g in groups) + " |" for load, e in by_load.items()), ""]
+               if by_load else []),
              linear_line, "",
              "One step from every true state z[s] (the model's own step), error of its change "
              "||dz_pred - dz_gt|| / ||dz_gt|| over all steps and nodes, dz = z[s+1] - z[s]: what "
