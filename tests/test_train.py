@@ -228,10 +228,15 @@ def test_evaluate_tabulates_the_test_errors_by_peak_load(tmp_path):
     assert "| peak load [N] | test trajectories | q | v | sigma | whole q | whole v | whole sigma |" in summary
     assert (f"| 1.3 | 1 | {_fmt(res['q@1.3N'])} | {_fmt(res['v@1.3N'])} | {_fmt(res['sigma@1.3N'])} | "
             f"{_fmt(res['whole_q@1.3N'])} |") in summary
-    # rounded to 3 significant figures; one load or more than MAX_LOAD_GROUPS: nothing to tabulate
+    # loads within 1 % are one group, labelled to 3 significant figures (also across a rounding
+    # boundary); one load or more than MAX_LOAD_GROUPS: nothing to tabulate
     errs = [{"q": 1.0}, {"q": 3.0}, {"q": 5.0}]
     grouped = by_peak_load([1.0002, 0.9998, 1.3], errs, errs, ["q"])
     assert list(grouped) == [1.0, 1.3] and grouped[1.0] == {"trajectories": 2.0, "q": 2.0, "whole_q": 2.0}
+    across = by_peak_load([0.99949, 1.3, 0.99951], errs, errs, ["q"])
+    assert len(across) == 2 and list(across.values())[0]["trajectories"] == 2.0
+    close = [1.0, 1.0099, 1.0099, 1.0099, 1.0101]          # means 1.007425 and 1.0101: both 1.01 to 3 figures
+    assert list(by_peak_load(close, [errs[0]] * 5, [errs[0]] * 5, ["q"])) == [1.00743, 1.0101]
     assert by_peak_load([1.0, 1.0], errs[:2], errs[:2], ["q"]) == {}
     many = [float(k) for k in range(1, MAX_LOAD_GROUPS + 2)]
     assert by_peak_load(many, [errs[0]] * len(many), [errs[0]] * len(many), ["q"]) == {}

@@ -204,16 +204,25 @@ def peak_load(force: torch.Tensor) -> float:
 def by_peak_load(loads: list[float], snapshot: list[dict[str, float]], whole: list[dict[str, float]],
                  groups: list[str]) -> dict[float, dict[str, float]]:
     """Per-trajectory errors (per snapshot, whole rollout; one dict per trajectory) grouped by the
-    trajectories' peak loads ``loads`` [N], each rounded to 3 significant figures:
+    trajectories' peak loads ``loads`` [N]: sorted, a load more than 1 % above its group's smallest
+    starts the next group, labelled by its mean to 3 significant figures (6 where 3 would
+    give two groups one label).
     {load: {"trajectories": count, g: mean per-snapshot error, "whole_" + g: mean whole-rollout
-    error}}, in increasing load. Empty unless there are 2 to ``MAX_LOAD_GROUPS`` distinct loads."""
-    keys = [float(f"{x:.3g}") for x in loads]
-    distinct = sorted(set(keys))
-    if not 2 <= len(distinct) <= MAX_LOAD_GROUPS:
+    error}}, in increasing load. Empty unless there are 2 to ``MAX_LOAD_GROUPS`` groups."""
+    clusters: list[list[int]] = []
+    for k in sorted(range(len(loads)), key=lambda k: loads[k]):
+        if clusters and loads[k] <= 1.01 * loads[clusters[-1][0]]:
+            clusters[-1].append(k)
+        else:
+            clusters.append([k])
+    if not 2 <= len(clusters) <= MAX_LOAD_GROUPS:
         return {}
+    means = [float(np.mean([loads[k] for k in rows])) for rows in clusters]
+    labels = [float(f"{m:.3g}") for m in means]
+    if len(set(labels)) < len(labels):          # groups closer than 3 figures tell apart
+        labels = [float(f"{m:.6g}") for m in means]
     out = {}
-    for load in distinct:
-        rows = [k for k, key in enumerate(keys) if key == load]
+    for load, rows in zip(labels, clusters):
         out[load] = {"trajectories": float(len(rows)),
                      **_mean_groups([snapshot[k] for k in rows], groups),
                      **{f"whole_{g}": v for g, v in _mean_groups([whole[k] for k in rows], groups).items()}}
@@ -511,7 +520,8 @@ def evaluate(cfg) -> dict:
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
              "| test | " + " | ".join(_fmt(whole[g]) for g in groups) + " |", *linear_rows("whole"), "",
              *(["The test errors at each peak load (the largest sum of the nodal load magnitudes over a "
-                "trajectory, to 3 significant figures; `peak_load_N` in `rrmse_per_trajectory.csv`), "
+                "trajectory; loads within 1 % are one group, labelled by their mean to 3 significant figures; "
+                "`peak_load_N` in `rrmse_per_trajectory.csv`), "
                 "per snapshot and over the whole rollout:", "",
                 "| peak load [N] | test trajectories | " + " | ".join(groups) + " | "
                 + " | ".join(f"whole {g}" for g in groups) + " |", "|---|---|" + "---|" * (2 * len(groups)),
