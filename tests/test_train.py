@@ -3,6 +3,7 @@
 import csv
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -197,13 +198,14 @@ def test_evaluate_writes_figures_tables_and_vtu(trained):
 def test_evaluate_tabulates_the_test_errors_by_peak_load(tmp_path):
     """Test trajectories pressed at two load magnitudes (the oscillator's loads rescaled to peak
     loads of 1 N and 1.3 N): rrmse_per_trajectory.csv gives each trajectory's peak load and errors,
-    rrmse.json and summary.md their means at each load; one load, or many, give no table."""
+    rrmse.json and summary.md their means at each load; one load, or many, give no table. The csv
+    also gives each load point, summary.md the test trajectories with the largest errors."""
     import h5py
 
     from thermognn.core.schema import Dataset
     from thermognn.train import evaluate
     from thermognn.train.data import split_names
-    from thermognn.train.evaluation import MAX_LOAD_GROUPS, _fmt, by_peak_load, peak_load
+    from thermognn.train.evaluation import MAX_LOAD_GROUPS, _fmt, by_peak_load, hardest, peak_load
 
     path = write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=20, steps=6)
     cfg = _cfg(tmp_path, "train.epochs=1")
@@ -224,7 +226,21 @@ def test_evaluate_tabulates_the_test_errors_by_peak_load(tmp_path):
             assert res[f"{g}@{load}N"] == pytest.approx(float(rows[name][g]), rel=1e-12), (name, g)
             assert res[f"whole_{g}@{load}N"] == pytest.approx(float(rows[name][f"whole_{g}"]), rel=1e-12)
     assert res["whole_sigma"] == pytest.approx((res["whole_sigma@1N"] + res["whole_sigma@1.3N"]) / 2, rel=1e-12)
+    point = Dataset(path).load_points[test[1]]                              # [m], the file's own
+    assert [float(rows[test[1]][f"load_point_{c}_m"]) for c in "xyz"] == pytest.approx(point, rel=1e-12)
     summary = (tmp_path / "eval" / "summary.md").read_text()
+    # the test trajectories ranked by whole-rollout error, relative to each group's test mean
+    score = {n: np.mean([float(rows[n][f"whole_{g}"]) / res[f"whole_{g}"] for g in ("q", "v", "sigma")])
+             for n in test}
+    first = max(test, key=score.get)
+    assert "| trajectory | peak load, load point | whole q | whole v | whole sigma |" in summary
+    assert (f"| {first} | {float(rows[first]['peak_load_N']):.3g} N at ("
+            + ", ".join(f"{x:.4g}" for x in Dataset(path).load_points[first]) + ") m | "
+            + _fmt(float(rows[first]["whole_q"]))) in summary
+    nan = float("nan")
+    assert hardest([{"q": 1.0, "v": 0.01}, {"q": 1.0, "v": 0.03}, {"q": nan, "v": nan}],
+                   {"q": 1.0, "v": 0.02}, ["q", "v"]) == [1, 0, 2]
+    assert hardest([{"q": 9.0, "v": 0.01}, {"q": 1.0, "v": 0.03}], {"q": nan, "v": 0.02}, ["q", "v"]) == [1, 0]
     assert "| peak load [N] | test trajectories | q | v | sigma | whole q | whole v | whole sigma |" in summary
     assert (f"| 1.3 | 1 | {_fmt(res['q@1.3N'])} | {_fmt(res['v@1.3N'])} | {_fmt(res['sigma@1.3N'])} | "
             f"{_fmt(res['whole_q@1.3N'])} |") in summary

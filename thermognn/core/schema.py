@@ -259,6 +259,9 @@ class Dataset:
             #: each trajectory's split group where the file records one (``Trajectory.split_group``)
             self.split_groups = {n: str(f["trajectories"][n].attrs["split_group"]) for n in self.names
                                  if f["trajectories"][n].attrs.get("split_group", "")}
+            #: each trajectory's load point [m], (3,), where the file records one (``Trajectory.load_point``)
+            self.load_points = {n: np.asarray(f["trajectories"][n].attrs["load_point"], np.float64)
+                                for n in self.names if "load_point" in f["trajectories"][n].attrs}
         self.layout = StateLayout.from_json(str(attrs["state_layout"]))
         self.dt = float(attrs["dt"])
         self.config_yaml = str(attrs["config"])

@@ -5,7 +5,7 @@ Files written (all atomically)::
 
     rrmse_vs_time.csv / .png        mean RRMSE over the test trajectories per step and group (paper Fig. 8)
     rrmse_per_trajectory.csv / .png per-trajectory errors (per snapshot and whole rollout) with each
-                                    trajectory's peak load; box plots of the per-snapshot ones, train vs test
+                                    trajectory's peak load and load point; box plots of the per-snapshot ones, train vs test
     one_step_vs_time.csv            one step from each true state: error of its change per step and group
                                     (what the network learned, apart from the rollout's drift)
     energy_entropy.csv / .png       learned E, S and the degeneracy residual along each test rollout
@@ -229,6 +229,20 @@ def by_peak_load(loads: list[float], snapshot: list[dict[str, float]], whole: li
     return out
 
 
+#: evaluate names this many test trajectories with the largest whole-rollout errors (where the error is)
+HARDEST = 3
+
+
+def hardest(whole: list[dict[str, float]], mean: dict[str, float], groups: list[str]) -> list[int]:
+    """Indices of the trajectories by decreasing whole-rollout error ``whole`` (one dict per
+    trajectory), each scored by the mean over the groups of its error relative to the groups'
+    mean ``mean`` (so that q's scale does not hide v's and sigma's); groups without a finite
+    positive mean are left out."""
+    used = [g for g in groups if math.isfinite(mean[g]) and mean[g] > 0]
+    score = [float(np.mean([w[g] / mean[g] for g in used if math.isfinite(w[g])] or [np.nan])) for w in whole]
+    return sorted(range(len(whole)), key=lambda k: -score[k] if math.isfinite(score[k]) else math.inf)
+
+
 def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors]) -> dict:
     """The linearised FE model (the dataset's ``/linear`` operators, ``thermognn.core.linear``; no
     learning) rolled out over the same trajectories, from the same first states under the same
@@ -361,13 +375,18 @@ def evaluate(cfg) -> dict:
     _save_fig(fig, out / "rrmse_vs_time.png")
     files += ["rrmse_vs_time.csv", "rrmse_vs_time.png"]
 
-    # per-trajectory errors, train vs test
-    rows = [["train", t.name, f, *[r[g] for g in groups], *[w[g] for g in groups]]
+    # per-trajectory errors, train vs test, with each trajectory's peak load and load point
+    def point(name: str) -> list[float]:                      # [m], nan where the file records none
+        return [float(x) for x in data.dataset.load_points.get(name, np.full(3, np.nan))]
+
+    rows = [["train", t.name, f, *point(t.name), *[r[g] for g in groups], *[w[g] for g in groups]]
             for t, f, r, w in zip(train_trajs, loads_train, per_traj_train, whole_traj_train)]
-    rows += [["test", t.name, f, *[r[g] for g in groups], *[w[g] for g in groups]]
+    rows += [["test", t.name, f, *point(t.name), *[r[g] for g in groups], *[w[g] for g in groups]]
              for t, f, r, w in zip(test, loads, per_traj, whole_traj)]
     _write_csv(out / "rrmse_per_trajectory.csv",
-               ["split", "trajectory", "peak_load_N", *groups, *[f"whole_{g}" for g in groups]], rows)
+               ["split", "trajectory", "peak_load_N", "load_point_x_m", "load_point_y_m", "load_point_z_m",
+                *groups, *[f"whole_{g}" for g in groups]], rows)
+    worst = hardest(whole_traj, whole, groups)[:HARDEST]
     fig, axes = plt.subplots(1, len(groups), figsize=(3.2 * len(groups), 3.5), squeeze=False)
     for ax, g in zip(axes[0], groups):
         series = [[r[g] for r in per_traj_train if math.isfinite(r[g])],
@@ -477,6 +496,15 @@ def evaluate(cfg) -> dict:
         print(f"evaluate: at {load:g} N peak load ({int(e['trajectories'])} test trajectories): per snapshot "
               + ", ".join(f"{g} {_fmt(e[g])}" for g in groups) + "; whole rollout "
               + ", ".join(f"{g} {_fmt(e['whole_' + g])}" for g in groups))
+    def where(k: int) -> str:                     # a test trajectory's peak load and load point
+        p = point(test[k].name)
+        at = f" at ({', '.join(f'{x:.4g}' for x in p)}) m" if all(map(math.isfinite, p)) else ""
+        return f"{loads[k]:.3g} N{at}"
+
+    if len(test) > 1:
+        print("evaluate: largest whole-rollout test errors: " + "; ".join(
+            f"{test[k].name} ({where(k)}): " + ", ".join(f"{g} {_fmt(whole_traj[k][g])}" for g in groups)
+            for k in worst))
     print(f"evaluate: {ms:.2f} ms per step ({data.graph.n_nodes} nodes, {torch.get_num_threads()} threads); "
           f"wrote {out}")
 
@@ -528,6 +556,13 @@ def evaluate(cfg) -> dict:
                 *(f"| {load:g} | {int(e['trajectories'])} | " + " | ".join(_fmt(e[g]) for g in groups) + " | "
                   + " | ".join(_fmt(e['whole_' + g]) for g in groups) + " |" for load, e in by_load.items()), ""]
                if by_load else []),
+             *([f"The {len(worst)} test trajectories with the largest whole-rollout errors (ranked by the "
+                "mean over the groups of each error relative to the test mean above; all of them in "
+                "`rrmse_per_trajectory.csv`, with the load points):", "",
+                "| trajectory | peak load, load point | " + " | ".join(f"whole {g}" for g in groups) + " |",
+                "|---|---|" + "---|" * len(groups),
+                *(f"| {test[k].name} | {where(k)} | " + " | ".join(_fmt(whole_traj[k][g]) for g in groups) + " |"
+                  for k in worst), ""] if len(test) > 1 else []),
              linear_line, "",
              "One step from every true state z[s] (the model's own step), error of its change "
              "||dz_pred - dz_gt|| / ||dz_gt|| over all steps and nodes, dz = z[s+1] - z[s]: what "
