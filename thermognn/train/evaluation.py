@@ -496,6 +496,7 @@ def evaluate(cfg) -> dict:
         print(f"evaluate: at {load:g} N peak load ({int(e['trajectories'])} test trajectories): per snapshot "
               + ", ".join(f"{g} {_fmt(e[g])}" for g in groups) + "; whole rollout "
               + ", ".join(f"{g} {_fmt(e['whole_' + g])}" for g in groups))
+
     def where(k: int) -> str:                     # a test trajectory's peak load and load point
         p = point(test[k].name)
         at = f" at ({', '.join(f'{x:.4g}' for x in p)}) m" if all(map(math.isfinite, p)) else ""
