@@ -226,8 +226,8 @@ def test_evaluate_tabulates_the_test_errors_by_peak_load(tmp_path):
             assert res[f"{g}@{load}N"] == pytest.approx(float(rows[name][g]), rel=1e-12), (name, g)
             assert res[f"whole_{g}@{load}N"] == pytest.approx(float(rows[name][f"whole_{g}"]), rel=1e-12)
     assert res["whole_sigma"] == pytest.approx((res["whole_sigma@1N"] + res["whole_sigma@1.3N"]) / 2, rel=1e-12)
-    point = Dataset(path).load_points[test[1]]                              # [m], the file's own
-    assert [float(rows[test[1]][f"load_point_{c}_m"]) for c in "xyz"] == pytest.approx(point, rel=1e-12)
+    points = Dataset(path).load_points                                      # [m], the file's own
+    assert [float(rows[test[1]][f"load_point_{c}_m"]) for c in "xyz"] == pytest.approx(points[test[1]], rel=1e-12)
     summary = (tmp_path / "eval" / "summary.md").read_text()
     # the test trajectories ranked by whole-rollout error, relative to each group's test mean
     score = {n: np.mean([float(rows[n][f"whole_{g}"]) / res[f"whole_{g}"] for g in ("q", "v", "sigma")])
@@ -235,7 +235,7 @@ def test_evaluate_tabulates_the_test_errors_by_peak_load(tmp_path):
     first = max(test, key=score.get)
     assert "| trajectory | peak load, load point | whole q | whole v | whole sigma |" in summary
     assert (f"| {first} | {float(rows[first]['peak_load_N']):.3g} N at ("
-            + ", ".join(f"{x:.4g}" for x in Dataset(path).load_points[first]) + ") m | "
+            + ", ".join(f"{x:.4g}" for x in points[first]) + ") m | "
             + _fmt(float(rows[first]["whole_q"]))) in summary
     nan = float("nan")
     assert hardest([{"q": 1.0, "v": 0.01}, {"q": 1.0, "v": 0.03}, {"q": nan, "v": nan}],

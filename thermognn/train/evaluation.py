@@ -379,6 +379,11 @@ def evaluate(cfg) -> dict:
     def point(name: str) -> list[float]:                      # [m], nan where the file records none
         return [float(x) for x in data.dataset.load_points.get(name, np.full(3, np.nan))]
 
+    def where(k: int) -> str:                     # a test trajectory's peak load and load point
+        p = point(test[k].name)
+        at = f" at ({', '.join(f'{x:.4g}' for x in p)}) m" if all(map(math.isfinite, p)) else ""
+        return f"{loads[k]:.3g} N{at}"
+
     rows = [["train", t.name, f, *point(t.name), *[r[g] for g in groups], *[w[g] for g in groups]]
             for t, f, r, w in zip(train_trajs, loads_train, per_traj_train, whole_traj_train)]
     rows += [["test", t.name, f, *point(t.name), *[r[g] for g in groups], *[w[g] for g in groups]]
@@ -386,7 +391,7 @@ def evaluate(cfg) -> dict:
     _write_csv(out / "rrmse_per_trajectory.csv",
                ["split", "trajectory", "peak_load_N", "load_point_x_m", "load_point_y_m", "load_point_z_m",
                 *groups, *[f"whole_{g}" for g in groups]], rows)
-    worst = hardest(whole_traj, whole, groups)[:HARDEST]
+    worst = hardest(whole_traj, whole, groups)[:HARDEST] if len(test) > 1 else []     # where the error is
     fig, axes = plt.subplots(1, len(groups), figsize=(3.2 * len(groups), 3.5), squeeze=False)
     for ax, g in zip(axes[0], groups):
         series = [[r[g] for r in per_traj_train if math.isfinite(r[g])],
@@ -496,13 +501,7 @@ def evaluate(cfg) -> dict:
         print(f"evaluate: at {load:g} N peak load ({int(e['trajectories'])} test trajectories): per snapshot "
               + ", ".join(f"{g} {_fmt(e[g])}" for g in groups) + "; whole rollout "
               + ", ".join(f"{g} {_fmt(e['whole_' + g])}" for g in groups))
-
-    def where(k: int) -> str:                     # a test trajectory's peak load and load point
-        p = point(test[k].name)
-        at = f" at ({', '.join(f'{x:.4g}' for x in p)}) m" if all(map(math.isfinite, p)) else ""
-        return f"{loads[k]:.3g} N{at}"
-
-    if len(test) > 1:
+    if worst:
         print("evaluate: largest whole-rollout test errors: " + "; ".join(
             f"{test[k].name} ({where(k)}): " + ", ".join(f"{g} {_fmt(whole_traj[k][g])}" for g in groups)
             for k in worst))
@@ -563,7 +562,7 @@ def evaluate(cfg) -> dict:
                 "| trajectory | peak load, load point | " + " | ".join(f"whole {g}" for g in groups) + " |",
                 "|---|---|" + "---|" * len(groups),
                 *(f"| {test[k].name} | {where(k)} | " + " | ".join(_fmt(whole_traj[k][g]) for g in groups) + " |"
-                  for k in worst), ""] if len(test) > 1 else []),
+                  for k in worst), ""] if worst else []),
              linear_line, "",
              "One step from every true state z[s] (the model's own step), error of its change "
              "||dz_pred - dz_gt|| / ||dz_gt|| over all steps and nodes, dz = z[s+1] - z[s]: what "
