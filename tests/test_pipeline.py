@@ -39,6 +39,18 @@ def test_demo_runs_every_stage_end_to_end(tmp_path):
         assert math.isfinite(errors[f"whole_{g}"]) and errors[f"whole_{g}"] > 0, g   # the model's own, at full precision
     assert errors["linear_fe_ms_per_step"] > 0
     assert "| linearised FE, test |" in (tmp_path / "eval" / "summary.md").read_text()
+    # each trajectory's linear error beside the model's; the share of it the model leaves, their mean ratio
+    import csv
+
+    with open(tmp_path / "eval" / "rrmse_per_trajectory.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    for part, key in (("test", "linear_fe_left_"), ("train", "linear_fe_left_train_")):
+        ratios = {g: [float(r[f"whole_{g}"]) / float(r[f"linear_fe_whole_{g}"]) for r in rows if r["split"] == part]
+                  for g in ("q", "v", "sigma")}
+        for g, rs in ratios.items():
+            assert rs and errors[key + g] == pytest.approx(sum(rs) / len(rs), rel=1e-9), (part, g)
+    assert "of the linearised FE model's whole-rollout error the model leaves" in res.stdout
+    assert "| split | q | v | sigma |" in (tmp_path / "eval" / "summary.md").read_text()
     summary = json.loads((tmp_path / "serve_summary.json").read_text())
     assert summary["final_force_N"] == 0.0
     assert summary["max_force_N"] > 0.0

@@ -258,6 +258,24 @@ def test_evaluate_tabulates_the_test_errors_by_peak_load(tmp_path):
     assert by_peak_load(many, [errs[0]] * len(many), [errs[0]] * len(many), ["q"]) == {}
 
 
+def test_share_of_the_linear_error_left_and_the_training_sample():
+    """error_left: the mean over trajectories of the model's error over the linear model's, per
+    group, skipping groups the linear model does not predict (nan) or gets exactly (0); spread:
+    an evenly spaced sample of the training trajectories with both ends (every load level)."""
+    from thermognn.train.evaluation import error_left, spread
+
+    nan = float("nan")
+    model = [{"q": 1.0, "v": 0.02, "s": 0.5}, {"q": 3.0, "v": 0.01, "s": 0.5}]
+    linear = [{"q": 2.0, "v": 0.04, "s": nan}, {"q": 4.0, "v": 0.0, "s": nan}]
+    left = error_left(model, linear, ["q", "v", "s"])
+    assert left["q"] == pytest.approx((0.5 + 0.75) / 2) and left["v"] == pytest.approx(0.5) and math.isnan(left["s"])
+    names = [f"traj_{k}" for k in range(92)]            # 46 points at 1 N, then the same at 1.3 N
+    sample = spread(names, 10)
+    assert len(sample) == 10 and sample[0] == "traj_0" and sample[-1] == "traj_91" and sample == sorted(sample, key=names.index)
+    assert sum(int(n.split("_")[1]) >= 46 for n in sample) == 5
+    assert spread(names[:3], 10) == names[:3] and spread(names, 0) == [] and spread(names, 1) == ["traj_0"]
+
+
 def test_one_step_errors_vanish_on_the_models_own_rollout(trained):
     """Stepping each state of the model's own rollout once reproduces the next state: the batched
     one-step pass (mesh copies, chunked) agrees with the sequential rollout to round-off."""

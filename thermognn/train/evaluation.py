@@ -5,7 +5,8 @@ Files written (all atomically)::
 
     rrmse_vs_time.csv / .png        mean RRMSE over the test trajectories per step and group (paper Fig. 8)
     rrmse_per_trajectory.csv / .png per-trajectory errors (per snapshot and whole rollout) with each
-                                    trajectory's peak load and load point; box plots of the per-snapshot ones, train vs test
+                                    trajectory's peak load and load point (and the linearised FE model's
+                                    whole-rollout errors); box plots of the per-snapshot ones, train vs test
     one_step_vs_time.csv            one step from each true state: error of its change per step and group
                                     (what the network learned, apart from the rollout's drift)
     energy_entropy.csv / .png       learned E, S and the degeneracy residual along each test rollout
@@ -247,7 +248,8 @@ def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors]) -> dict:
     """The linearised FE model (the dataset's ``/linear`` operators, ``thermognn.core.linear``; no
     learning) rolled out over the same trajectories, from the same first states under the same
     loads. Returns {"snapshot": {group: mean per-snapshot RRMSE}, "whole": {group: mean
-    whole-rollout error}, "ms_per_step": wall time of one linear step [ms], "note": ""}; groups the
+    whole-rollout error}, "whole_per_trajectory": [{group: whole-rollout error}, one per
+    trajectory], "ms_per_step": wall time of one linear step [ms], "note": ""}; groups the
     linear model does not predict (Prony internal variables; sigma without a stress operator) are
     NaN. Without operators (datasets written before them, or too large for dense operators), or
     for an integrator it does not reproduce: {"note": why} alone."""
@@ -272,7 +274,35 @@ def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors]) -> dict:
         return {"note": str(exc)}
     hide = lambda d: {g: (d[g] if g in predicted else math.nan) for g in groups}  # noqa: E731
     return {"snapshot": hide(_mean_groups(per_traj, groups)), "whole": hide(_mean_groups(whole, groups)),
-            "ms_per_step": 1e3 * elapsed / max(steps, 1), "note": ""}
+            "whole_per_trajectory": [hide(w) for w in whole], "ms_per_step": 1e3 * elapsed / max(steps, 1),
+            "note": ""}
+
+
+def error_left(model: list[dict[str, float]], linear: list[dict[str, float]], groups: list[str]) -> dict[str, float]:
+    """The share of the linearised FE model's error that a learned model leaves: per group, the mean
+    over trajectories of the model's whole-rollout error divided by the linear model's on the same
+    trajectory (one dict per trajectory in each list). NaN for a group without a finite, positive
+    ratio (one the linear model does not predict). On the training trajectories it says how well
+    the network fits the nonlinearity, on the test ones how well it generalises: a test share above
+    the training one is a generalisation gap (more load cases help), equal shares a fit that more
+    data would not improve (capacity, training)."""
+    out = {}
+    for g in groups:
+        ratios = [m[g] / lin[g] for m, lin in zip(model, linear)
+                  if math.isfinite(m[g]) and math.isfinite(lin[g]) and lin[g] > 0]
+        out[g] = float(np.mean(ratios)) if ratios else float("nan")
+    return out
+
+
+def spread(names: list[str], k: int) -> list[str]:
+    """At most k of ``names``, evenly spaced over the list (its first and last included), in order:
+    a sample of the training trajectories that covers every load level of a dataset generated with
+    several magnitudes (``generate`` lists the cases of one magnitude after another)."""
+    if k <= 0 or not names:
+        return []
+    if k >= len(names):
+        return list(names)
+    return [names[i] for i in sorted({int(round(x)) for x in np.linspace(0, len(names) - 1, k)})]
 
 
 #: the load scale of the gentle-load check (:func:`gentle_load_gaps`): 1 % of the data's loads
@@ -317,7 +347,9 @@ def evaluate(cfg) -> dict:
     models "linear_gap_<group>" / "gentle_gap_<group>" (:func:`gentle_load_gaps` at full load and
     at ``GENTLE`` of it), and for datasets with
     linearised FE operators "linear_fe_<group>" / "linear_fe_whole_<group>" (per-snapshot and
-    whole-rollout test errors of :func:`linear_baseline`) and "linear_fe_ms_per_step"}."""
+    whole-rollout test errors of :func:`linear_baseline`), "linear_fe_ms_per_step" and
+    "linear_fe_left_<group>" / "linear_fe_left_train_<group>" (:func:`error_left` on the test
+    trajectories and on the training ones evaluate rolls out)}."""
     torch.set_num_threads(int(OmegaConf.select(cfg, "train.threads", default=2)))
     ckpt_path = project_path(cfg.paths.checkpoint)
     ckpt = load_checkpoint(ckpt_path)
@@ -330,7 +362,8 @@ def evaluate(cfg) -> dict:
     if stored and all(n in data.dataset.names for p in ("train", "test") for n in stored.get(p, [])):
         data.split = {k: list(stored.get(k, [])) for k in ("train", "val", "test")}
     max_train = int(OmegaConf.select(cfg, "train.eval_max_train", default=10))
-    for n in data.split["test"] + data.split["train"][:max_train]:
+    train_names = spread(data.split["train"], max_train)        # covering every load level
+    for n in data.split["test"] + train_names:
         data.read(n)
     ckpt, stepped = with_rollout(ckpt, cfg)
     if stepped:
@@ -339,7 +372,7 @@ def evaluate(cfg) -> dict:
     prior = isinstance(model, LinearPriorModel)      # the network learned remainders, not E and S
     groups = data.layout.names
     test = data.of("test")
-    train_trajs = [data.trajectories[n] for n in data.split["train"][:max_train]]
+    train_trajs = [data.trajectories[n] for n in train_names]
     preds, per_step, per_traj, ms = _rollouts(model, data, test)
     preds_train, _, per_traj_train, _ = _rollouts(model, data, train_trajs)
     mean_test, mean_train = _mean_groups(per_traj, groups), _mean_groups(per_traj_train, groups)
@@ -349,6 +382,11 @@ def evaluate(cfg) -> dict:
     loads, loads_train = [peak_load(t.force) for t in test], [peak_load(t.force) for t in train_trajs]
     by_load = by_peak_load(loads, per_traj, whole_traj, groups)
     linear = linear_baseline(data, test)
+    linear_train = linear_baseline(data, train_trajs) if "snapshot" in linear else {}
+    left = {}                      # the share of the linear model's error the model leaves, test and train
+    if "snapshot" in linear:
+        left = {"test": error_left(whole_traj, linear["whole_per_trajectory"], groups),
+                "train": error_left(whole_traj_train, linear_train["whole_per_trajectory"], groups)}
 
     out = project_path(cfg.paths.eval_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -384,13 +422,18 @@ def evaluate(cfg) -> dict:
         at = f" at ({', '.join(f'{x:.4g}' for x in p)}) m" if all(map(math.isfinite, p)) else ""
         return f"{loads[k]:.3g} N{at}"
 
-    rows = [["train", t.name, f, *point(t.name), *[r[g] for g in groups], *[w[g] for g in groups]]
-            for t, f, r, w in zip(train_trajs, loads_train, per_traj_train, whole_traj_train)]
-    rows += [["test", t.name, f, *point(t.name), *[r[g] for g in groups], *[w[g] for g in groups]]
-             for t, f, r, w in zip(test, loads, per_traj, whole_traj)]
+    def linear_whole(part: dict, n: int) -> list[list[float]]:   # the linear model's, per trajectory
+        return [[lw[g] for g in groups] for lw in part["whole_per_trajectory"]] if part else [[math.nan] * len(groups)] * n
+
+    rows = [["train", t.name, f, *point(t.name), *[r[g] for g in groups], *[w[g] for g in groups], *lw]
+            for t, f, r, w, lw in zip(train_trajs, loads_train, per_traj_train, whole_traj_train,
+                                      linear_whole(linear_train, len(train_trajs)))]
+    rows += [["test", t.name, f, *point(t.name), *[r[g] for g in groups], *[w[g] for g in groups], *lw]
+             for t, f, r, w, lw in zip(test, loads, per_traj, whole_traj,
+                                       linear_whole(linear if "snapshot" in linear else {}, len(test)))]
     _write_csv(out / "rrmse_per_trajectory.csv",
                ["split", "trajectory", "peak_load_N", "load_point_x_m", "load_point_y_m", "load_point_z_m",
-                *groups, *[f"whole_{g}" for g in groups]], rows)
+                *groups, *[f"whole_{g}" for g in groups], *[f"linear_fe_whole_{g}" for g in groups]], rows)
     worst = hardest(whole_traj, whole, groups)[:HARDEST] if len(test) > 1 else []     # where the error is
     fig, axes = plt.subplots(1, len(groups), figsize=(3.2 * len(groups), 3.5), squeeze=False)
     for ax, g in zip(axes[0], groups):
@@ -494,6 +537,8 @@ def evaluate(cfg) -> dict:
         mean_test.update({f"linear_fe_{g}": linear["snapshot"][g] for g in groups})
         mean_test.update({f"linear_fe_whole_{g}": linear["whole"][g] for g in groups})
         mean_test["linear_fe_ms_per_step"] = linear["ms_per_step"]
+        mean_test.update({f"linear_fe_left_{g}": left["test"][g] for g in groups})
+        mean_test.update({f"linear_fe_left_train_{g}": left["train"][g] for g in groups})
         rows["linearised FE, test"] = linear["snapshot"]
     print_rrmse_table(f"rollout RRMSE ({len(test)} test, {len(train_trajs)} train trajectories)", rows)
     for load, e in by_load.items():              # the test errors at each peak load
@@ -505,6 +550,10 @@ def evaluate(cfg) -> dict:
         print("evaluate: largest whole-rollout test errors: " + "; ".join(
             f"{test[k].name} ({where(k)}): " + ", ".join(f"{g} {_fmt(whole_traj[k][g])}" for g in groups)
             for k in worst))
+    if left:
+        print("evaluate: of the linearised FE model's whole-rollout error the model leaves (mean ratio per "
+              "trajectory) " + "; ".join(f"{part} " + ", ".join(f"{g} {_fmt(left[part][g])}" for g in groups)
+                                         for part in ("train", "test")))
     print(f"evaluate: {ms:.2f} ms per step ({data.graph.n_nodes} nodes, {torch.get_num_threads()} threads); "
           f"wrote {out}")
 
@@ -564,6 +613,15 @@ def evaluate(cfg) -> dict:
                 *(f"| {test[k].name} | {where(k)} | " + " | ".join(_fmt(whole_traj[k][g]) for g in groups) + " |"
                   for k in worst), ""] if worst else []),
              linear_line, "",
+             *(["The share of the linearised FE model's whole-rollout error that the model leaves (the mean "
+                "over trajectories of the ratio of the two; `linear_fe_whole_*` in `rrmse_per_trajectory.csv`): "
+                "on the training trajectories how well the network fits the nonlinearity, on the test ones how "
+                "well it generalises. A test share above the training one is a generalisation gap (more load "
+                "cases help); equal shares, a fit that more data would not improve.", "",
+                "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
+                f"| train ({len(train_trajs)}) | " + " | ".join(_fmt(left["train"][g]) for g in groups) + " |",
+                f"| test ({len(test)}) | " + " | ".join(_fmt(left["test"][g]) for g in groups) + " |", ""]
+               if left else []),
              "One step from every true state z[s] (the model's own step), error of its change "
              "||dz_pred - dz_gt|| / ||dz_gt|| over all steps and nodes, dz = z[s+1] - z[s]: what "
              "the network has learned, apart from any drift of its rollouts (near 1: the step is "
