@@ -167,6 +167,70 @@ def test_load_cases_press_distinct_points():
         load_case(0, nodes, node_type, normals, loads)
 
 
+def test_load_points_between_the_nodes():
+    """scene.loads.between_nodes: after the node cases (unchanged), points drawn on the loadable
+    triangles, each pressed at every magnitude; every case loads its own set of nodes, and each
+    point is in the split group of its nearest node."""
+    from thermognn.generate.scene import LoadSpec, between_node_points, load_case
+
+    g = np.linspace(0.0, 0.04, 5)                                   # a 5 x 5 loadable grid at z = 0.02
+    x, y = np.meshgrid(g, g, indexing="ij")
+    top = np.column_stack([x.ravel(), y.ravel(), np.full(25, 0.02)])
+    nodes = np.vstack([top, top - [0, 0, 0.02]])                    # and 25 nodes below it
+    node_type = np.r_[np.full(25, NODE_SURFACE), np.zeros(25)].astype(np.int8)
+    normals = np.tile([0.0, 0.0, 1.0], (50, 1))
+    quads = [(5 * i + j, 5 * (i + 1) + j, 5 * (i + 1) + j + 1, 5 * i + j + 1) for i in range(4) for j in range(4)]
+    faces = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    nodal = LoadSpec(n_trajectories=50, magnitude=(1.0, 1.3), radius=0.012, ramp_steps=1, ramp_shape="linear", seed=2)
+    loads = LoadSpec(n_trajectories=66, magnitude=(1.0, 1.3), radius=0.012, ramp_steps=1, ramp_shape="linear", seed=2,
+                     between_nodes=8)
+    cases = [load_case(k, nodes, node_type, normals, loads, faces) for k in range(66)]
+    for k in range(50):                                             # the node cases as without the points
+        before = load_case(k, nodes, node_type, normals, nodal)
+        assert np.array_equal(cases[k].force, before.force) and np.array_equal(cases[k].point, before.point)
+        assert cases[k].point_index == k % 25
+    points = between_node_points(nodes, node_type, faces, loads)
+    assert points.shape == (8, 3) and np.allclose(points[:, 2], 0.02) and points[:, :2].min() >= 0
+    assert points[:, :2].max() <= 0.04 and np.min(np.linalg.norm(points[:, None] - top[None], axis=2)) > 0
+    order = np.random.default_rng(2).permutation(25)
+    for r, magnitude in enumerate((1.0, 1.3)):
+        for j in range(8):
+            case = cases[50 + 8 * r + j]
+            assert np.array_equal(case.point, points[j]) and np.allclose(case.force.sum(0), [0, 0, -magnitude])
+            nearest = int(np.argmin(np.linalg.norm(top - points[j], axis=1)))
+            assert order[case.point_index] == nearest and nearest in case.load_nodes
+            within = np.flatnonzero(np.linalg.norm(nodes - points[j], axis=1) <= 0.012)    # top nodes only
+            assert np.array_equal(case.load_nodes, np.union1d(within, [nearest]))
+    assert len({tuple(c.load_nodes) for c in cases[:25] + cases[50:58]}) == 33           # every case distinct
+    assert np.array_equal(between_node_points(nodes, node_type, faces, loads), points)   # seeded
+    with pytest.raises(ConfigError, match=r"n_trajectories = 67: at most 66 \(25 loadable nodes .* and 8 points"):
+        load_case(0, nodes, node_type, normals, LoadSpec(**{**loads.__dict__, "n_trajectories": 67}), faces)
+    with pytest.raises(ConfigError, match=r"^scene.loads.between_nodes = 500: only \d+ load points"):
+        between_node_points(nodes, node_type, faces, LoadSpec(**{**loads.__dict__, "between_nodes": 500}))
+
+
+def test_generate_presses_between_the_nodes(tmp_path):
+    """A real generate with two points between the nodes after the node cases: their trajectories
+    press there, in the split group of the nearest loadable node."""
+    pytest.importorskip("dolfinx")
+    from thermognn.generate import generate
+    from thermognn.generate.scene import node_types, scene_from_config
+
+    spec = scene_from_config(_cfg(tmp_path).scene)
+    P = int((node_types(spec.points, spec.tets, spec.mesh_cfg) == NODE_SURFACE).sum())
+    d = Dataset(generate(_cfg(tmp_path, f"scene.loads.n_trajectories={P + 2}", "scene.loads.between_nodes=2",
+                              "scene.time.steps=2")))
+    assert d.ok_names == [f"traj_{k}" for k in range(P + 2)]
+    top = d.mesh.nodes[d.mesh.node_type == NODE_SURFACE]
+    group_of = {tuple(d.load_points[f"traj_{k}"]): d.split_groups[f"traj_{k}"] for k in range(P)}
+    for name in (f"traj_{P}", f"traj_{P + 1}"):
+        point = d.load_points[name]
+        assert point[2] == pytest.approx(0.02) and np.min(np.linalg.norm(top - point, axis=1)) > 1e-6
+        nearest = top[np.argmin(np.linalg.norm(top - point, axis=1))]
+        assert d.split_groups[name] == group_of[tuple(nearest)]
+        assert np.allclose(d.read(name).force[-1].sum(0), [0, 0, -1.0])
+
+
 @pytest.mark.parametrize("value", [[], "hard", [1.0, float("nan")], [[1.0]]])
 def test_bad_load_magnitude_names_the_key(value):
     from thermognn.generate.scene import _magnitudes
@@ -198,6 +262,8 @@ def test_generate_failed_trajectory_is_recorded_without_nan(tmp_path):
     ("scene.loads.ramp_shape=step", "scene.loads.ramp_shape"),
     ("scene.loads.n_trajectories=1000", "scene.loads.n_trajectories"),
     ("scene.loads.magnitude=[]", "scene.loads.magnitude"),
+    ("scene.loads.between_nodes=-1", "scene.loads.between_nodes"),
+    ("scene.loads.between_nodes=1.5", "scene.loads.between_nodes"),
 ])
 def test_bad_scene_config_gives_one_line_error(tmp_path, override, needle):
     pytest.importorskip("dolfinx")

@@ -15,7 +15,7 @@ from thermognn.core.io import versions_json
 from thermognn.core.schema import NODE_CLAMPED, NODE_SURFACE, DatasetWriter, Trajectory
 from thermognn.core.state import StateLayout, state_layout
 
-from .scene import SceneSpec, check_load_cases, dataset_mesh, load_case, load_round_and_point, node_types, ramp, \
+from .scene import SceneSpec, check_load_cases, dataset_mesh, load_case, loadable_faces, node_types, ramp, \
     scene_from_config, boundary_faces_outward, vertex_normals
 
 
@@ -40,8 +40,7 @@ def build_solid(spec: SceneSpec):
     faces = boundary_faces_outward(solid.nodes, cells)
     # load direction: normals of the loadable surface itself (a top-face edge node points along
     # the top face's normal, not along the bisector with the side face); others: all faces
-    loadable_faces = faces[np.all(ntype[faces] == NODE_SURFACE, axis=1)]
-    normals = vertex_normals(solid.nodes, loadable_faces)
+    normals = vertex_normals(solid.nodes, loadable_faces(solid.nodes, cells, ntype))
     missing = np.linalg.norm(normals, axis=1) == 0
     normals[missing] = vertex_normals(solid.nodes, faces)[missing]
     return solid, ntype, normals
@@ -70,7 +69,8 @@ def simulate(solid, spec: SceneSpec, layout: StateLayout, k: int, ntype: np.ndar
              normals: np.ndarray) -> tuple[Trajectory, TrajectoryCost]:
     """Simulate load case k from rest; a failed step ends the trajectory as 'failed'."""
     t0 = time.perf_counter()
-    point, load_nodes, full_force = load_case(k, solid.nodes, ntype, normals, spec.loads)
+    case = solid_load_case(solid, spec, k, ntype, normals)
+    point, load_nodes, full_force = case.point, case.load_nodes, case.force
     solid.reset()
     dt, ramp_steps, shape = spec.dt, spec.loads.ramp_steps, spec.loads.ramp_shape
 
@@ -97,8 +97,14 @@ def simulate(solid, spec: SceneSpec, layout: StateLayout, k: int, ntype: np.ndar
         forces.append(ramp(s * dt, dt, ramp_steps, shape) * full_force)
     traj = Trajectory(name=f"traj_{k}", time=np.asarray(times), z=np.stack(zs), force=np.stack(forces),
                       load_nodes=load_nodes, load_point=point, status=status, reason=reason,
-                      split_group=f"point_{load_round_and_point(k, ntype)[1]}")
+                      split_group=f"point_{case.point_index}")
     return traj, TrajectoryCost(time.perf_counter() - t0, len(times) - 1, iterations, cuts)
+
+
+def solid_load_case(solid, spec: SceneSpec, k: int, ntype: np.ndarray, normals: np.ndarray):
+    """Load case k (``scene.load_case``) on the solid's nodes (dolfinx's order)."""
+    faces = loadable_faces(solid.nodes, solid.cells[:, :4], ntype) if spec.loads.between_nodes else None
+    return load_case(k, solid.nodes, ntype, normals, spec.loads, faces)
 
 
 def _stale_partial(out: Path, nodes: np.ndarray, load_points) -> str:
@@ -171,7 +177,7 @@ def generate(cfg) -> Path:
     names = [f"traj_{k}" for k in range(spec.loads.n_trajectories)]
     check_load_cases(spec.loads, int((ntype == NODE_SURFACE).sum()))
     stale = _stale_partial(out, mesh.nodes,
-                           lambda k: load_case(k, solid.nodes, ntype, normals, spec.loads)[0])
+                           lambda k: solid_load_case(solid, spec, k, ntype, normals).point)
     if stale:
         console.print(f"partial dataset has {stale}: starting afresh")
         out.with_name(out.name + ".partial").unlink()

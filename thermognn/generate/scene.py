@@ -13,9 +13,14 @@ is the total force [N], or a list of them: with P loadable nodes, case k presses
 the (k // P)-th magnitude, so the first P cases press P distinct points at the first magnitude and
 the next P press them again harder or softer (``loads.n_trajectories`` can be at most P times the
 number of magnitudes). Cases that share a point share a split in ``train`` (trajectories are split
-by load point), so no test trajectory repeats a training point. The loadable nodes within
+by load point), so no test trajectory repeats a training point. ``loads.between_nodes`` adds that
+many load points between the nodes (seeded, uniform over the area of the loadable surface), each
+pressed at every magnitude after all the node cases (case P·R + r·B + j presses point j with the
+r-th of R magnitudes); each shares the split group of the loadable node nearest to it, so a
+held-out node keeps its neighbourhood out of training, and a point whose loaded nodes are those of
+an earlier case is drawn again (every case distinct). The loadable nodes within
 ``loads.radius`` of the point share the force equally, directed along the inward surface normal at
-the load point;
+the load point (at the nearest loadable node), and that node shares it too;
 the force ramps over ``ramp_steps`` steps and is then held. ``ramp_shape``: ``linear`` or
 ``smooth`` (cubic smoothstep 3s² − 2s³: zero load rate at start and end, so the dynamic response
 is not kicked by a jump in load rate, which the undamped trapezoidal rule would keep ringing in
@@ -25,6 +30,7 @@ the modes faster than the time step).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -47,6 +53,7 @@ class LoadSpec:
     ramp_steps: int
     ramp_shape: str         # linear | smooth
     seed: int
+    between_nodes: int = 0  # load points between the loadable nodes, after the node cases (module docstring)
 
     @property
     def magnitudes(self) -> tuple[float, ...]:
@@ -83,6 +90,16 @@ def _positive(value, key: str, kind=float):
         raise ConfigError(f"scene.{key} = {value!r}: expected a positive {kind.__name__}") from None
     if v <= 0:
         raise ConfigError(f"scene.{key} = {value!r}: expected a positive {kind.__name__}")
+    return v
+
+
+def _non_negative_int(value, key: str) -> int:
+    try:
+        v = int(value)
+    except (TypeError, ValueError):
+        v = -1
+    if v < 0 or v != value:
+        raise ConfigError(f"{key} = {value!r}: expected a whole number >= 0")
     return v
 
 
@@ -133,6 +150,7 @@ def scene_from_config(sc) -> SceneSpec:
         ramp_steps=max(1, int(_get(ld, "ramp_steps", 1))),
         ramp_shape=str(_get(ld, "ramp_shape", "linear")),
         seed=int(_get(ld, "seed", 0)),
+        between_nodes=_non_negative_int(_get(ld, "between_nodes", 0), "scene.loads.between_nodes"),
     )
     if loads.ramp_shape not in RAMP_SHAPES:
         raise ConfigError(f"scene.loads.ramp_shape = {loads.ramp_shape!r}: expected one of {list(RAMP_SHAPES)}")
@@ -238,44 +256,98 @@ def _magnitudes(value) -> float | tuple[float, ...]:
     return tuple(values) if many else values[0]
 
 
-def load_round_and_point(k: int, node_type: np.ndarray) -> tuple[int, int]:
-    """(r, i) of load case k: it presses the i-th loadable node of the seeded order with the r-th
-    magnitude of ``loads.magnitudes`` (with P loadable nodes, r = k // P and i = k mod P)."""
-    return divmod(k, int((node_type == NODE_SURFACE).sum()))
+class LoadCase(NamedTuple):
+    """One load case of ``generate``: where it presses and with what."""
+
+    point: np.ndarray       # (3,) [m] the load point
+    load_nodes: np.ndarray  # (K,) the loadable nodes sharing the force
+    force: np.ndarray       # (N, 3) [N] the nodal force at full magnitude
+    point_index: int        # the loadable node (its place in the seeded order) pressed or nearest: the split group
+
+
+def loadable_faces(nodes: np.ndarray, tets: np.ndarray, node_type: np.ndarray) -> np.ndarray:
+    """(F, 3) the outward boundary triangles whose three nodes are loadable: the loadable surface."""
+    faces = boundary_faces_outward(nodes, tets)
+    return faces[np.all(node_type[faces] == NODE_SURFACE, axis=1)]
+
+
+def _loaded_nodes(point: np.ndarray, nodes: np.ndarray, candidates: np.ndarray, radius: float) -> tuple[np.ndarray, int]:
+    """(the loadable nodes within ``radius`` of ``point`` and the nearest one, sorted; the nearest)."""
+    dist = np.linalg.norm(nodes[candidates] - point, axis=1)
+    nearest = int(candidates[np.argmin(dist)])
+    within = candidates[dist <= radius] if radius > 0 else candidates[:0]
+    return np.union1d(within, [nearest]).astype(np.int64), nearest
+
+
+def between_node_points(nodes: np.ndarray, node_type: np.ndarray, faces: np.ndarray, loads: LoadSpec) -> np.ndarray:
+    """(B, 3) [m] the ``loads.between_nodes`` load points between the loadable nodes: seeded
+    (``loads.seed``), uniform over the area of the loadable triangles ``faces`` (F, 3); a point whose
+    loaded nodes are those of a node case or of an earlier point is drawn again."""
+    count = loads.between_nodes
+    if count == 0:
+        return np.zeros((0, 3))
+    if faces is None or len(faces) == 0:
+        raise ConfigError("scene.loads.between_nodes: the loadable surface has no triangle to draw points on")
+    candidates = np.flatnonzero(node_type == NODE_SURFACE)
+    seen = {tuple(_loaded_nodes(nodes[c], nodes, candidates, loads.radius)[0]) for c in candidates}
+    a, b, c = (nodes[faces[:, i]] for i in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    rng = np.random.default_rng([loads.seed, 1])
+    points: list[np.ndarray] = []
+    for _ in range(200 * count + 1000):
+        if len(points) == count:
+            break
+        f = int(rng.choice(len(faces), p=area / area.sum()))
+        r1, r2 = rng.random(2)
+        s = np.sqrt(r1)                                           # uniform on the triangle
+        point = (1 - s) * a[f] + s * (1 - r2) * b[f] + s * r2 * c[f]
+        key = tuple(_loaded_nodes(point, nodes, candidates, loads.radius)[0])
+        if key not in seen:
+            seen.add(key)
+            points.append(point)
+    if len(points) < count:
+        raise ConfigError(f"scene.loads.between_nodes = {count}: only {len(points)} load points between the nodes "
+                          f"load other nodes than every earlier case (scene.loads.radius = {loads.radius} m); "
+                          "lower it or refine scene.mesh.cell_size")
+    return np.array(points)
 
 
 def load_case(k: int, nodes: np.ndarray, node_type: np.ndarray, normals: np.ndarray,
-              loads: LoadSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(load_point (3,) [m], load_nodes (K,), nodal force at full magnitude (N, 3) [N]) of case k.
-
-    With P loadable nodes, case k presses the (k mod P)-th of one seeded order with the
-    (k // P)-th magnitude, so cases 0..P-1 press P distinct points (``check_load_cases``)."""
+              loads: LoadSpec, faces: np.ndarray | None = None) -> LoadCase:
+    """Load case k (module docstring). With P loadable nodes and R magnitudes, cases k < P R
+    press the (k mod P)-th node of one seeded order with the (k // P)-th magnitude, so cases
+    0..P-1 press P distinct points (``check_load_cases``); the next ``loads.between_nodes`` times R
+    press the points of :func:`between_node_points` (which needs the loadable triangles ``faces``)."""
     candidates = np.flatnonzero(node_type == NODE_SURFACE)
     check_load_cases(loads, len(candidates))
-    n_cases = len(candidates) * len(loads.magnitudes)
+    P, R = len(candidates), len(loads.magnitudes)
+    n_cases = (P + loads.between_nodes) * R
     if not 0 <= k < n_cases:
-        raise ConfigError(f"load case {k}: expected 0 <= k < {n_cases} (the loadable nodes times the magnitudes)")
-    round_, index = load_round_and_point(k, node_type)
-    centre = int(np.random.default_rng(loads.seed).permutation(candidates)[index])
-    point = nodes[centre].copy()
-    dist = np.linalg.norm(nodes[candidates] - point, axis=1)
-    load_nodes = np.sort(candidates[dist <= loads.radius]) if loads.radius > 0 else np.array([centre])
-    if centre not in load_nodes:
-        load_nodes = np.sort(np.append(load_nodes, centre))
-    direction = -normals[centre]
+        raise ConfigError(f"load case {k}: expected 0 <= k < {n_cases} (the loadable nodes and the points "
+                          "between them, times the magnitudes)")
+    order = np.random.default_rng(loads.seed).permutation(candidates)
+    if k < P * R:
+        round_, index = divmod(k, P)
+        point = nodes[int(order[index])].copy()
+    else:
+        round_, j = divmod(k - P * R, loads.between_nodes)
+        point = between_node_points(nodes, node_type, faces, loads)[j]
+    load_nodes, nearest = _loaded_nodes(point, nodes, candidates, loads.radius)
     force = np.zeros_like(nodes)
-    force[load_nodes] = loads.magnitudes[round_] / len(load_nodes) * direction
-    return point, load_nodes.astype(np.int64), force
+    force[load_nodes] = loads.magnitudes[round_] / len(load_nodes) * -normals[nearest]
+    return LoadCase(point, load_nodes, force, int(np.flatnonzero(order == nearest)[0]))
 
 
 def check_load_cases(loads: LoadSpec, n_loadable: int) -> None:
     """ConfigError unless the load cases fit: each magnitude presses every point at most once."""
-    rounds = len(loads.magnitudes)
-    if loads.n_trajectories > n_loadable * rounds:
+    rounds, points = len(loads.magnitudes), n_loadable + loads.between_nodes
+    if loads.n_trajectories > points * rounds:
         raise ConfigError(
-            f"scene.loads.n_trajectories = {loads.n_trajectories}: at most {n_loadable * rounds} ({n_loadable} "
-            f"loadable nodes of scene.mesh.loadable, each pressed once per magnitude of scene.loads.magnitude, "
-            f"{rounds} here): refine scene.mesh.cell_size, widen scene.mesh.loadable or list more magnitudes")
+            f"scene.loads.n_trajectories = {loads.n_trajectories}: at most {points * rounds} ({n_loadable} "
+            f"loadable nodes of scene.mesh.loadable and {loads.between_nodes} points between them "
+            f"(scene.loads.between_nodes), each pressed once per magnitude of scene.loads.magnitude, "
+            f"{rounds} here): refine scene.mesh.cell_size, widen scene.mesh.loadable, list more magnitudes "
+            "or add points between the nodes")
 
 
 def ramp(t: float, dt: float, ramp_steps: int, shape: str = "linear") -> float:
