@@ -284,8 +284,8 @@ def error_left(model: list[dict[str, float]], linear: list[dict[str, float]], gr
     trajectory (one dict per trajectory in each list). NaN for a group without a finite, positive
     ratio (one the linear model does not predict). On the training trajectories it says how well
     the network fits the nonlinearity, on the test ones how well it generalises: a test share above
-    the training one is a generalisation gap (more load cases help), equal shares a fit that more
-    data would not improve (capacity, training)."""
+    the training one is a generalisation gap (more load cases help), equal shares point to the fit
+    (capacity, training)."""
     out = {}
     for g in groups:
         ratios = [m[g] / lin[g] for m, lin in zip(model, linear)
@@ -384,7 +384,7 @@ def evaluate(cfg) -> dict:
     linear = linear_baseline(data, test)
     linear_train = linear_baseline(data, train_trajs) if "snapshot" in linear else {}
     left = {}                      # the share of the linear model's error the model leaves, test and train
-    if "snapshot" in linear:
+    if "snapshot" in linear and "snapshot" in linear_train:
         left = {"test": error_left(whole_traj, linear["whole_per_trajectory"], groups),
                 "train": error_left(whole_traj_train, linear_train["whole_per_trajectory"], groups)}
 
@@ -422,15 +422,16 @@ def evaluate(cfg) -> dict:
         at = f" at ({', '.join(f'{x:.4g}' for x in p)}) m" if all(map(math.isfinite, p)) else ""
         return f"{loads[k]:.3g} N{at}"
 
-    def linear_whole(part: dict, n: int) -> list[list[float]]:   # the linear model's, per trajectory
-        return [[lw[g] for g in groups] for lw in part["whole_per_trajectory"]] if part else [[math.nan] * len(groups)] * n
+    def linear_whole(baseline: dict, n: int) -> list[list[float]]:   # the linear model's, per trajectory
+        per = baseline.get("whole_per_trajectory")
+        return [[lw[g] for g in groups] for lw in per] if per else [[math.nan] * len(groups)] * n
 
     rows = [["train", t.name, f, *point(t.name), *[r[g] for g in groups], *[w[g] for g in groups], *lw]
             for t, f, r, w, lw in zip(train_trajs, loads_train, per_traj_train, whole_traj_train,
                                       linear_whole(linear_train, len(train_trajs)))]
     rows += [["test", t.name, f, *point(t.name), *[r[g] for g in groups], *[w[g] for g in groups], *lw]
              for t, f, r, w, lw in zip(test, loads, per_traj, whole_traj,
-                                       linear_whole(linear if "snapshot" in linear else {}, len(test)))]
+                                       linear_whole(linear, len(test)))]
     _write_csv(out / "rrmse_per_trajectory.csv",
                ["split", "trajectory", "peak_load_N", "load_point_x_m", "load_point_y_m", "load_point_z_m",
                 *groups, *[f"whole_{g}" for g in groups], *[f"linear_fe_whole_{g}" for g in groups]], rows)
@@ -617,7 +618,7 @@ def evaluate(cfg) -> dict:
                 "over trajectories of the ratio of the two; `linear_fe_whole_*` in `rrmse_per_trajectory.csv`): "
                 "on the training trajectories how well the network fits the nonlinearity, on the test ones how "
                 "well it generalises. A test share above the training one is a generalisation gap (more load "
-                "cases help); equal shares, a fit that more data would not improve.", "",
+                "cases help); equal shares point to the fit (capacity, training).", "",
                 "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
                 f"| train ({len(train_trajs)}) | " + " | ".join(_fmt(left["train"][g]) for g in groups) + " |",
                 f"| test ({len(test)}) | " + " | ".join(_fmt(left["test"][g]) for g in groups) + " |", ""]
