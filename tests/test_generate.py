@@ -184,12 +184,12 @@ def test_load_points_between_the_nodes():
     nodal = LoadSpec(n_trajectories=50, magnitude=(1.0, 1.3), radius=0.012, ramp_steps=1, ramp_shape="linear", seed=2)
     loads = LoadSpec(n_trajectories=66, magnitude=(1.0, 1.3), radius=0.012, ramp_steps=1, ramp_shape="linear", seed=2,
                      between_nodes=8)
-    cases = [load_case(k, nodes, node_type, normals, loads, faces) for k in range(66)]
+    points = between_node_points(nodes, node_type, faces, loads)
+    cases = [load_case(k, nodes, node_type, normals, loads, points) for k in range(66)]
     for k in range(50):                                             # the node cases as without the points
         before = load_case(k, nodes, node_type, normals, nodal)
         assert np.array_equal(cases[k].force, before.force) and np.array_equal(cases[k].point, before.point)
         assert cases[k].point_index == k % 25
-    points = between_node_points(nodes, node_type, faces, loads)
     assert points.shape == (8, 3) and np.allclose(points[:, 2], 0.02) and points[:, :2].min() >= 0
     assert points[:, :2].max() <= 0.04 and np.min(np.linalg.norm(points[:, None] - top[None], axis=2)) > 0
     order = np.random.default_rng(2).permutation(25)
@@ -204,7 +204,7 @@ def test_load_points_between_the_nodes():
     assert len({tuple(c.load_nodes) for c in cases[:25] + cases[50:58]}) == 33           # every case distinct
     assert np.array_equal(between_node_points(nodes, node_type, faces, loads), points)   # seeded
     with pytest.raises(ConfigError, match=r"n_trajectories = 67: at most 66 \(25 loadable nodes .* and 8 points"):
-        load_case(0, nodes, node_type, normals, LoadSpec(**{**loads.__dict__, "n_trajectories": 67}), faces)
+        load_case(0, nodes, node_type, normals, LoadSpec(**{**loads.__dict__, "n_trajectories": 67}), points)
     with pytest.raises(ConfigError, match=r"^scene.loads.between_nodes = 500: only \d+ load points"):
         between_node_points(nodes, node_type, faces, LoadSpec(**{**loads.__dict__, "between_nodes": 500}))
 

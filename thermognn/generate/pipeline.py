@@ -15,8 +15,8 @@ from thermognn.core.io import versions_json
 from thermognn.core.schema import NODE_CLAMPED, NODE_SURFACE, DatasetWriter, Trajectory
 from thermognn.core.state import StateLayout, state_layout
 
-from .scene import SceneSpec, check_load_cases, dataset_mesh, load_case, loadable_faces, node_types, ramp, \
-    scene_from_config, boundary_faces_outward, vertex_normals
+from .scene import SceneSpec, between_node_points, check_load_cases, dataset_mesh, load_case, loadable_faces, \
+    node_types, ramp, scene_from_config, boundary_faces_outward, vertex_normals
 
 
 @dataclass
@@ -66,10 +66,11 @@ def node_state(solid, layout: StateLayout) -> np.ndarray:
 
 
 def simulate(solid, spec: SceneSpec, layout: StateLayout, k: int, ntype: np.ndarray,
-             normals: np.ndarray) -> tuple[Trajectory, TrajectoryCost]:
-    """Simulate load case k from rest; a failed step ends the trajectory as 'failed'."""
+             normals: np.ndarray, between: np.ndarray) -> tuple[Trajectory, TrajectoryCost]:
+    """Simulate load case k from rest (``between``: the load points between the nodes, (B, 3) [m]);
+    a failed step ends the trajectory as 'failed'."""
     t0 = time.perf_counter()
-    case = solid_load_case(solid, spec, k, ntype, normals)
+    case = load_case(k, solid.nodes, ntype, normals, spec.loads, between)
     point, load_nodes, full_force = case.point, case.load_nodes, case.force
     solid.reset()
     dt, ramp_steps, shape = spec.dt, spec.loads.ramp_steps, spec.loads.ramp_shape
@@ -99,12 +100,6 @@ def simulate(solid, spec: SceneSpec, layout: StateLayout, k: int, ntype: np.ndar
                       load_nodes=load_nodes, load_point=point, status=status, reason=reason,
                       split_group=f"point_{case.point_index}")
     return traj, TrajectoryCost(time.perf_counter() - t0, len(times) - 1, iterations, cuts)
-
-
-def solid_load_case(solid, spec: SceneSpec, k: int, ntype: np.ndarray, normals: np.ndarray):
-    """Load case k (``scene.load_case``) on the solid's nodes (dolfinx's order)."""
-    faces = loadable_faces(solid.nodes, solid.cells[:, :4], ntype) if spec.loads.between_nodes else None
-    return load_case(k, solid.nodes, ntype, normals, spec.loads, faces)
 
 
 def _stale_partial(out: Path, nodes: np.ndarray, load_points) -> str:
@@ -176,8 +171,10 @@ def generate(cfg) -> Path:
     failed = 0
     names = [f"traj_{k}" for k in range(spec.loads.n_trajectories)]
     check_load_cases(spec.loads, int((ntype == NODE_SURFACE).sum()))
+    between = between_node_points(solid.nodes, ntype, loadable_faces(solid.nodes, solid.cells[:, :4], ntype)
+                                  if spec.loads.between_nodes else None, spec.loads)     # drawn once
     stale = _stale_partial(out, mesh.nodes,
-                           lambda k: solid_load_case(solid, spec, k, ntype, normals).point)
+                           lambda k: load_case(k, solid.nodes, ntype, normals, spec.loads, between).point)
     if stale:
         console.print(f"partial dataset has {stale}: starting afresh")
         out.with_name(out.name + ".partial").unlink()
@@ -189,7 +186,7 @@ def generate(cfg) -> Path:
                       TimeRemainingColumn(), console=console, transient=False) as progress:
             task = progress.add_task(spec.name, total=len(todo))
             for k in todo:
-                traj, cost = simulate(solid, spec, layout, k, ntype, normals)
+                traj, cost = simulate(solid, spec, layout, k, ntype, normals, between)
                 w.write(traj)
                 costs.append(cost)
                 failed += traj.status != "ok"

@@ -313,11 +313,11 @@ def between_node_points(nodes: np.ndarray, node_type: np.ndarray, faces: np.ndar
 
 
 def load_case(k: int, nodes: np.ndarray, node_type: np.ndarray, normals: np.ndarray,
-              loads: LoadSpec, faces: np.ndarray | None = None) -> LoadCase:
+              loads: LoadSpec, between: np.ndarray | None = None) -> LoadCase:
     """Load case k (module docstring). With P loadable nodes and R magnitudes, cases k < P R
     press the (k mod P)-th node of one seeded order with the (k // P)-th magnitude, so cases
     0..P-1 press P distinct points (``check_load_cases``); the next ``loads.between_nodes`` times R
-    press the points of :func:`between_node_points` (which needs the loadable triangles ``faces``)."""
+    press the points ``between`` (B, 3) [m] of :func:`between_node_points`, drawn once by the caller."""
     candidates = np.flatnonzero(node_type == NODE_SURFACE)
     check_load_cases(loads, len(candidates))
     P, R = len(candidates), len(loads.magnitudes)
@@ -330,8 +330,11 @@ def load_case(k: int, nodes: np.ndarray, node_type: np.ndarray, normals: np.ndar
         round_, index = divmod(k, P)
         point = nodes[int(order[index])].copy()
     else:
+        if between is None or len(between) != loads.between_nodes:
+            raise ValueError(f"load case {k}: needs the {loads.between_nodes} points between the nodes "
+                             "(between_node_points)")
         round_, j = divmod(k - P * R, loads.between_nodes)
-        point = between_node_points(nodes, node_type, faces, loads)[j]
+        point = between[j]
     load_nodes, nearest = _loaded_nodes(point, nodes, candidates, loads.radius)
     force = np.zeros_like(nodes)
     force[load_nodes] = loads.magnitudes[round_] / len(load_nodes) * -normals[nearest]

@@ -286,12 +286,8 @@ def error_left(model: list[dict[str, float]], linear: list[dict[str, float]], gr
     the network fits the nonlinearity, on the test ones how well it generalises: a test share above
     the training one is a generalisation gap (more load cases help), equal shares point to the fit
     (capacity, training)."""
-    out = {}
-    for g in groups:
-        ratios = [m[g] / lin[g] for m, lin in zip(model, linear)
-                  if math.isfinite(m[g]) and math.isfinite(lin[g]) and lin[g] > 0]
-        out[g] = float(np.mean(ratios)) if ratios else float("nan")
-    return out
+    return _mean_groups([{g: m[g] / lin[g] if lin[g] > 0 else math.nan for g in groups}
+                         for m, lin in zip(model, linear)], groups)
 
 
 def spread(names: list[str], k: int) -> list[str]:
@@ -426,12 +422,11 @@ def evaluate(cfg) -> dict:
         per = baseline.get("whole_per_trajectory")
         return [[lw[g] for g in groups] for lw in per] if per else [[math.nan] * len(groups)] * n
 
-    rows = [["train", t.name, f, *point(t.name), *[r[g] for g in groups], *[w[g] for g in groups], *lw]
-            for t, f, r, w, lw in zip(train_trajs, loads_train, per_traj_train, whole_traj_train,
-                                      linear_whole(linear_train, len(train_trajs)))]
-    rows += [["test", t.name, f, *point(t.name), *[r[g] for g in groups], *[w[g] for g in groups], *lw]
-             for t, f, r, w, lw in zip(test, loads, per_traj, whole_traj,
-                                       linear_whole(linear, len(test)))]
+    parts = (("train", train_trajs, loads_train, per_traj_train, whole_traj_train, linear_train),
+             ("test", test, loads, per_traj, whole_traj, linear))
+    rows = [[part, t.name, f, *point(t.name), *[r[g] for g in groups], *[w[g] for g in groups], *lw]
+            for part, trajs, fs, snap, wh, baseline in parts
+            for t, f, r, w, lw in zip(trajs, fs, snap, wh, linear_whole(baseline, len(trajs)))]
     _write_csv(out / "rrmse_per_trajectory.csv",
                ["split", "trajectory", "peak_load_N", "load_point_x_m", "load_point_y_m", "load_point_z_m",
                 *groups, *[f"whole_{g}" for g in groups], *[f"linear_fe_whole_{g}" for g in groups]], rows)
@@ -538,9 +533,10 @@ def evaluate(cfg) -> dict:
         mean_test.update({f"linear_fe_{g}": linear["snapshot"][g] for g in groups})
         mean_test.update({f"linear_fe_whole_{g}": linear["whole"][g] for g in groups})
         mean_test["linear_fe_ms_per_step"] = linear["ms_per_step"]
+        rows["linearised FE, test"] = linear["snapshot"]
+    if left:
         mean_test.update({f"linear_fe_left_{g}": left["test"][g] for g in groups})
         mean_test.update({f"linear_fe_left_train_{g}": left["train"][g] for g in groups})
-        rows["linearised FE, test"] = linear["snapshot"]
     print_rrmse_table(f"rollout RRMSE ({len(test)} test, {len(train_trajs)} train trajectories)", rows)
     for load, e in by_load.items():              # the test errors at each peak load
         mean_test.update({f"{k}@{load:g}N": v for k, v in e.items() if k != "trajectories"})
