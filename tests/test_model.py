@@ -273,3 +273,33 @@ def test_quasi_static_layout_without_velocity():
     clamped = nt == 1
     assert out.shape == (20, 9) and torch.equal(out[clamped, :3], ref[clamped])
     assert not torch.equal(out[clamped, 3:], z[clamped, 3:])  # stress still evolves on clamped nodes
+
+
+def test_grown_model_computes_what_its_source_did_then_learns():
+    """load_grown: a checkpoint's weights in the same network with more processor blocks (train.init
+    with a larger model.message_passing). The new blocks start as the identity, so the grown model's
+    rates equal the source's to round-off; its new blocks are open to training (their closing
+    LayerNorms get gradients); any other difference of weights is refused."""
+    from thermognn.train.model import grown_blocks, load_grown
+
+    z, f, ei, nt, ref = _graph(seed=5)
+    src = _with_stats(_model(port=True))
+    with torch.no_grad():                       # trained LayerNorms are not at their initial 1, 0
+        for p in src.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    hp_src = {"message_passing": 2, "shared_weights": False}
+    hp = {"message_passing": 4, "shared_weights": False}
+    assert grown_blocks(hp_src, hp) == 2
+    assert grown_blocks(hp, hp_src) == 0 and grown_blocks(hp_src, hp_src) == 0
+    assert grown_blocks(hp_src, {**hp, "shared_weights": True}) == 0
+    torch.manual_seed(1)
+    grown = TIGNN(12, [3, 4, 5], hidden=16, mlp_layers=2, message_passing=4, port=True).double()
+    load_grown(grown, src.state_dict(), 2)
+    r_src = src.rates(z, f, ei, nt, ref, False)[0]
+    r_grown = grown.rates(z, f, ei, nt, ref, True)[0]     # as in training: differentiable
+    assert torch.allclose(r_grown, r_src, rtol=0, atol=1e-12 * float(r_src.abs().max()))
+    r_grown.pow(2).sum().backward()
+    assert float(grown.blocks[3].node_mlp.net[-1].weight.grad.abs().sum()) > 0
+    wider = TIGNN(12, [3, 4, 5], hidden=24, mlp_layers=2, message_passing=4, port=True).double()
+    with pytest.raises((ValueError, RuntimeError)):
+        load_grown(wider, src.state_dict(), 2)

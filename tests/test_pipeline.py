@@ -168,7 +168,8 @@ def test_linear_prior_early_stopping_ends_each_phase(tmp_path, tiny_block):
 def test_linear_prior_warm_start_straight_into_rollouts(tmp_path, tiny_block):
     """train.epochs=0 with model=linear_prior and train.init: a fine-tune of rollouts only (say,
     whole trajectories after training on windows). At a zero rate its one epoch validates the
-    source's weights: the source's own validation error. No epochs at all is a one-line error."""
+    source's weights: the source's own validation error, also when the fine-tune grows the network
+    by a processor block. No epochs at all is a one-line error."""
     from thermognn.train.checkpoint import load_checkpoint
 
     _train_prior(tmp_path / "src", tiny_block, "train.epochs=1", "train.rollout_epochs=1", "train.rollout_window=1")
@@ -179,6 +180,13 @@ def test_linear_prior_warm_start_straight_into_rollouts(tmp_path, tiny_block):
     tuned = load_checkpoint(tmp_path / "tuned" / "model.last.ckpt")
     assert [r["phase"] for r in tuned["history"]] == ["rollout"]
     assert abs(tuned["history"][0]["val_error"] - src["history"][-1]["val_error"]) <= 1e-6 * src["history"][-1]["val_error"]
+    # grown by a processor block (model.message_passing 2 -> 3): the new block starts as the
+    # identity, so at a zero rate it validates the source's weights too
+    _train_prior(tmp_path / "grown", tiny_block, "model.message_passing=3", "train.epochs=0", "train.rollout_epochs=1",
+                 "train.rollout_lr=0", f"train.init={tmp_path / 'src' / 'model.last.ckpt'}")
+    grown = load_checkpoint(tmp_path / "grown" / "model.last.ckpt")
+    assert grown["hparams"]["message_passing"] == 3
+    assert abs(grown["history"][0]["val_error"] - src["history"][-1]["val_error"]) <= 1e-6 * src["history"][-1]["val_error"]
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'none'}",
                           f"paths.dataset={tiny_block}", "model=linear_prior", "train.epochs=0", "train.rollout_epochs=0"],
                          capture_output=True, text=True, timeout=600)

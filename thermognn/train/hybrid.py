@@ -52,7 +52,7 @@ from torch import Tensor, nn
 
 from thermognn.core.errors import ConfigError, DataError
 
-from .model import TIGNN
+from .model import TIGNN, grown_blocks, load_grown
 from .prior import NewmarkPrior
 
 #: the state layout the prior steps: positions, velocities and stresses, nothing else
@@ -548,9 +548,15 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
             p.mul_(START_SCALE)
     if _sel(tc, "init", None):                   # warm start from a checkpoint of the same model
         src = load_checkpoint(project_path(str(tc.init)))
-        if src.get("prior") != settings or src.get("hparams") != hparams:
-            raise ConfigError(f"train.init = '{tc.init}': not a model.prior=linear checkpoint of this model")
-        model.load_state_dict(src["state_dict"])
+        grown = grown_blocks(src.get("hparams") or {}, hparams)   # or this model with more processor blocks
+        if src.get("prior") != settings or (src.get("hparams") or {}) | (
+                {"message_passing": hparams["message_passing"]} if grown else {}) != hparams:
+            raise ConfigError(f"train.init = '{tc.init}': not a model.prior=linear checkpoint of this model "
+                              "(or of it with fewer processor blocks)")
+        if grown:
+            load_grown(model, src["state_dict"], grown)
+        else:
+            model.load_state_dict(src["state_dict"])
         stats = {k: v.clone() for k, v in src["stats"].items()}
     base = {**_base_checkpoint(cfg, data, hparams, dtype_name, structure, stats), "prior": settings}
     identity = {**training_identity(cfg, hparams, dtype_name), "prior": settings,

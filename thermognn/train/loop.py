@@ -23,7 +23,7 @@ from .data import (LoadedData, check_fingerprint, compute_stats, fingerprint, lo
                    rest_rollout_steps, rest_samples, rest_trajectory, samples,
                    velocity_columns)
 from .hybrid import prior_kind, train_linear_prior, training_phases
-from .model import TIGNN, build_model, hyperparameters, parameter_count
+from .model import TIGNN, build_model, grown_blocks, hyperparameters, load_grown, parameter_count
 from .rollout import rollout, rollout_errors, validation_error
 
 METRIC_FIELDS = ["epoch", "lr", "loss", "data_loss", "degeneracy_loss", "rest_growth", "val_error", "seconds"]
@@ -200,15 +200,21 @@ STEP_ONLY = ("integrator", "implicit_iterations", "exact_kinematics")
 def warm_start(model: TIGNN, path: Path, ds, hparams: dict) -> dict:
     """Load weights and normalisation statistics of the checkpoint ``path`` (``train.init``) into
     ``model``; it must fit the dataset and have the same hyperparameters, except those of the time
-    step alone (``STEP_ONLY``: a model may be fine-tuned under another integrator). Returns its stats."""
+    step alone (``STEP_ONLY``: a model may be fine-tuned under another integrator), or more processor
+    blocks (``model.message_passing``; the new ones start as the identity: ``load_grown``). Returns its stats."""
     src = load_checkpoint(path)
     check_fingerprint(src["fingerprint"], ds, path, hint="train.init must come from this dataset")
+    grown = grown_blocks(src["hparams"], hparams)     # more processor blocks here: a grown model
     changed = sorted(k for k in set(hparams) | set(src["hparams"])
-                     if k not in STEP_ONLY and src["hparams"].get(k) != hparams.get(k))
+                     if k not in STEP_ONLY and src["hparams"].get(k) != hparams.get(k)
+                     and not (grown and k == "message_passing"))
     if changed:
         raise ConfigError(f"train.init = '{path}': its model differs from this run's in "
                           + ", ".join(f"{k} ({src['hparams'].get(k)} there, {hparams.get(k)} here)" for k in changed))
-    model.load_state_dict(src["state_dict"])
+    if grown:
+        load_grown(model, src["state_dict"], grown)
+    else:
+        model.load_state_dict(src["state_dict"])
     return {k: v.clone() for k, v in src["stats"].items()}
 
 

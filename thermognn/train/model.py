@@ -51,6 +51,7 @@ Everything here is TorchScript-able (``torch.jit.script``): message passing is w
 from __future__ import annotations
 
 import inspect
+import re
 from typing import Dict, List, Tuple
 
 import torch
@@ -497,6 +498,41 @@ def stepping(hparams: dict, integrator=None, implicit_iterations=None, kinematic
         out["exact_kinematics"] = _exact_kinematics(str(kinematics), list(hparams["velocity_columns"]),
                                                     bool(hparams["hamiltonian"]), group)
     return out
+
+
+def grown_blocks(src: dict, here: dict) -> int:
+    """How many processor blocks a checkpoint of hyperparameters ``src`` has where ``here`` is the
+    same network with more blocks after them (``message_passing`` larger here, weights unshared on
+    both sides; the rest is the caller's to compare): then ``load_grown`` loads it. 0 otherwise."""
+    a, b = int(src.get("message_passing", 4)), int(here.get("message_passing", 4))
+    unshared = not src.get("shared_weights", False) and not here.get("shared_weights", False)
+    return a if b > a and unshared else 0
+
+
+def load_grown(model: nn.Module, state: Dict[str, Tensor], src_blocks: int) -> None:
+    """Load a checkpoint's weights ``state`` with ``src_blocks`` processor blocks into ``model`` (a
+    TIGNN, or a module holding one), whose network has more: the checkpoint's blocks come first,
+    and each new one starts as the identity, its edge and node MLPs' closing LayerNorm at zero scale
+    and shift, so that both residual updates add nothing and the grown model computes exactly what
+    the checkpoint's did. Training then opens the new blocks (the LayerNorm's scale and shift get
+    gradients at once; the block's other weights as soon as they are nonzero)."""
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    new_block = re.compile(r"(^|\.)blocks\.(\d+)\.")
+
+    def added(key: str) -> bool:
+        m = new_block.search(key)
+        return m is not None and int(m.group(2)) >= src_blocks
+    if unexpected or not all(added(k) for k in missing):
+        raise ValueError(f"the checkpoint's weights do not fit this network grown from {src_blocks} blocks: "
+                         f"unexpected {sorted(unexpected)[:3]}, missing {sorted(k for k in missing if not added(k))[:3]}")
+    nets = [m for m in model.modules() if isinstance(m, TIGNN)]
+    with torch.no_grad():
+        for net in nets:
+            for block in net.blocks[src_blocks:]:
+                for mlp in (block.edge_mlp, block.node_mlp):
+                    norm = mlp.net[-1]   # the closing LayerNorm: h + 0, e + 0
+                    norm.weight.zero_()
+                    norm.bias.zero_()
 
 
 def build_model(hparams: dict, dtype: torch.dtype = torch.float32) -> TIGNN:
