@@ -97,6 +97,31 @@ def test_demo_with_the_linear_prior(tmp_path):
     assert phases == ["fit", "rollout", "rollout"]
 
 
+def test_demo_with_the_relaxing_linear_prior(tmp_path):
+    """`model.prior_relax=true` on a tiny viscous block (one Prony term) through every stage: the
+    prior relaxes as the FE solid does, so with the preset's second-order remainders gentle loads
+    give the relaxing linearised FE model that evaluate reports (to O(load)); windows from states
+    mid-way carry the data's internal variables; export names them in the carried state's layout
+    and the haptic loop steps it."""
+    viscous = ["scene.effects=[elastic,viscous,inertia]", "scene.material.prony=[{g: 0.3, tau: 0.03}]"]
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "demo", "--out", str(tmp_path), "--duration", "2",
+                          *TINY, *viscous, "model=linear_prior", "model.prior_relax=true", "train.epochs=1",
+                          "train.rollout_epochs=1", "train.rollout_window=3"],
+                         capture_output=True, text=True, timeout=900)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
+    errors = json.loads((tmp_path / "eval" / "rrmse.json").read_text())
+    for g in ("q", "v", "sigma"):
+        assert 0 < errors[g] < 1 and 0 < errors[f"linear_fe_{g}"] < 1, g
+        assert 0 < errors[f"gentle_gap_{g}"] < 3e-2 * errors[f"linear_gap_{g}"] + 1e-4, g
+    from thermognn.export.exporter import verify
+
+    meta = verify(tmp_path / "model.pt")
+    assert [g for g, _ in json.loads(meta["state_layout"])] == ["q", "v", "sigma", "a", "G", "prony_force_1",
+                                                                "prony_stress_1"]
+    summary = json.loads((tmp_path / "serve_summary.json").read_text())
+    assert summary["max_force_N"] > 0.0 and summary["final_force_N"] == 0.0
+
+
 @pytest.fixture(scope="module")
 def tiny_block(tmp_path_factory):
     """The tiny block's dataset (with its /linear operators), generated once for this module."""

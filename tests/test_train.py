@@ -727,6 +727,8 @@ def test_linear_prior_settings_and_datasets_it_cannot_use(trained, tmp_path):
         train(_cfg(tmp_path, *data, "model=linear_prior", "model.prior_sweeps=0"))
     with pytest.raises(ConfigError, match=r"model.prior_order = 3, expected 1 \| 2"):
         train(_cfg(tmp_path, *data, "model=linear_prior", "model.prior_order=3"))
+    with pytest.raises(ConfigError, match=r"model.prior_relax = 'maybe', expected true \| false"):
+        train(_cfg(tmp_path, *data, "model=linear_prior", "model.prior_relax=maybe"))
     # the schedule is checked before any dataset is read (this one does not exist)
     nowhere = [f"paths.dataset={tmp_path / 'none.h5'}", f"paths.checkpoint={tmp_path / 'model.ckpt'}"]
     with pytest.raises(ConfigError, match=r"train.rollout_window = -1, expected >= 0 \(0: whole rollouts\)"):

@@ -11,9 +11,10 @@ Contract (docs/stages.md, "Exported model"), in the model's dtype::
     begin(z [N, D], f [N, 3]) -> the state ``forward`` steps (here z itself)
 
 A model trained with ``model.prior=linear`` exports as :class:`ExportedLinearPrior`: the same
-contract on its *carried* state [N, D + 6], the physical state with Newmark's acceleration a
-[m/s²] and the last internal-force remainder G [N] appended (``thermognn.train.hybrid``; the
-metadata's state_layout lists them as groups ``a`` and ``G``), in float64; ``z0`` is already
+contract on its *carried* state [N, D + 6 (+ 9 T)], the physical state with Newmark's acceleration a
+[m/s²] and the last internal-force remainder G [N] appended, and with ``model.prior_relax`` the
+prior's Prony internal variables, 9 columns per term T (``thermognn.train.hybrid``; the
+metadata's state_layout lists them as groups ``a``, ``G``, ``prony_force_i``, ``prony_stress_i``), in float64; ``z0`` is already
 carried, and ``begin`` makes a carried state from a physical one.
 
 Never call it under ``torch.no_grad()``: dE/dz and dS/dz come from autograd.
@@ -63,7 +64,7 @@ class ExportedTIGNN(nn.Module):
 
 class ExportedLinearPrior(nn.Module):
     """The linearised FE Newmark step with the network's remainders (``model.prior=linear``),
-    stepping the carried state [N, D + 6] in float64 (module docstring)."""
+    stepping the carried state [N, D + 6 (+ 9 T)] in float64 (module docstring)."""
 
     def __init__(self, core: LinearPriorModel, z0: Tensor, edge_index: Tensor, node_type: Tensor,
                  surface_faces: Tensor, dt: float) -> None:
@@ -78,17 +79,17 @@ class ExportedLinearPrior(nn.Module):
         self.register_buffer("dt", torch.tensor(float(dt), dtype=torch.float64))
         with torch.enable_grad():
             carried = self.begin(z0.to(torch.float64), torch.zeros_like(X, dtype=torch.float64))
-        self.register_buffer("z0", carried.detach().contiguous())                             # [N, D + 6]
+        self.register_buffer("z0", carried.detach().contiguous())                             # [N, D + 6 (+ 9 T)]
 
     def forward(self, z: Tensor, f: Tensor) -> Tensor:
-        """One time step of the carried state z [N, D + 6] driven by the nodal force f [N, 3] [N]
+        """One time step of the carried state z [N, D + 6 (+ 9 T)] driven by the nodal force f [N, 3] [N]
         at t_{n+1}."""
         return self.core.step(z.to(torch.float64), f.to(torch.float64), self.edge_index, self.node_type,
                               self.network_positions, self.dt)
 
     @torch.jit.export
     def begin(self, z: Tensor, f: Tensor) -> Tensor:
-        """The carried state [N, D + 6] of a physical state z [N, D] under the load f [N, 3]:
+        """The carried state [N, D + 6 (+ 9 T)] of a physical state z [N, D] under the load f [N, 3]:
         Newmark's acceleration from the balance of forces there, G from the network."""
         return self.core.carry(z.to(torch.float64), f.to(torch.float64), self.edge_index, self.node_type,
                                self.network_positions)

@@ -23,10 +23,13 @@ linear solve spreads a local correction over the body.
 
 Besides the physical state z [N, D] (q, v, σ), the step carries Newmark's acceleration a and the
 last remainder G: the *carried state* is z with a [m/s²] and G [N] appended as nodal columns,
-[N, D + 6] (zero at clamped DOFs). ``carry`` makes it from a physical state (a from the balance
-of forces there, as the FE starts; G from the network), ``step`` advances it, and the first D
+[N, D + 6] (zero at clamped DOFs). With ``model.prior_relax`` (a viscous scene) the prior relaxes
+as the FE does (``thermognn.train.prior``), and the carried state also holds its Prony internal
+variables, 9 nodal columns per term (``pack_internal``). ``carry`` makes it from a physical state
+(a from the balance of forces there, as the FE starts; G from the network; the internal
+variables as if the displacement were applied at once), ``step`` advances it, and the first D
 columns are the physical state. The exported module steps the carried state, so ``serve`` keeps
-a and G between ticks without knowing about them.
+a, G and the internal variables between ticks without knowing about them.
 
 Training (:func:`train_linear_prior`, from ``thermognn train`` with ``model.prior=linear``) runs
 in two phases (docs/accuracy.md, session 12: each alone fails): ``train.epochs`` epochs of a
@@ -197,26 +200,65 @@ class LinearPriorModel(nn.Module):
         self.rest_H.copy_(H.detach())
         self.anchored = True
 
-    def state(self, u: Tensor, v: Tensor, H: Tensor) -> Tensor:
-        """Physical states [B, N, D] (q = X + u, v, σ = Σ u + H) from free-DOF u, v [B, n]."""
+    def state(self, u: Tensor, v: Tensor, H: Tensor, h: Tensor) -> Tensor:
+        """Physical states [B, N, D] (q = X + u, v, σ = σ_lin + H) from free-DOF u, v [B, n] and
+        the prior's Prony internal variables h [B, T, n + 6N] (σ_lin = Σ u unless it relaxes)."""
         U = self.prior.scatter(u)                                                   # [B, N, 3]
         return torch.cat([self.reference_positions.unsqueeze(0) + U, self.prior.scatter(v),
-                          self.prior.stress(U, H)], -1)
+                          self.prior.stress(U, H) + self.prior.stress_relaxation(u, h)], -1)
 
     def begin(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
-              create_graph: bool, rest_rates: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """(u, v, a, G, H) at the physical states z [B, N, D] under f [B, N, 3]: a from the
-        balance of forces there, G and H from the network."""
+              create_graph: bool, rest_rates: Optional[Tensor] = None
+              ) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """(u, v, a, G, H, h) at the physical states z [B, N, D] under f [B, N, 3]: a from the
+        balance of forces there, G and H from the network, the prior's internal variables h as if
+        the displacement were applied at once (``NewmarkPrior.internal_variables``)."""
         z, f = z.to(torch.float64), f.to(torch.float64)
         u, v, H = self.unpack(z)
         G, _ = self.remainders(z, f, edge_index, node_type, ref_pos, create_graph, rest_rates)
         a = self.prior.initial_acceleration(u, v, self.prior.gather(f), G)
-        return u, v, a, G, H
+        return u, v, a, G, H, self.prior.internal_variables(u)
 
-    def unpack(self, z: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-        """(u, v [B, n], H [B, N, 6]) of float64 states z [B, N, D(+6)]: the inverse of ``state``."""
+    def unpack(self, z: Tensor, h: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor]:
+        """(u, v [B, n], H [B, N, 6]) of float64 states z [B, N, D(+...)]: the inverse of ``state``
+        with the internal variables h [B, T, n + 6N] (None: those of a start, where the relaxing
+        prior's σ_lin is Σ u)."""
         U = z[:, :, 0:3] - self.reference_positions.unsqueeze(0)                    # [B, N, 3]
-        return self.prior.gather(U), self.prior.gather(z[:, :, 3:6]), z[:, :, 6:12] - self.prior.stress(U, None)
+        u = self.prior.gather(U)
+        H = z[:, :, 6:12] - self.prior.stress(U, None)
+        if h is not None:
+            H = H - self.prior.stress_relaxation(u, h)
+        return u, self.prior.gather(z[:, :, 3:6]), H
+
+    def trajectory_internal_variables(self, z: Tensor) -> Tensor:
+        """The prior's internal variables h [S, T, n + 6N] along one trajectory of physical states
+        z [S, N, D] (from an unloaded start, as generate's): what a step from a true state
+        mid-way carries (one-step error, rollout windows)."""
+        U = z[:, :, 0:3].to(torch.float64) - self.reference_positions.unsqueeze(0)        # [S, N, 3]
+        return self.prior.internal_history(self.prior.gather(U))
+
+    def pack_internal(self, h: Tensor) -> Tensor:
+        """Internal variables h [B, T, n + 6N] -> nodal columns [B, N, 9 T] (per term: its force
+        variable as a nodal vector [N], its stress variable [Pa])."""
+        n, B = self.prior.n_free, h.shape[0]
+        cols: List[Tensor] = []
+        for i in range(self.prior.n_terms):
+            cols.append(self.prior.scatter(h[:, i, :n]))
+            cols.append(h[:, i, n:].reshape(B, -1, 6))
+        if len(cols) == 0:
+            return h.new_zeros(B, self.reference_positions.shape[0], 0)
+        return torch.cat(cols, -1)
+
+    def unpack_internal(self, x: Tensor) -> Tensor:
+        """Nodal columns [B, N, 9 T] -> internal variables h [B, T, n + 6N]: the inverse of ``pack_internal``."""
+        B = x.shape[0]
+        terms: List[Tensor] = []
+        for i in range(self.prior.n_terms):
+            terms.append(torch.cat([self.prior.gather(x[:, :, 9 * i:9 * i + 3]),
+                                    x[:, :, 9 * i + 3:9 * i + 9].reshape(B, -1)], -1))
+        if len(terms) == 0:
+            return x.new_zeros(B, 0, 0)
+        return torch.stack(terms, 1)
 
     def accelerations(self, z: Tensor, f: Tensor) -> Tensor:
         """The data's own Newmark accelerations a [S, n] m/s² along one trajectory of physical
@@ -226,64 +268,68 @@ class LinearPriorModel(nn.Module):
         U = z[:, :, 0:3].to(torch.float64) - self.reference_positions.unsqueeze(0)        # [S, N, 3]
         return p.accelerations(p.gather(U), p.gather(z[:, :, 3:6].to(torch.float64)), p.gather(f.to(torch.float64)))
 
-    def pack(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor) -> Tensor:
-        """The carried state [N, D + 6] of one body ([1, ...] inputs): ``state`` with a and G."""
-        return torch.cat([self.state(u, v, H)[0], self.prior.scatter(a)[0], self.prior.scatter(G)[0]], -1)
+    def pack(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, h: Tensor) -> Tensor:
+        """The carried state [N, D + 6 + 9 T] of one body ([1, ...] inputs): ``state`` with a, G
+        and the relaxing prior's internal variables (``pack_internal``; none unless it relaxes)."""
+        return torch.cat([self.state(u, v, H, h)[0], self.prior.scatter(a)[0], self.prior.scatter(G)[0],
+                          self.pack_internal(h)[0]], -1)
 
-    def advance(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, f1: Tensor, edge_index: Tensor,
-                node_type: Tensor, ref_pos: Tensor, create_graph: bool,
-                rest_rates: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    def advance(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, h: Tensor, f1: Tensor,
+                edge_index: Tensor, node_type: Tensor, ref_pos: Tensor, create_graph: bool,
+                rest_rates: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
         """One step under the loads f1 [B, N, 3] at its end: predict with the last G, evaluate
         the network there (``sweeps`` times), step with its G1."""
         f1 = f1.to(torch.float64)
         f1_rows = self.prior.gather(f1)
         G1 = G
         for _ in range(self.sweeps):
-            u1, v1, _a1 = self.prior.step(u, v, a, f1_rows, G, G1)
-            G1, H = self.remainders(self.state(u1, v1, H), f1, edge_index, node_type, ref_pos, create_graph,
+            u1, v1, _a1, h1 = self.prior.step(u, v, a, f1_rows, G, G1, h)
+            G1, H = self.remainders(self.state(u1, v1, H, h1), f1, edge_index, node_type, ref_pos, create_graph,
                                     rest_rates)
-        u1, v1, a1 = self.prior.step(u, v, a, f1_rows, G, G1)
-        return u1, v1, a1, G1, H
+        u1, v1, a1, h1 = self.prior.step(u, v, a, f1_rows, G, G1, h)
+        return u1, v1, a1, G1, H, h1
 
-    # --- the carried state [N, D + 6]: what rollouts, export and serve step ---------------------
+    # --- the carried state [N, D + 6 (+ 9 T)]: what rollouts, export and serve step -------------
     @torch.jit.export
     def carry(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor) -> Tensor:
-        """The carried state [N, D + 6] of the physical state z [N, D] under the load f [N, 3]."""
-        u, v, a, G, H = self.begin(z.unsqueeze(0), f.unsqueeze(0), edge_index, node_type, ref_pos, False)
-        return self.pack(u, v, a, G, H)
+        """The carried state [N, D + 6 + 9 T] of the physical state z [N, D] under the load f [N, 3]."""
+        u, v, a, G, H, h = self.begin(z.unsqueeze(0), f.unsqueeze(0), edge_index, node_type, ref_pos, False)
+        return self.pack(u, v, a, G, H, h)
 
     @torch.jit.export
     def step(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
              dt: Tensor) -> Tensor:
-        """One step of the carried state z [N, D + 6] driven by the load f [N, 3] [N] at the step's
-        end (dt is the prior's own; the argument keeps TIGNN's signature)."""
+        """One step of the carried state z [N, D + 6 + 9 T] driven by the load f [N, 3] [N] at the
+        step's end (dt is the prior's own; the argument keeps TIGNN's signature)."""
         D = self.dim
-        x = z.to(torch.float64).unsqueeze(0)                                        # [1, N, D + 6]
-        u, v, H = self.unpack(x)
+        x = z.to(torch.float64).unsqueeze(0)                                        # [1, N, D + 6 + 9 T]
+        h = self.unpack_internal(x[:, :, D + 6:])
+        u, v, H = self.unpack(x, h)
         a, G = self.prior.gather(x[:, :, D:D + 3]), self.prior.gather(x[:, :, D + 3:D + 6])
-        u, v, a, G, H = self.advance(u, v, a, G, H, f.unsqueeze(0), edge_index, node_type, ref_pos, False)
-        return self.pack(u, v, a, G, H).to(z.dtype)
+        u, v, a, G, H, h = self.advance(u, v, a, G, H, h, f.unsqueeze(0), edge_index, node_type, ref_pos, False)
+        return self.pack(u, v, a, G, H, h).to(z.dtype)
 
     def rollouts(self, z0: Tensor, forces: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                  steps: int, create_graph: bool) -> Tensor:
         """Physical states [B, steps + 1, N, D] (float64) from z0 [B, N, D] under the loads
         forces [B, S, N, 3] (forces[:, s] at t_s; the last one held beyond S - 1 steps)."""
         r0 = self.rest_rates_once(z0.shape[0], edge_index, node_type, ref_pos, create_graph)
-        u, v, a, G, H = self.begin(z0, forces[:, 0], edge_index, node_type, ref_pos, create_graph, r0)
-        return self.roll(u, v, a, G, H, forces, edge_index, node_type, ref_pos, steps, create_graph, r0)
+        u, v, a, G, H, h = self.begin(z0, forces[:, 0], edge_index, node_type, ref_pos, create_graph, r0)
+        return self.roll(u, v, a, G, H, h, forces, edge_index, node_type, ref_pos, steps, create_graph, r0)
 
-    def roll(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, forces: Tensor, edge_index: Tensor,
-             node_type: Tensor, ref_pos: Tensor, steps: int, create_graph: bool,
+    def roll(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, h: Tensor, forces: Tensor,
+             edge_index: Tensor, node_type: Tensor, ref_pos: Tensor, steps: int, create_graph: bool,
              rest_rates: Optional[Tensor] = None) -> Tensor:
-        """``rollouts`` from its start (u, v, a, G, H), e.g. ``begin``'s with another acceleration;
+        """``rollouts`` from its start (u, v, a, G, H, h), e.g. ``begin``'s with another acceleration
+        and internal variables;
         ``rest_rates`` as ``rest_rates_once`` gives them (None: each step evaluates its own where
         it needs them, as ``network_remainders`` says)."""
         S = forces.shape[1]
-        out = [self.state(u, v, H)]
+        out = [self.state(u, v, H, h)]
         for s in range(1, steps + 1):
-            u, v, a, G, H = self.advance(u, v, a, G, H, forces[:, min(s, S - 1)], edge_index, node_type,
-                                         ref_pos, create_graph, rest_rates)
-            out.append(self.state(u, v, H))
+            u, v, a, G, H, h = self.advance(u, v, a, G, H, h, forces[:, min(s, S - 1)], edge_index, node_type,
+                                            ref_pos, create_graph, rest_rates)
+            out.append(self.state(u, v, H, h))
         return torch.stack(out, 1)
 
 
@@ -307,12 +353,21 @@ def prior_settings(cfg_model) -> dict:
     if order not in ORDERS or isinstance(order, bool):
         raise ConfigError(f"model.prior_order = {order!r}, expected 1 | 2 (the order in the load at which "
                           f"the learned remainders start)")
+    relax = OmegaConf.select(cfg_model, "prior_relax", default=False)
+    if not isinstance(relax, bool):
+        raise ConfigError(f"model.prior_relax = {relax!r}, expected true | false (the prior relaxes as the "
+                          f"viscous FE solid does)")
     settings = {"kind": "linear", "sweeps": sweeps, "positions_only": inputs == "positions"}
-    return {**settings, "order": int(order)} if order != 1 else settings
+    if order != 1:
+        settings["order"] = int(order)
+    if relax:                                     # absent when false: older checkpoints keep their settings
+        settings["relax"] = True
+    return settings
 
 
-def build_prior(ds, dt: float) -> NewmarkPrior:
-    """The dataset's ``/linear`` as a NewmarkPrior (float64); one-line errors where it cannot be."""
+def build_prior(ds, dt: float, relax: bool = False) -> NewmarkPrior:
+    """The dataset's ``/linear`` as a NewmarkPrior (float64), relaxing as its viscous solid does
+    with ``relax``; one-line errors where it cannot be."""
     names = list(ds.layout.names)
     if names != LAYOUT:
         raise ConfigError(f"model.prior = linear: {ds.path} has state variables {names}, expected {LAYOUT} "
@@ -322,7 +377,7 @@ def build_prior(ds, dt: float) -> NewmarkPrior:
         raise DataError(f"{ds.path}: no linearised FE operators (/linear) for model.prior = linear "
                         f"(regenerate the dataset with this version of thermognn generate)")
     try:
-        return NewmarkPrior(linear, len(ds.mesh.nodes), float(dt))
+        return NewmarkPrior(linear, len(ds.mesh.nodes), float(dt), relax=relax)
     except ValueError as exc:
         raise ConfigError(f"model.prior = linear: {ds.path}: {exc}") from None
 
@@ -330,15 +385,19 @@ def build_prior(ds, dt: float) -> NewmarkPrior:
 def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
     """The LinearPriorModel of a network, the checkpoint's ``prior`` settings and the dataset."""
     X = torch.as_tensor(ds.mesh.nodes, dtype=torch.float64)
-    return LinearPriorModel(net, build_prior(ds, dt), X, bool(settings.get("positions_only", True)),
+    return LinearPriorModel(net, build_prior(ds, dt, bool(settings.get("relax", False))), X,
+                            bool(settings.get("positions_only", True)),
                             int(settings.get("sweeps", 1)), int(settings.get("order", 1)))
 
 
-def carried_layout(layout_json: str) -> str:
-    """The exported state layout of a prior model: the physical one plus a and G."""
+def carried_layout(layout_json: str, prony_terms: int = 0) -> str:
+    """The exported state layout of a prior model: the physical one plus a and G, and per Prony
+    term of a relaxing prior its internal force (3) and stress (6) variables."""
     import json
 
-    return json.dumps(json.loads(layout_json) + [list(g) for g in CARRIED])
+    internal = [[f"prony_{kind}_{i + 1}", width] for i in range(prony_terms)
+                for kind, width in (("force", 3), ("stress", 6))]
+    return json.dumps(json.loads(layout_json) + [list(g) for g in CARRIED] + internal)
 
 
 # --- training ---------------------------------------------------------------------------------
@@ -439,9 +498,12 @@ class _RolloutPhase:
         self.window = window if 0 < window < longest else longest           # steps per sample
         # samples: (trajectory, first state) of windows tiling every trajectory
         self.samples = [(i, s) for i, z in enumerate(Z) for s in range(0, z.shape[0] - 1, self.window)]
-        # the data's Newmark accelerations, where a window starts mid-way
-        self.accelerations = ([model.accelerations(z, t.force) for z, t in zip(Z, trajs)]
-                              if self.window < longest else [])
+        # the data's Newmark accelerations (and the relaxing prior's internal variables), where a
+        # window starts mid-way
+        mid_way = self.window < longest
+        self.accelerations = [model.accelerations(z, t.force) for z, t in zip(Z, trajs)] if mid_way else []
+        self.internal = ([model.trajectory_internal_variables(z) for z in Z]
+                         if mid_way and model.prior.n_terms else [])
 
     def loss(self, chosen, g) -> Tuple[Tensor, float, float]:
         """Rollouts of ``window`` steps (fewer where a trajectory ends: a batch runs to its
@@ -453,10 +515,13 @@ class _RolloutPhase:
         forces = torch.stack([self.trajs[i].force[s:s + W + 1] for i, s in chosen])       # [k, W + 1, N, 3]
         mesh = (g.edge_index, g.node_type, g.ref_pos)
         r0 = self.model.rest_rates_once(len(chosen), *mesh, True)        # once per batch: weights fixed within it
-        u, v, a, G, H = self.model.begin(truth[:, 0], forces[:, 0], *mesh, True, r0)
+        u, v, a, G, H, h = self.model.begin(truth[:, 0], forces[:, 0], *mesh, True, r0)
         if any(s > 0 for _, s in chosen):
             a = torch.stack([self.accelerations[i][s] if s > 0 else a[j] for j, (i, s) in enumerate(chosen)])
-        pred = self.model.roll(u, v, a, G, H, forces, *mesh, W, True, r0)
+            if self.internal:                # the relaxing prior: the data's history, and H relative to it
+                h = torch.stack([self.internal[i][s] for i, s in chosen])
+                H = self.model.unpack(truth[:, 0], h)[2]
+        pred = self.model.roll(u, v, a, G, H, h, forces, *mesh, W, True, r0)
         rows = torch.tensor([i for i, _ in chosen])
         loss = sum(((pred[:, 1:, :, sl] - truth[:, 1:, :, sl]) / sc[rows].view(-1, 1, 1, 1)).pow(2).mean()
                    for sl, sc in self.scales)

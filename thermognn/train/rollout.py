@@ -124,6 +124,7 @@ def one_step_errors(model, graph: Graph, trajs: list[TrajectoryTensors], layout:
             dt_t = torch.tensor(dt, dtype=t.z.dtype)
             if isinstance(model, LinearPriorModel):        # Newmark's a along the trajectory [S + 1, n]
                 accelerations = model.accelerations(t.z, t.force)
+                internal = model.trajectory_internal_variables(t.z)             # [S + 1, T, n + 6N]
             for s0 in range(0, S, ONE_STEP_CHUNK):
                 k = min(ONE_STEP_CHUNK, S - s0)
                 if k not in copies:
@@ -133,10 +134,11 @@ def one_step_errors(model, graph: Graph, trajs: list[TrajectoryTensors], layout:
                 f = t.force[s0 + 1: s0 + k + 1]                                         # [k, N, 3]
                 if isinstance(model, LinearPriorModel):   # the true state with the data's own Newmark a
                     mesh = (many.edge_index, many.node_type, many.ref_pos)
-                    u, v, H = model.unpack(z.double())
+                    h = internal[s0: s0 + k]
+                    u, v, H = model.unpack(z.double(), h)
                     G, _ = model.remainders(z, t.force[s0: s0 + k], *mesh, False)
-                    u, v, _, _, H = model.advance(u, v, accelerations[s0: s0 + k], G, H, f, *mesh, False)
-                    z_next = model.state(u, v, H).to(z.dtype)
+                    u, v, _, _, H, h = model.advance(u, v, accelerations[s0: s0 + k], G, H, h, f, *mesh, False)
+                    z_next = model.state(u, v, H, h).to(z.dtype)
                 else:
                     z_next = model.step(z.reshape(k * N, -1), f.reshape(k * N, -1), many.edge_index,
                                         many.node_type, many.ref_pos, dt_t).detach().reshape(k, N, -1)
