@@ -12,7 +12,8 @@ A checkpoint is a ``torch.save``d dict of plain types and tensors (loadable with
     config        resolved config YAML, versions JSON, dataset (path), fingerprint (dict), split (dict)
     epoch, val_error   (validation rollout error, ``rollout.validation_error``)
     prior         (only with ``model.prior=linear``) {"kind", "sweeps", "positions_only"} and
-                  "order" when 2 (``model.prior_order``): the weights are a
+                  "order" when 2 (``model.prior_order``), "relax" when true
+                  (``model.prior_relax``): the weights are a
                   ``hybrid.LinearPriorModel``'s; its operators come from the dataset
     (the ``last`` checkpoint adds optimizer, scheduler, rng, history, best_val, stale_rounds)
 """
