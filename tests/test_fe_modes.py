@@ -380,14 +380,7 @@ def test_relaxing_prior_model_steps_its_carried_internal_variables():
     from thermognn.train.prior import NewmarkPrior
     from thermognn.train.rollout import one_step_errors
 
-    from thermognn.core.schema import Mesh
-
-    s, layout, traj = _bent_block(1.0, "newmark", steps=9, prony=((0.4, 4e-3),))
-    dt, X = 2e-3, s.nodes
-    node_type = torch.as_tensor(np.where(X[:, 2] < 1e-10, 1, 0))
-    edges = torch.as_tensor(Mesh(X, s.cells[:, :4], node_type.numpy()).edges())
-    linear = modes.linear_solid(s)
-    z, f = torch.as_tensor(traj.z[..., :12]), torch.as_tensor(traj.force)
+    layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph(steps=9, prony=((0.4, 4e-3),))
     ref = torch.as_tensor(X)
     torch.manual_seed(0)
     net = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, velocity_edges=True).double()
@@ -397,12 +390,9 @@ def test_relaxing_prior_model_steps_its_carried_internal_variables():
     # last H, so a step from a stored state differs from the rollout's by more than round-off)
     model = LinearPriorModel(net, NewmarkPrior(linear, len(X), dt, relax=True), ref, order=2)
     rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
-    lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))[..., :12]
+    lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
 
-    with torch.no_grad():
-        saved = {k: v.clone() for k, v in net.state_dict().items()}
-        for p in [*net.decoder.net[-1].parameters(), *net.port.parameters()]:
-            p.zero_()
+    saved = _zero_remainders(net)
     with torch.enable_grad():
         zero = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
     assert rel(zero, lin) < 1e-12 and rel(zero[..., 6:12], lin[..., 6:12]) < 1e-10
@@ -426,15 +416,28 @@ def test_relaxing_prior_model_steps_its_carried_internal_variables():
     assert names == ["q", "v", "sigma", "a", "G", "prony_force_1", "prony_stress_1"]
 
 
-def _bent_block_graph():
-    """The damped 12 mm bend (Newmark, dt 2 ms) with what a graph network needs: (layout, its
-    trajectory, dt, reference positions X [N, 3], the linearised solid, node types (base
-    clamped), mesh edges, z [S, N, D] and loads f [S, N, 3] as tensors)."""
+def _zero_remainders(net) -> dict:
+    """Zero the last layers of a LinearPriorModel's network (its remainders vanish: the model is
+    the linearised FE model); returns its weights before, to restore with ``load_state_dict``."""
+    import torch
+
+    with torch.no_grad():
+        saved = {k: v.clone() for k, v in net.state_dict().items()}
+        for p in [*net.decoder.net[-1].parameters(), *net.port.parameters()]:
+            p.zero_()
+    return saved
+
+
+def _bent_block_graph(**options):
+    """The damped 12 mm bend (Newmark, dt 2 ms; ``options`` as ``_bent_block`` takes them, e.g.
+    steps, prony) with what a graph network needs: (layout, its trajectory, dt, reference
+    positions X [N, 3], the linearised solid, node types (base clamped), mesh edges, z [S, N, D]
+    and loads f [S, N, 3] as tensors)."""
     import torch
 
     from thermognn.core.schema import Mesh
 
-    s, layout, traj = _bent_block(1.0, "newmark")
+    s, layout, traj = _bent_block(1.0, "newmark", **options)
     dt, X = 2e-3, s.nodes
     node_type = torch.as_tensor(np.where(X[:, 2] < 1e-10, 1, 0))
     edges = torch.as_tensor(Mesh(X, s.cells[:, :4], node_type.numpy()).edges())
@@ -464,10 +467,7 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
     model = LinearPriorModel(net, NewmarkPrior(linear, len(X), dt), torch.as_tensor(X))
     rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
 
-    with torch.no_grad():
-        saved = {k: v.clone() for k, v in net.state_dict().items()}
-        for p in [*net.decoder.net[-1].parameters(), *net.port.parameters()]:
-            p.zero_()
+    saved = _zero_remainders(net)
     with torch.enable_grad():
         pred = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
     lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))

@@ -520,7 +520,7 @@ class _RolloutPhase:
             a = torch.stack([self.accelerations[i][s] if s > 0 else a[j] for j, (i, s) in enumerate(chosen)])
             if self.internal:                # the relaxing prior: the data's history, and H relative to it
                 h = torch.stack([self.internal[i][s] for i, s in chosen])
-                H = self.model.unpack(truth[:, 0], h)[2]
+                H = H - self.model.prior.stress_relaxation(u, h)     # begin's H is σ − Σ u (unpack of a start)
         pred = self.model.roll(u, v, a, G, H, h, forces, *mesh, W, True, r0)
         rows = torch.tensor([i for i, _ in chosen])
         loss = sum(((pred[:, 1:, :, sl] - truth[:, 1:, :, sl]) / sc[rows].view(-1, 1, 1, 1)).pow(2).mean()

@@ -80,7 +80,7 @@ class NewmarkPrior(nn.Module):
         n = K.shape[0]
         if terms:                          # the isochoric operator J = [K_iso; Σ_iso] [n + 6N, n]
             iso = torch.cat([_dense(linear.stiffness_iso), _dense(linear.stress_iso)], 0)
-            step_stiffness = K - sum(g * (1.0 - w) for g, _, w in terms) * iso[:n]      # K_Δt
+            step_stiffness = _dense(linear.step_stiffness(dt))                         # K_Δt
         else:
             iso, step_stiffness = torch.zeros(0, n, dtype=torch.float64), K
         S_inv = torch.linalg.inv(self.c0 * mass_factor * M + self.c * K + step_stiffness)   # effective stiffness⁻¹
@@ -166,15 +166,20 @@ class NewmarkPrior(nn.Module):
         return (self.prony_weight.view(1, -1, 1) * (self.prony_decay.view(1, -1, 1) * h0[:, :, :n]
                                                      - self.prony_increment.view(1, -1, 1) * iso)).sum(1)
 
+    def _relaxation(self, u: Tensor, h: Tensor, start: int, end: int) -> Tensor:
+        """Σ ḡ_i (h_i − J u) over the rows start:end of J = [K_iso; Σ_iso] [B, end − start]: what
+        relaxation takes off the linearised force (rows :n) or stress (rows n:) at displacements
+        u [B, n] with internal variables h [B, T, n + 6N]."""
+        iso = (u @ self.iso_operator[start:end].T).unsqueeze(1)                    # [B, 1, end − start]
+        return (self.prony_weight.view(1, -1, 1) * (h[:, :, start:end] - iso)).sum(1)
+
     def stress_relaxation(self, u: Tensor, h: Tensor) -> Tensor:
         """Σ ḡ_i (h_i^σ − Σ_iso u) [B, N, 6] Pa: what relaxation takes off the linearised stress
         at displacements u [B, n] with internal variables h (zero for the unrelaxed prior)."""
         B = u.shape[0]
         if self.n_terms == 0:
             return u.new_zeros(B, self.n_nodes, 6)
-        n = self.n_free
-        iso = (u @ self.iso_operator[n:].T).unsqueeze(1)                           # Σ_iso u [B, 1, 6N]
-        return (self.prony_weight.view(1, -1, 1) * (h[:, :, n:] - iso)).sum(1).reshape(B, self.n_nodes, 6)
+        return self._relaxation(u, h, self.n_free, self.iso_operator.shape[0]).reshape(B, self.n_nodes, 6)
 
     def internal_history(self, u: Tensor) -> Tensor:
         """The internal variables h [S, T, n + 6N] along one trajectory of displacements u [S, n],
@@ -214,12 +219,11 @@ class NewmarkPrior(nn.Module):
         K, M, c = self.stiffness, self.mass, self.c
         a = self.accelerations(uf, vf, ff)
         h = self.internal_history(uf)                                              # [S, T, n + 6N]
-        # f_int,lin at every step's end: K u1 (the unrelaxed prior), or K_Δt u1 + the history term
+        # f_int,lin at every step's end: K u1 (the unrelaxed prior), or K u1 + Σ ḡ_i (h_i^f − K_iso u1)
+        # (= K_Δt u1 + history_force, with the step's own update of h)
         f_lin = uf[1:] @ K.T
         if self.n_terms:
-            n = self.n_free
-            relaxed = (self.prony_weight * (1.0 - self.prony_increment)).sum()
-            f_lin = f_lin - relaxed * uf[1:] @ self.iso_operator[:n].T + self.history_force(uf[:-1], h[:-1])
+            f_lin = f_lin + self._relaxation(uf[1:], h[1:], 0, self.n_free)
         # (1 + c) G1 − c G0 = M a1 + αM M v1 + c K (u1 − u0) + f_int,lin − f1 at every step's end
         lumped = (a[1:] @ M.T + self.alpha_m * vf[1:] @ M.T + c * (uf[1:] - uf[:-1]) @ K.T + f_lin
                   - ff[1:] - self.body_force)                                      # [S - 1, n]
