@@ -303,3 +303,25 @@ def test_grown_model_computes_what_its_source_did_then_learns():
     wider = TIGNN(12, [3, 4, 5], hidden=24, mlp_layers=2, message_passing=4, port=True).double()
     with pytest.raises((ValueError, RuntimeError)):
         load_grown(wider, src.state_dict(), 2)
+
+
+def test_sparse_matrix_is_the_dense_product_to_any_order_and_scripted(tmp_path):
+    """SparseMatrix (the linear prior's FE operators): x Aᵀ of the dense A, with renumbered
+    columns, its first and second derivatives those of the dense product, and the same after a
+    TorchScript round trip."""
+    scipy_sparse = pytest.importorskip("scipy.sparse")
+    from thermognn.train.prior import SparseMatrix
+
+    A = scipy_sparse.random(7, 5, density=0.4, format="csr", random_state=1)                # [m, k]
+    columns = [8, 0, 3, 5, 1]                                                                # k of 9 inputs
+    dense = torch.zeros(7, 9, dtype=torch.float64)
+    dense[:, columns] = torch.as_tensor(A.toarray())
+    op = SparseMatrix(A, columns=columns, in_features=9)
+    x = torch.randn(3, 9, dtype=torch.float64, requires_grad=True)
+    assert torch.allclose(op(x), x @ dense.T, rtol=0, atol=1e-14)
+    assert torch.autograd.gradcheck(op, (x,)) and torch.autograd.gradgradcheck(lambda y: op(y) ** 2, (x,))
+    assert not op.state_dict()                                                               # rebuilt, not saved
+    path = tmp_path / "op.pt"
+    torch.jit.save(torch.jit.script(op), str(path))
+    assert torch.equal(torch.jit.load(str(path))(x.detach()), op(x.detach()))
+    assert SparseMatrix(torch.zeros(0, 4).numpy())(torch.ones(2, 4, dtype=torch.float64)).shape == (2, 0)

@@ -102,5 +102,5 @@ class ExportedLinearPrior(nn.Module):
         x = z.to(torch.float64).unsqueeze(0)
         u = P.gather(x[:, :, 0:3] - self.reference_positions.unsqueeze(0))
         v = P.gather(x[:, :, 3:6])
-        energy = 0.5 * ((u @ P.stiffness) * u).sum() + 0.5 * ((v @ P.mass) * v).sum()
+        energy = 0.5 * (P.stiffness(u) * u).sum() + 0.5 * (P.mass(v) * v).sum()
         return energy.detach(), torch.zeros_like(energy)

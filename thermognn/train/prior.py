@@ -33,7 +33,9 @@ J u = [K_iso u; Σ_iso u] seen through exp(−t/τ_i), updated over a step as th
 M a1 + αM M v1 + c K (u1 − u0) + f_int,lin = f1 + (1 + c) G1 − c G0, and σ = σ_lin + H: the
 remainders are again what the linearised solid misses, now of second order in the load.
 
-torch only (dense operators, for meshes of a few thousand free DOFs).
+torch only: the FE operators (K, M, Σ and their isochoric parts) are sparse
+(:class:`SparseMatrix`); the effective stiffness's inverse and M⁻¹ are dense [n, n] (meshes of a
+few thousand free DOFs), so a step is one dense product.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ from typing import Optional
 
 import numpy as np
 import torch
+from scipy import sparse
 from torch import Tensor, nn
 
 from thermognn.core.linear import LinearSolid
@@ -51,13 +54,42 @@ def _dense(A) -> Tensor:
     return torch.as_tensor(A.toarray() if hasattr(A, "toarray") else np.asarray(A), dtype=torch.float64)
 
 
+class SparseMatrix(nn.Module):
+    """A fixed sparse matrix A [m, k] applied to rows: x [B, k] -> x Aᵀ [B, m], as a gather, a
+    product and a scatter over its nonzeros (as message passing is), so that autograd of any
+    order, TorchScript and any device take it. Its triplets are buffers left out of the state
+    dict, as NewmarkPrior's operators are.
+
+    ``A``: a scipy.sparse matrix or a dense array [m, k]; ``columns`` [k'] (optional) renumbers its
+    columns (column j of A acts on column columns[j] of x, of ``in_features`` columns)."""
+
+    def __init__(self, A, dtype: torch.dtype = torch.float64, columns: Optional[np.ndarray] = None,
+                 in_features: Optional[int] = None) -> None:
+        super().__init__()
+        coo = sparse.coo_matrix(A)
+        cols = coo.col if columns is None else np.asarray(columns, dtype=np.int64)[coo.col]
+        self.register_buffer("rows", torch.as_tensor(coo.row, dtype=torch.long), persistent=False)    # [nnz]
+        self.register_buffer("cols", torch.as_tensor(cols, dtype=torch.long), persistent=False)       # [nnz]
+        self.register_buffer("values", torch.as_tensor(coo.data, dtype=torch.float64).to(dtype),
+                             persistent=False)                                                      # [nnz]
+        self.out_features = int(coo.shape[0])
+        self.in_features = int(coo.shape[1] if in_features is None else in_features)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """x Aᵀ [B, m] of rows x [B, k]."""
+        products = x.index_select(1, self.cols) * self.values                     # [B, nnz]
+        return x.new_zeros([x.shape[0], self.out_features]).index_add(1, self.rows, products)
+
+
 class NewmarkPrior(nn.Module):
-    """The Newmark step above over the n free DOFs of an N-node mesh, as dense matrices.
+    """The Newmark step above over the n free DOFs of an N-node mesh.
 
     Displacements u, velocities v [m/s], accelerations a [m/s²], forces and remainders G [N] are
     [B, n] rows over the free DOFs (node-blocked, as ``LinearSolid``); stresses [B, N, 6] Pa.
     The operators are buffers left out of the state dict (they are rebuilt from the dataset's
-    ``/linear``; a TorchScript file keeps them)."""
+    ``/linear``; a TorchScript file keeps them): the sparse ``stiffness`` K, ``mass`` M,
+    ``stress_operator`` Σ (from all 3N nodal DOFs) and, relaxing, ``stiffness_iso`` and
+    ``stress_iso``; the dense ``step_inverse`` (the effective stiffness's inverse) and ``mass_inv``."""
 
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, dtype: torch.dtype = torch.float64,
                  relax: bool = False) -> None:
@@ -76,25 +108,26 @@ class NewmarkPrior(nn.Module):
         self.c = beta_k / self.dt                                                  # stiffness damping / dt
         self.c0 = 1.0 / (self.beta * self.dt**2)                                   # a1 = c0 u1 − predictor
         self.c1 = 1.0 / (2.0 * self.beta) - 1.0
-        mass_factor = 1.0 + self.alpha_m * self.gamma * self.dt
+        self.mass_factor = 1.0 + self.alpha_m * self.gamma * self.dt
         n = K.shape[0]
-        if terms:                          # the isochoric operator J = [K_iso; Σ_iso] [n + 6N, n]
-            iso = torch.cat([_dense(linear.stiffness_iso), _dense(linear.stress_iso)], 0)
-            step_stiffness = _dense(linear.step_stiffness(dt))                         # K_Δt
-        else:
-            iso, step_stiffness = torch.zeros(0, n, dtype=torch.float64), K
-        S_inv = torch.linalg.inv(self.c0 * mass_factor * M + self.c * K + step_stiffness)   # effective stiffness⁻¹
-        # u1 = S⁻¹ (mass_factor M p + c K u0 − αM M v0 − αM dt (1 − γ) M a0 + f1 + (1 + c) G1 − c G0 − history)
+        step_stiffness = _dense(linear.step_stiffness(dt)) if terms else K       # K_Δt
+        # u1 = S⁻¹ (M (mass_factor p − αM v0 − αM dt (1 − γ) a0) + c K u0 + f1 + (1 + c) G1 − c G0 − history)
+        step_inverse = torch.linalg.inv(self.c0 * self.mass_factor * M + self.c * K + step_stiffness)
+        mass_inv = torch.linalg.inv(M)
+        del K, M, step_stiffness
         free = torch.as_tensor(np.asarray(linear.free, dtype=bool))                 # [3N]
-        stress_operator = torch.zeros(6 * n_nodes, 3 * n_nodes, dtype=torch.float64)  # [6N, 3N]
-        stress_operator[:, free] = _dense(linear.stress)
+        free_index = np.flatnonzero(np.asarray(linear.free, dtype=bool))
+        empty = np.zeros((0, n))
+        self.stiffness = SparseMatrix(linear.stiffness, dtype)                      # K [n, n] N/m
+        self.mass = SparseMatrix(linear.mass, dtype)                                # M [n, n] kg
+        self.stress_operator = SparseMatrix(linear.stress, dtype, free_index, 3 * n_nodes)   # Σ [6N, 3N] Pa/m
+        # the isochoric operator J = [K_iso; Σ_iso] [n + 6N, n] (none for the unrelaxed prior)
+        self.stiffness_iso = SparseMatrix(linear.stiffness_iso if terms else empty, dtype)
+        self.stress_iso = SparseMatrix(linear.stress_iso if terms else empty, dtype)
         operators = {
-            "from_predictor": S_inv @ (mass_factor * M), "from_u": self.c * S_inv @ K,
-            "from_v": -self.alpha_m * S_inv @ M, "from_a": -self.alpha_m * self.dt * (1.0 - self.gamma) * S_inv @ M,
-            "from_force": S_inv, "stiffness": K, "mass": M, "mass_inv": torch.linalg.inv(M),
+            "step_inverse": step_inverse, "mass_inv": mass_inv,
             "body_force": (torch.zeros(n, dtype=torch.float64) if linear.body_force is None
                            else torch.as_tensor(np.asarray(linear.body_force), dtype=torch.float64)),
-            "stress_operator": stress_operator, "iso_operator": iso,
             # per Prony term [T]: its weight ḡ_i, the decay d_i and the increment's weight w_i over a step
             "prony_weight": torch.tensor([t[0] for t in terms], dtype=torch.float64),
             "prony_decay": torch.tensor([t[1] for t in terms], dtype=torch.float64),
@@ -126,7 +159,7 @@ class NewmarkPrior(nn.Module):
     def initial_acceleration(self, u0: Tensor, v0: Tensor, f0: Tensor, G0: Tensor) -> Tensor:
         """a0 [B, n] from the equation of motion at the start, M a0 = f0 − K u0 + G0 − αM M v0
         (the FE starts from its own balance too)."""
-        rhs = f0 + self.body_force - u0 @ self.stiffness.T + G0 - self.alpha_m * v0 @ self.mass.T
+        rhs = f0 + self.body_force - self.stiffness(u0) + G0 - self.alpha_m * self.mass(v0)
         return rhs @ self.mass_inv.T
 
     def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
@@ -135,26 +168,32 @@ class NewmarkPrior(nn.Module):
         variables h0 at the step's start ([B, 0, 0] for the unrelaxed prior), the external force f1 at
         the step's end and the internal-force remainders G0, G1 at its start and end (all [B, n])."""
         predictor = self.c0 * (u0 + self.dt * v0) + self.c1 * a0
-        u1 = (predictor @ self.from_predictor.T + u0 @ self.from_u.T + v0 @ self.from_v.T + a0 @ self.from_a.T
-              + (f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0 - self.history_force(u0, h0))
-              @ self.from_force.T)
+        inertia = self.mass(self.mass_factor * predictor - self.alpha_m * v0
+                            - self.alpha_m * self.dt * (1.0 - self.gamma) * a0)
+        rhs = (inertia + self.c * self.stiffness(u0) + f1 + self.body_force + (1.0 + self.c) * G1
+               - self.c * G0 - self.history_force(u0, h0))                                 # [B, n] N
+        u1 = rhs @ self.step_inverse.T
         a1 = self.c0 * u1 - predictor
         v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
         return u1, v1, a1, self.relax(u0, u1, h0)
 
     # --- the Prony internal variables of the relaxing prior (module docstring) ---------------
+    def isochoric(self, u: Tensor) -> Tensor:
+        """J u = [K_iso u; Σ_iso u] [B, n + 6N] of displacements u [B, n]."""
+        return torch.cat([self.stiffness_iso(u), self.stress_iso(u)], 1)
+
     def internal_variables(self, u: Tensor) -> Tensor:
         """h [B, T, n + 6N] at displacements u [B, n] applied at once (h_i = J u; a start)."""
         if self.n_terms == 0:
             return u.new_zeros(u.shape[0], 0, 0)
-        return (u @ self.iso_operator.T).unsqueeze(1).expand(-1, self.n_terms, -1).contiguous()
+        return self.isochoric(u).unsqueeze(1).expand(-1, self.n_terms, -1).contiguous()
 
     def relax(self, u0: Tensor, u1: Tensor, h0: Tensor) -> Tensor:
         """h1 [B, T, n + 6N] after a step from u0 to u1 [B, n]: h_i ← d_i h_i + w_i J (u1 − u0)."""
         if self.n_terms == 0:
             return h0
         return (self.prony_decay.view(1, -1, 1) * h0
-                + self.prony_increment.view(1, -1, 1) * ((u1 - u0) @ self.iso_operator.T).unsqueeze(1))
+                + self.prony_increment.view(1, -1, 1) * self.isochoric(u1 - u0).unsqueeze(1))
 
     def history_force(self, u0: Tensor, h0: Tensor) -> Tensor:
         """f_int,lin − K_Δt u1 [B, n] N: what the internal variables h0 and u0 [B, n] add at a
@@ -162,16 +201,15 @@ class NewmarkPrior(nn.Module):
         if self.n_terms == 0:
             return torch.zeros_like(u0)
         n = self.n_free
-        iso = (u0 @ self.iso_operator[:n].T).unsqueeze(1)                          # K_iso u0 [B, 1, n]
+        iso = self.stiffness_iso(u0).unsqueeze(1)                                  # K_iso u0 [B, 1, n]
         return (self.prony_weight.view(1, -1, 1) * (self.prony_decay.view(1, -1, 1) * h0[:, :, :n]
                                                      - self.prony_increment.view(1, -1, 1) * iso)).sum(1)
 
-    def _relaxation(self, u: Tensor, h: Tensor, start: int, end: int) -> Tensor:
-        """Σ ḡ_i (h_i − J u) over the rows start:end of J = [K_iso; Σ_iso] [B, end − start]: what
-        relaxation takes off the linearised force (rows :n) or stress (rows n:) at displacements
-        u [B, n] with internal variables h [B, T, n + 6N]."""
-        iso = (u @ self.iso_operator[start:end].T).unsqueeze(1)                    # [B, 1, end − start]
-        return (self.prony_weight.view(1, -1, 1) * (h[:, :, start:end] - iso)).sum(1)
+    def _relaxation(self, iso: Tensor, h: Tensor) -> Tensor:
+        """Σ ḡ_i (h_i − iso) [B, m]: what relaxation takes off the linearised force (iso = K_iso u,
+        h the rows :n of the internal variables) or stress (Σ_iso u, rows n:) at displacements u,
+        from iso [B, m] and those rows h [B, T, m] of the internal variables."""
+        return (self.prony_weight.view(1, -1, 1) * (h - iso.unsqueeze(1))).sum(1)
 
     def stress_relaxation(self, u: Tensor, h: Tensor) -> Tensor:
         """Σ ḡ_i (h_i^σ − Σ_iso u) [B, N, 6] Pa: what relaxation takes off the linearised stress
@@ -179,7 +217,7 @@ class NewmarkPrior(nn.Module):
         B = u.shape[0]
         if self.n_terms == 0:
             return u.new_zeros(B, self.n_nodes, 6)
-        return self._relaxation(u, h, self.n_free, self.iso_operator.shape[0]).reshape(B, self.n_nodes, 6)
+        return self._relaxation(self.stress_iso(u), h[:, :, self.n_free:]).reshape(B, self.n_nodes, 6)
 
     def internal_history(self, u: Tensor) -> Tensor:
         """The internal variables h [S, T, n + 6N] along one trajectory of displacements u [S, n],
@@ -194,7 +232,7 @@ class NewmarkPrior(nn.Module):
         displacements u [B, N, 3] m (H = 0: the linearised stress; unrelaxed, see
         ``stress_relaxation``)."""
         B = u.shape[0]
-        linear = (u.reshape(B, -1) @ self.stress_operator.T).reshape(B, self.n_nodes, 6)
+        linear = self.stress_operator(u.reshape(B, -1)).reshape(B, self.n_nodes, 6)
         return linear if H is None else linear + H
 
     def accelerations(self, u: Tensor, v: Tensor, f: Tensor) -> Tensor:
@@ -216,16 +254,16 @@ class NewmarkPrior(nn.Module):
         the relaxing prior's internal variables follow the trajectory's own displacements."""
         uf, vf, ff = self.gather(u), self.gather(v), self.gather(f)
         S = uf.shape[0]
-        K, M, c = self.stiffness, self.mass, self.c
+        c = self.c
         a = self.accelerations(uf, vf, ff)
         h = self.internal_history(uf)                                              # [S, T, n + 6N]
         # f_int,lin at every step's end: K u1 (the unrelaxed prior), or K u1 + Σ ḡ_i (h_i^f − K_iso u1)
         # (= K_Δt u1 + history_force, with the step's own update of h)
-        f_lin = uf[1:] @ K.T
+        f_lin = self.stiffness(uf[1:])
         if self.n_terms:
-            f_lin = f_lin + self._relaxation(uf[1:], h[1:], 0, self.n_free)
+            f_lin = f_lin + self._relaxation(self.stiffness_iso(uf[1:]), h[1:, :, :self.n_free])
         # (1 + c) G1 − c G0 = M a1 + αM M v1 + c K (u1 − u0) + f_int,lin − f1 at every step's end
-        lumped = (a[1:] @ M.T + self.alpha_m * vf[1:] @ M.T + c * (uf[1:] - uf[:-1]) @ K.T + f_lin
+        lumped = (self.mass(a[1:] + self.alpha_m * vf[1:]) + c * self.stiffness(uf[1:] - uf[:-1]) + f_lin
                   - ff[1:] - self.body_force)                                      # [S - 1, n]
         G = torch.zeros_like(uf)
         for s in range(S - 1):
