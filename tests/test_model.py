@@ -316,7 +316,7 @@ def test_sparse_matrix_is_the_dense_product_to_any_order_and_scripted(tmp_path):
     columns = [8, 0, 3, 5, 1]                                                                # k of 9 inputs
     dense = torch.zeros(7, 9, dtype=torch.float64)
     dense[:, columns] = torch.as_tensor(A.toarray())
-    op = SparseMatrix(A, columns=columns, in_features=9)
+    op = SparseMatrix(A, columns=columns)
     x = torch.randn(3, 9, dtype=torch.float64, requires_grad=True)
     assert torch.allclose(op(x), x @ dense.T, rtol=0, atol=1e-14)
     assert torch.autograd.gradcheck(op, (x,)) and torch.autograd.gradgradcheck(lambda y: op(y) ** 2, (x,))

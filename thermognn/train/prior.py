@@ -61,10 +61,9 @@ class SparseMatrix(nn.Module):
     dict, as NewmarkPrior's operators are.
 
     ``A``: a scipy.sparse matrix or a dense array [m, k]; ``columns`` [k'] (optional) renumbers its
-    columns (column j of A acts on column columns[j] of x, of ``in_features`` columns)."""
+    columns (column j of A acts on column columns[j] of x, which may have more columns than A)."""
 
-    def __init__(self, A, dtype: torch.dtype = torch.float64, columns: Optional[np.ndarray] = None,
-                 in_features: Optional[int] = None) -> None:
+    def __init__(self, A, dtype: torch.dtype = torch.float64, columns: Optional[np.ndarray] = None) -> None:
         super().__init__()
         coo = sparse.coo_matrix(A)
         cols = coo.col if columns is None else np.asarray(columns, dtype=np.int64)[coo.col]
@@ -73,7 +72,6 @@ class SparseMatrix(nn.Module):
         self.register_buffer("values", torch.as_tensor(coo.data, dtype=torch.float64).to(dtype),
                              persistent=False)                                                      # [nnz]
         self.out_features = int(coo.shape[0])
-        self.in_features = int(coo.shape[1] if in_features is None else in_features)
 
     def forward(self, x: Tensor) -> Tensor:
         """x Aᵀ [B, m] of rows x [B, k]."""
@@ -120,7 +118,7 @@ class NewmarkPrior(nn.Module):
         empty = np.zeros((0, n))
         self.stiffness = SparseMatrix(linear.stiffness, dtype)                      # K [n, n] N/m
         self.mass = SparseMatrix(linear.mass, dtype)                                # M [n, n] kg
-        self.stress_operator = SparseMatrix(linear.stress, dtype, free_index, 3 * n_nodes)   # Σ [6N, 3N] Pa/m
+        self.stress_operator = SparseMatrix(linear.stress, dtype, free_index)      # Σ [6N, 3N] Pa/m
         # the isochoric operator J = [K_iso; Σ_iso] [n + 6N, n] (none for the unrelaxed prior)
         self.stiffness_iso = SparseMatrix(linear.stiffness_iso if terms else empty, dtype)
         self.stress_iso = SparseMatrix(linear.stress_iso if terms else empty, dtype)
