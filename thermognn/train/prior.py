@@ -113,8 +113,8 @@ class NewmarkPrior(nn.Module):
         step_inverse = torch.linalg.inv(self.c0 * self.mass_factor * M + self.c * K + step_stiffness)
         mass_inv = torch.linalg.inv(M)
         del K, M, step_stiffness
-        free = torch.as_tensor(np.asarray(linear.free, dtype=bool))                 # [3N]
-        free_index = np.flatnonzero(np.asarray(linear.free, dtype=bool))
+        free = np.asarray(linear.free, dtype=bool)                                   # [3N]
+        free_index = np.flatnonzero(free)                                            # [n]
         empty = np.zeros((0, n))
         self.stiffness = SparseMatrix(linear.stiffness, dtype)                      # K [n, n] N/m
         self.mass = SparseMatrix(linear.mass, dtype)                                # M [n, n] kg
@@ -132,8 +132,8 @@ class NewmarkPrior(nn.Module):
             "prony_increment": torch.tensor([t[2] for t in terms], dtype=torch.float64)}
         for name, value in operators.items():
             self.register_buffer(name, value.to(dtype), persistent=False)
-        self.register_buffer("free", free, persistent=False)
-        self.register_buffer("free_index", torch.nonzero(free).flatten(), persistent=False)  # [n]
+        self.register_buffer("free", torch.as_tensor(free), persistent=False)
+        self.register_buffer("free_index", torch.as_tensor(free_index, dtype=torch.long), persistent=False)
         self.n_nodes = int(n_nodes)
         self.n_free = int(n)
         self.n_terms = len(terms)          # 0: the unrelaxed prior (internal variables [B, 0, 0])
