@@ -104,10 +104,36 @@ def test_generate_resumes_and_skips_done_trajectories(tmp_path, monkeypatch):
     done = []
     monkeypatch.setattr(pipeline, "simulate", lambda solid, spec, layout, k, *a: done.append(k) or
                         real(solid, spec, layout, k, *a))
-    generate(cfg)
+    generate(_cfg(tmp_path, "train.epochs=7"))      # keys outside the scene do not restart it
     assert done == [1, 2]
     d = Dataset(tmp_path / "dataset.h5")
     assert d.ok_names == ["traj_0", "traj_1", "traj_2"]
+
+
+def test_generate_grows_a_finished_dataset(tmp_path, monkeypatch):
+    """More load cases for the same scene and ``out``: only the new ones are solved, the old
+    ones are kept as they were; another scene starts afresh."""
+    pytest.importorskip("dolfinx")
+    import h5py
+
+    from thermognn.generate import generate, pipeline
+
+    path = generate(_cfg(tmp_path, "scene.loads.n_trajectories=2"))
+    before = Dataset(path).read("traj_1").z
+    real = pipeline.simulate
+    done = []
+    monkeypatch.setattr(pipeline, "simulate", lambda solid, spec, layout, k, *a: done.append(k) or
+                        real(solid, spec, layout, k, *a))
+    assert generate(_cfg(tmp_path, "scene.loads.n_trajectories=3")) == path
+    assert done == [2] and not path.with_name("dataset.h5.partial").exists()
+    d = Dataset(path)
+    assert d.ok_names == ["traj_0", "traj_1", "traj_2"] and np.array_equal(d.read("traj_1").z, before)
+    assert d.linear_solid() is not None
+    with h5py.File(path, "r") as f:
+        assert "n_trajectories: 3" in f.attrs["config"]        # the file says what it holds
+    done.clear()
+    generate(_cfg(tmp_path, "scene.loads.n_trajectories=4", "scene.loads.magnitude=0.5"))
+    assert done == [0, 1, 2, 3]
 
 
 def test_generate_restarts_a_partial_file_with_other_load_points(tmp_path, monkeypatch):

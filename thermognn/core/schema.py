@@ -4,7 +4,9 @@ Layout (units SI)::
 
     /                       attrs: schema_version (int), scene (str), config (YAML str),
                                    versions (JSON str), state_layout (JSON str), dt [s],
-                                   effects (JSON list), config_hash (str),
+                                   effects (JSON list), config_hash (str), resume_hash
+                                   (str: the hash of what decides the trajectories, which a
+                                   re-run must match to resume; defaults to config_hash's),
                                    split (optional JSON {"train": [names], "val": [...], "test": [...]}:
                                    a fixed reference split that training must use),
                                    time_resolution (optional JSON: how well dt resolves the
@@ -41,7 +43,8 @@ Time convention: ``force[s]`` is the external load at ``time[s]``; the step
 
 A failed trajectory keeps the steps that converged (no NaN is ever written) and says why.
 Writing goes to ``<path>.partial`` and is renamed at the end; re-running resumes from
-the trajectories already in the partial file when its config_hash matches.
+the trajectories already in the partial file when its resume_hash matches (``generate``: the
+same scene, whatever its number of load cases, which is how a finished dataset grows).
 """
 
 from __future__ import annotations
@@ -122,30 +125,34 @@ class DatasetWriter:
     """
 
     def __init__(self, path, mesh: Mesh, layout: StateLayout, dt: float, config_yaml: str,
-                 versions_json: str, scene: str, effects) -> None:
+                 versions_json: str, scene: str, effects, resume_key: str | None = None) -> None:
+        """``resume_key``: the text that decides the trajectories (default ``config_yaml``); a
+        partial file written with another is discarded, one with the same is resumed."""
         import h5py
 
         self.path = Path(path)
         self.partial = self.path.with_name(self.path.name + ".partial")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         chash = config_hash(config_yaml)
+        rhash = config_hash(config_yaml if resume_key is None else resume_key)
         if self.partial.exists():
             try:
                 with h5py.File(self.partial, "r") as f:
-                    stale = f.attrs.get("config_hash") != chash
+                    stale = f.attrs.get("resume_hash", f.attrs.get("config_hash")) != rhash
             except OSError:
                 stale = True
             if stale:
                 self.partial.unlink()
         fresh = not self.partial.exists()
         self._f = h5py.File(self.partial, "a")
+        a = self._f.attrs
+        a["config"] = config_yaml          # resumed too: the file describes the run that finishes it
+        a["config_hash"] = chash
+        a["resume_hash"] = rhash
         if fresh:
-            a = self._f.attrs
+            a["versions"] = versions_json       # of the run that started it
             a["schema_version"] = SCHEMA_VERSION
             a["scene"] = scene
-            a["config"] = config_yaml
-            a["config_hash"] = chash
-            a["versions"] = versions_json
             a["state_layout"] = layout.to_json()
             a["effects"] = json.dumps(list(effects))
             a["dt"] = float(dt)

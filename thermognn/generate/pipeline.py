@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+import json
 import logging
+import os
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from thermognn.core.config import to_yaml
+from thermognn.core.config import from_yaml, to_yaml
 from thermognn.core.errors import ConfigError
 from thermognn.core.io import versions_json
-from thermognn.core.schema import NODE_CLAMPED, NODE_SURFACE, DatasetWriter, Trajectory
+from thermognn.core.schema import NODE_CLAMPED, NODE_SURFACE, DatasetWriter, Trajectory, config_hash
 from thermognn.core.state import StateLayout, state_layout
 
 from .scene import SceneSpec, between_node_points, check_load_cases, dataset_mesh, load_case, loadable_faces, \
@@ -125,6 +128,45 @@ def _stale_partial(out: Path, nodes: np.ndarray, load_points) -> str:
     return ""
 
 
+def resume_key(scene_cfg) -> str:
+    """What decides a dataset's trajectories: the scene config without its number of load cases
+    (case k is the same whatever their number). A partial or finished file with the same key
+    holds trajectories this run would solve alike; other keys (``train``, ``paths``, ...) do not
+    matter to them."""
+    from omegaconf import OmegaConf
+
+    scene = OmegaConf.to_container(scene_cfg, resolve=True)
+    if isinstance(scene.get("loads"), dict):
+        scene["loads"].pop("n_trajectories", None)
+    return json.dumps(scene, sort_keys=True)
+
+
+def _grow_finished(out: Path, key: str, names: list[str], console) -> None:
+    """Growing a finished dataset: where ``out`` holds some of ``names`` and nothing else, solved
+    for the same scene (``resume_key``; only ``loads.n_trajectories`` raised), copy it to the
+    partial file so that only the new cases are solved. ``out`` itself stays as it is until the
+    grown file replaces it."""
+    import h5py
+
+    partial = out.with_name(out.name + ".partial")
+    if partial.exists() or not out.exists():
+        return
+    try:
+        with h5py.File(out, "r") as f:
+            same = resume_key(from_yaml(str(f.attrs["config"])).scene) == key
+            have = set(f["trajectories"].keys())
+    except Exception:   # not a generated dataset (or unreadable): generate afresh, as before
+        return
+    if not (same and have < set(names)):
+        return
+    tmp = partial.with_name(partial.name + ".tmp")
+    shutil.copyfile(out, tmp)
+    with h5py.File(tmp, "r+") as f:
+        f.attrs["resume_hash"] = config_hash(key)
+    os.replace(tmp, partial)
+    console.print(f"growing {out} from {len(have)} to {len(names)} trajectories")
+
+
 def _linearised(solid, spec: SceneSpec, layout: StateLayout, writer: DatasetWriter, console) -> None:
     """Store the solid linearised at rest (``/linear``: the physics baseline ``evaluate`` reports,
     ``modes.linear_solid``), then print and store (root attribute ``time_resolution``) how well dt
@@ -150,7 +192,9 @@ def _linearised(solid, spec: SceneSpec, layout: StateLayout, writer: DatasetWrit
 def generate(cfg) -> Path:
     """Build ``cfg.scene``, solve its load cases, write ``cfg.paths.dataset``; return the path.
 
-    Resumable: trajectories already in the partial file (same config) are skipped.
+    Resumable: trajectories already in the partial file (same scene, ``resume_key``) are skipped.
+    Growable: re-run with a larger ``scene.loads.n_trajectories`` and the same ``out``, and only
+    the new cases are solved (``_grow_finished``).
     """
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -173,12 +217,15 @@ def generate(cfg) -> Path:
     check_load_cases(spec.loads, int((ntype == NODE_SURFACE).sum()))
     between = between_node_points(solid.nodes, ntype, loadable_faces(solid.nodes, solid.cells[:, :4], ntype)
                                   if spec.loads.between_nodes else None, spec.loads)     # drawn once
+    key = resume_key(sc)
+    _grow_finished(out, key, names, console)
     stale = _stale_partial(out, mesh.nodes,
                            lambda k: load_case(k, solid.nodes, ntype, normals, spec.loads, between).point)
     if stale:
         console.print(f"partial dataset has {stale}: starting afresh")
         out.with_name(out.name + ".partial").unlink()
-    with DatasetWriter(out, mesh, layout, spec.dt, to_yaml(cfg), versions_json(), spec.name, spec.effects) as w:
+    with DatasetWriter(out, mesh, layout, spec.dt, to_yaml(cfg), versions_json(), spec.name, spec.effects,
+                       resume_key=key) as w:
         todo = [k for k, n in enumerate(names) if not w.has(n)]
         if len(todo) < len(names):
             console.print(f"resuming: {len(names) - len(todo)} of {len(names)} trajectories already done")
