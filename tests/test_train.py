@@ -695,6 +695,32 @@ def test_evaluate_steps_a_trained_model_another_way(trained, tmp_path):
         assert "\n" not in str(err.value)
 
 
+def test_evaluate_on_the_datasets_own_test_part(trained, tmp_path):
+    """``train.eval_split=dataset`` rolls out the dataset's test part (a dataset grown since
+    training) beside the checkpoint's training cases, and refuses, in one line, test trajectories
+    the checkpoint trained or validated on; bad values name the key."""
+    from thermognn.core.errors import ConfigError, DataError
+    from thermognn.core.schema import Dataset
+    from thermognn.train import evaluate
+    from thermognn.train.data import split_names
+
+    out, cfg, _ = trained
+    stored = load_checkpoint(out / "model.ckpt")["split"]
+    ds = Dataset(out / "dataset.h5")
+    own = evaluate(_cfg(out, f"paths.eval_dir={tmp_path / 'own'}", "train.eval_split=dataset"))
+    assert own["q"] == pytest.approx(evaluate(_cfg(out, f"paths.eval_dir={tmp_path / 'ckpt'}"))["q"], rel=1e-6)
+    assert "the dataset's own test part (`train.eval_split=dataset`)" in (tmp_path / "own" / "summary.md").read_text()
+    assert split_names(ds, cfg.train.split, 0)["test"] == stored["test"]
+    other = split_names(ds, cfg.train.split, 3)["test"]        # another draw: its test cases were trained on
+    assert set(other) & set(stored["train"] + stored["val"])
+    with pytest.raises(DataError, match=r"train.eval_split=dataset: test trajectories .* were trained or validated "
+                                        r"on by .*model.ckpt") as err:
+        evaluate(_cfg(out, f"paths.eval_dir={tmp_path / 'leak'}", "train.eval_split=dataset", "seed=3"))
+    assert "\n" not in str(err.value)
+    with pytest.raises(ConfigError, match=r"train.eval_split = 'test', expected checkpoint \| dataset"):
+        evaluate(_cfg(out, f"paths.eval_dir={tmp_path / 'bad'}", "train.eval_split=test"))
+
+
 def test_rollout_overrides_accept_checkpoints_of_earlier_versions(trained):
     """A checkpoint written before ``exact_kinematics`` existed (no such hparam) may be re-stepped."""
     from omegaconf import OmegaConf

@@ -29,7 +29,7 @@ import torch
 from omegaconf import OmegaConf
 
 from thermognn.core.config import project_path
-from thermognn.core.errors import ConfigError
+from thermognn.core.errors import ConfigError, DataError
 from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
 from thermognn.core.state import describe_step
@@ -331,6 +331,28 @@ def gentle_load_gaps(model: LinearPriorModel, data: LoadedData, traj: Trajectory
     return out
 
 
+def _evaluation_split(cfg, stored: dict, data: LoadedData, ckpt_path) -> dict[str, list[str]]:
+    """The parts evaluate rolls out. ``train.eval_split=checkpoint`` (default): the split the
+    checkpoint trained with, where the dataset holds it (else the dataset's). ``dataset``: the
+    dataset's own test part (a dataset grown since training) with the checkpoint's training part;
+    a one-line DataError if a test trajectory is one the checkpoint trained or validated on."""
+    which = str(OmegaConf.select(cfg, "train.eval_split", default="checkpoint"))
+    if which not in ("checkpoint", "dataset"):
+        raise ConfigError(f"train.eval_split = {which!r}, expected checkpoint | dataset")
+    names = set(data.dataset.names)
+    held = stored and all(n in names for p in ("train", "test") for n in stored.get(p, []))
+    if which == "checkpoint":
+        return {k: list(stored.get(k, [])) for k in ("train", "val", "test")} if held else data.split
+    seen = set(stored.get("train", [])) | set(stored.get("val", []))
+    leaked = [n for n in data.split["test"] if n in seen]
+    if leaked:
+        raise DataError(f"train.eval_split=dataset: test trajectories {', '.join(leaked)} of {data.dataset.path} "
+                        f"were trained or validated on by {ckpt_path}")
+    trained = stored.get("train", [])
+    return {"train": list(trained) if trained and all(n in names for n in trained) else data.split["train"],
+            "val": [], "test": data.split["test"]}
+
+
 def evaluate(cfg) -> dict:
     """Roll out the test trajectories with the checkpoint's model; print and write the errors.
 
@@ -354,9 +376,7 @@ def evaluate(cfg) -> dict:
     dtype = torch_dtype(ckpt["dtype"])
     data = load_data(ds_path, cfg.train.split, int(cfg.seed), dtype, parts=(),
                      state_dtype=torch.float64 if ckpt.get("prior") else dtype)
-    stored = ckpt.get("split") or {}
-    if stored and all(n in data.dataset.names for p in ("train", "test") for n in stored.get(p, [])):
-        data.split = {k: list(stored.get(k, [])) for k in ("train", "val", "test")}
+    data.split = _evaluation_split(cfg, ckpt.get("split") or {}, data, ckpt_path)
     max_train = int(OmegaConf.select(cfg, "train.eval_max_train", default=10))
     train_names = spread(data.split["train"], max_train)        # covering every load level
     for n in data.split["test"] + train_names:
@@ -569,7 +589,9 @@ def evaluate(cfg) -> dict:
              f"D = {data.layout.dim}, dt = {data.dt} s)",
              f"- model: {ckpt['structure']}, {ckpt['dtype']}, {parameter_count(model)} parameters, "
              f"trained {ckpt.get('epoch', '?')} epochs (validation error {ckpt.get('val_error', float('nan')):.3e})",
-             f"- trajectories: {len(test)} test, {len(train_trajs)} train (of {len(data.split['train'])})",
+             f"- trajectories: {len(test)} test, {len(train_trajs)} train (of {len(data.split['train'])})"
+             + ("; test: the dataset's own test part (`train.eval_split=dataset`)"
+                if OmegaConf.select(cfg, "train.eval_split", default="checkpoint") == "dataset" else ""),
              f"- speed: {ms:.2f} ms per step (forward + autograd, {torch.get_num_threads()} threads, CPU, "
              + describe_step(model_step(ckpt))
              + (f"; `rollout` overrides: {stepped}" if stepped else "") + ")",
