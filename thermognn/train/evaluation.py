@@ -331,14 +331,19 @@ def gentle_load_gaps(model: LinearPriorModel, data: LoadedData, traj: Trajectory
     return out
 
 
-def _evaluation_split(cfg, stored: dict, data: LoadedData, ckpt_path) -> dict[str, list[str]]:
-    """The parts evaluate rolls out. ``train.eval_split=checkpoint`` (default): the split the
-    checkpoint trained with, where the dataset holds it (else the dataset's). ``dataset``: the
-    dataset's own test part (a dataset grown since training) with the checkpoint's training part;
-    a one-line DataError if a test trajectory is one the checkpoint trained or validated on."""
+def _eval_split(cfg) -> str:
+    """``train.eval_split``: ``checkpoint`` (default) or ``dataset`` (one-line ConfigError else)."""
     which = str(OmegaConf.select(cfg, "train.eval_split", default="checkpoint"))
     if which not in ("checkpoint", "dataset"):
         raise ConfigError(f"train.eval_split = {which!r}, expected checkpoint | dataset")
+    return which
+
+
+def _evaluation_split(which: str, stored: dict, data: LoadedData, ckpt_path) -> dict[str, list[str]]:
+    """The parts evaluate rolls out. ``which`` (``_eval_split``) ``checkpoint``: the split the
+    checkpoint trained with, where the dataset holds it (else the dataset's). ``dataset``: the
+    dataset's own test part (a dataset grown since training) with the checkpoint's training part;
+    a one-line DataError if a test trajectory is one the checkpoint trained or validated on."""
     names = set(data.dataset.names)
     held = stored and all(n in names for p in ("train", "test") for n in stored.get(p, []))
     if which == "checkpoint":
@@ -376,7 +381,8 @@ def evaluate(cfg) -> dict:
     dtype = torch_dtype(ckpt["dtype"])
     data = load_data(ds_path, cfg.train.split, int(cfg.seed), dtype, parts=(),
                      state_dtype=torch.float64 if ckpt.get("prior") else dtype)
-    data.split = _evaluation_split(cfg, ckpt.get("split") or {}, data, ckpt_path)
+    which_split = _eval_split(cfg)
+    data.split = _evaluation_split(which_split, ckpt.get("split") or {}, data, ckpt_path)
     max_train = int(OmegaConf.select(cfg, "train.eval_max_train", default=10))
     train_names = spread(data.split["train"], max_train)        # covering every load level
     for n in data.split["test"] + train_names:
@@ -591,7 +597,7 @@ def evaluate(cfg) -> dict:
              f"trained {ckpt.get('epoch', '?')} epochs (validation error {ckpt.get('val_error', float('nan')):.3e})",
              f"- trajectories: {len(test)} test, {len(train_trajs)} train (of {len(data.split['train'])})"
              + ("; test: the dataset's own test part (`train.eval_split=dataset`)"
-                if OmegaConf.select(cfg, "train.eval_split", default="checkpoint") == "dataset" else ""),
+                if which_split == "dataset" else ""),
              f"- speed: {ms:.2f} ms per step (forward + autograd, {torch.get_num_threads()} threads, CPU, "
              + describe_step(model_step(ckpt))
              + (f"; `rollout` overrides: {stepped}" if stepped else "") + ")",
