@@ -58,6 +58,51 @@ def test_split_keeps_each_load_point_in_one_part():
         assert members == sorted(parts[part] + [f"traj_{names.index(n) + 20}" for n in parts[part]], key=names.index)
 
 
+def test_split_keeps_a_fine_tunes_init_split():
+    """keep (train.init's split): the trajectories it names, and the rest of their split groups,
+    stay in their parts whatever the seeded draw; only the new groups are split, among themselves,
+    by the fractions (no minimum of one per part); a keep naming no training case here is ignored."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from thermognn.train.data import split_names
+
+    names = [f"traj_{k}" for k in range(96)]
+    old = split_names(SimpleNamespace(ok_names=names[:48], split=None, split_groups={}), [0.8, 0.1, 0.1], 0)
+    grown = SimpleNamespace(ok_names=names, split=None, split_groups={})
+    assert split_names(grown, [0.8, 0.1, 0.1], 0)["test"] != old["test"]     # a fresh draw would mix them
+    kept = split_names(grown, [0.8, 0.1, 0.1], 0, keep=old)
+    perm = [names[48 + i] for i in np.random.default_rng(0).permutation(48)]
+    for part, (a, b) in {"train": (0, 38), "val": (38, 43), "test": (43, 48)}.items():
+        assert kept[part] == sorted(old[part] + perm[a:b], key=names.index)
+    # a group pressed again (traj_k and traj_{k+48} share point k) follows its kept case
+    grouped = SimpleNamespace(ok_names=names, split=None, split_groups={n: f"point_{k % 48}" for k, n in enumerate(names)})
+    again = split_names(grouped, [0.8, 0.1, 0.1], 5, keep=old)
+    for part in ("train", "val", "test"):
+        assert again[part] == sorted(old[part] + [f"traj_{names.index(n) + 48}" for n in old[part]], key=names.index)
+    # three new cases: rounded shares, all to training
+    few = split_names(SimpleNamespace(ok_names=names[:51], split=None, split_groups={}), [0.8, 0.1, 0.1], 0, keep=old)
+    assert few["train"] == sorted(old["train"] + names[48:51], key=names.index) and few["test"] == old["test"]
+    foreign = {"train": ["other_1"], "val": ["other_2"], "test": ["other_3"]}
+    assert split_names(grown, [0.8, 0.1, 0.1], 0, keep=foreign) == split_names(grown, [0.8, 0.1, 0.1], 0)
+
+
+def test_fine_tune_on_a_grown_dataset_keeps_the_held_out_cases(trained, tmp_path):
+    """train.init on a dataset with more trajectories (same mesh): the init's validation and test
+    cases are still held out, and the new ones are split too (the checkpoint records it)."""
+    out, _, ckpt = trained
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=16, steps=10)
+    old = load_checkpoint(ckpt)["split"]
+    train(_cfg(tmp_path, "train.epochs=1", f"train.init={ckpt}", "train.lr=1e-5"))
+    split = load_checkpoint(tmp_path / "model.ckpt")["split"]
+    for part in ("val", "test"):
+        assert set(old[part]) <= set(split[part])
+        assert not set(old[part]) & set(split["train"])
+    assert set(old["train"]) <= set(split["train"])
+    assert {len(split[k]) for k in ("val", "test")} == {len(old["val"]) + 1}       # 10 new: 8 / 1 / 1
+
+
 def test_training_lowers_loss_and_writes_outputs(trained):
     out, cfg, ckpt = trained
     assert ckpt.exists() and last_path(ckpt).exists()

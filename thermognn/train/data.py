@@ -103,7 +103,8 @@ def check_fingerprint(expected: dict, ds: Dataset, ckpt_path, hint: str = "") ->
                             f"in the checkpoint, {got[key]} in the dataset" + (f" ({hint})" if hint else ""))
 
 
-def split_names(ds: Dataset, fractions, seed: int) -> dict[str, list[str]]:
+def split_names(ds: Dataset, fractions, seed: int,
+                keep: dict[str, list[str]] | None = None) -> dict[str, list[str]]:
     """Trajectory-wise train/val/test split of the 'ok' trajectories.
 
     A fixed split stored in the dataset (``Dataset.split``) wins; otherwise a seeded permutation
@@ -111,7 +112,13 @@ def split_names(ds: Dataset, fractions, seed: int) -> dict[str, list[str]]:
     the fractions (train, val, test) counted in groups: the cases ``generate`` presses at one point
     with several magnitudes land in the same part, so no validation or test trajectory repeats a
     training point; without shared groups this is a permutation of the trajectories. With fewer
-    than 3 groups all three parts are the same list (nothing to hold out)."""
+    than 3 groups all three parts are the same list (nothing to hold out).
+
+    ``keep`` (a fine-tune's ``train.init`` checkpoint's split): every trajectory it names keeps
+    its part, and so does the rest of its split group; only the groups it does not touch (the
+    cases a grown dataset added) are split, among themselves, as above. So a model fine-tuned on a
+    grown dataset never trains on a case its init held out, and is tested on those same cases
+    plus its share of the new ones."""
     ok = ds.ok_names
     if not ok:
         raise DataError(f"{ds.path}: no trajectory with status 'ok'")
@@ -127,6 +134,8 @@ def split_names(ds: Dataset, fractions, seed: int) -> dict[str, list[str]]:
     if len(fr) != 3 or min(fr) < 0 or sum(fr) <= 0:
         raise DataError(f"train.split = {fractions}: expected three non-negative fractions")
     groups = _split_groups(ok, ds.split_groups)
+    if keep and _kept_part(groups, keep):
+        return _grown_split(groups, keep, fr, seed, ok)
     n = len(groups)
     if n < 3:
         return {"train": list(ok), "val": list(ok), "test": list(ok)}
@@ -139,6 +148,35 @@ def split_names(ds: Dataset, fractions, seed: int) -> dict[str, list[str]]:
               "test": (n_train + n_val, n_train + n_val + n_test)}
     return {part: sorted((name for i in perm[a:b] for name in groups[i]), key=ok.index)
             for part, (a, b) in bounds.items()}
+
+
+def _kept_part(groups: list[list[str]], keep: dict[str, list[str]]) -> list[str | None]:
+    """Per group, the part of ``keep`` that names one of its trajectories (train first), or None;
+    an empty list where ``keep`` keeps no training trajectory of this dataset (nothing to keep)."""
+    where = {n: k for k in ("test", "val", "train") for n in keep.get(k, [])}   # train wins ties
+    parts = [next((where[n] for n in g if where.get(n) == "train"),
+                  next((where[n] for n in g if n in where), None)) for g in groups]
+    return parts if "train" in parts else []
+
+
+def _grown_split(groups: list[list[str]], keep: dict[str, list[str]], fr: list[float], seed: int,
+                 ok: list[str]) -> dict[str, list[str]]:
+    """``split_names`` with ``keep``: the kept groups in their parts, the new ones split by ``fr``
+    (rounded; no minimum of one, so a few new cases may all go to training)."""
+    kept = _kept_part(groups, keep)
+    new = [i for i, part in enumerate(kept) if part is None]
+    n_val = int(round(fr[1] / sum(fr) * len(new)))
+    n_test = int(round(fr[2] / sum(fr) * len(new)))
+    perm = [new[i] for i in np.random.default_rng(seed).permutation(len(new))]
+    part_of = dict(enumerate(kept))
+    part_of.update({i: "train" for i in perm[:len(new) - n_val - n_test]})
+    part_of.update({i: "val" for i in perm[len(new) - n_val - n_test:len(new) - n_test]})
+    part_of.update({i: "test" for i in perm[len(new) - n_test:]})
+    out = {part: sorted((name for i, g in enumerate(groups) if part_of[i] == part for name in g), key=ok.index)
+           for part in ("train", "val", "test")}
+    for k in ("val", "test"):                   # as split_names: an empty part is the training one
+        out[k] = out[k] or out["train"]
+    return out
 
 
 def _split_groups(names: list[str], split_groups: dict[str, str]) -> list[list[str]]:
@@ -161,16 +199,17 @@ def load_graph(ds: Dataset, dtype: torch.dtype) -> Graph:
 
 
 def load_data(path, fractions, seed: int, dtype: torch.dtype = torch.float32,
-              parts=("train", "val", "test"), state_dtype: torch.dtype | None = None) -> LoadedData:
+              parts=("train", "val", "test"), state_dtype: torch.dtype | None = None,
+              keep_split: dict[str, list[str]] | None = None) -> LoadedData:
     """Open the dataset, split it and read the trajectories of ``parts`` into tensors: the graph
     in ``dtype`` (the network's), the states and loads in ``state_dtype`` (default ``dtype``;
     float64 for a model that steps float64 states, ``model.prior=linear``: in float32 the
     positions of a 4 cm body are rounded by up to 2e-9 m, a displacement a gentle load does not
-    dwarf)."""
+    dwarf). ``keep_split``: a fine-tune's init split to keep (``split_names``'s ``keep``)."""
     ds = Dataset(path)
     if ds.layout.names[0] != "q" or ds.layout.groups[0][1] != 3:
         raise DataError(f"{ds.path}: state_layout {ds.layout.to_json()} must start with q (3)")
-    split = split_names(ds, fractions, seed)
+    split = split_names(ds, fractions, seed, keep_split)
     data = LoadedData(path=Path(path), dataset=ds, graph=load_graph(ds, dtype), layout=ds.layout,
                       dt=ds.dt, split=split, state_dtype=state_dtype or dtype)
     for name in sorted({n for p in parts for n in split[p]}, key=ds.names.index):

@@ -325,9 +325,16 @@ def train(cfg) -> Path:
         raise ConfigError(f"train.epochs = {epochs}, expected >= 1")
     ckpt_path = project_path(cfg.paths.checkpoint)
     out_dir = project_path(cfg.out)
+    init = _sel(tc, "init", None)            # a fine-tune keeps its init's split (split_names' keep)
+    keep_split = load_checkpoint(project_path(str(init))).get("split") if init else None
     data = load_data(project_path(cfg.paths.dataset), tc.split, seed, dtype,
-                     state_dtype=torch.float64 if prior == "linear" else dtype)   # the prior steps float64 states
+                     state_dtype=torch.float64 if prior == "linear" else dtype,   # the prior steps float64 states
+                     keep_split=keep_split)
     ds = data.dataset
+    if keep_split and dist.main:
+        kept = {n for k in ("train", "val", "test") for n in keep_split.get(k, [])}
+        new = {k: sum(n not in kept for n in data.split[k]) for k in ("train", "val", "test")}
+        print(f"train.init's split kept; new trajectories: {new['train']} train / {new['val']} val / {new['test']} test")
     structure = resolve_structure(_sel(cfg, "model.structure", "auto"), ds.effects, ds.config_yaml)
     hparams = hyperparameters(cfg.model, ds.layout.dim, velocity_columns(ds.layout), structure == "hamiltonian")
     train_trajs, val_trajs = data.of("train"), data.of("val")
