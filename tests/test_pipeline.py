@@ -220,6 +220,48 @@ def test_linear_prior_warm_start_straight_into_rollouts(tmp_path, tiny_block):
                                   "together"), res.stderr[-2000:]
 
 
+def test_linear_prior_resumes_an_interrupted_epoch_at_its_next_batch(tmp_path, tiny_block, monkeypatch):
+    """train.checkpoint_minutes: model.last.ckpt is also written within an epoch, and a run
+    interrupted there (once in the fit epoch, whose noise draws from the seeded generator, once in
+    the rollout epoch) goes on at the next batch with the same order, rate and random streams:
+    the weights and every metrics column but the seconds are those of the uninterrupted run."""
+    import torch
+
+    import thermognn.train.checkpoint as checkpoint
+    from thermognn.core.config import load_config
+    from thermognn.train import train
+
+    run = [f"paths.dataset={tiny_block}", "model=linear_prior", "model.hidden=16", "model.message_passing=2",
+           "train.threads=1", "train.epochs=1", "train.rollout_epochs=1", "train.rollout_window=1", "train.noise=0.01"]
+    ref = checkpoint.load_checkpoint(checkpoint.last_path(train(load_config([f"out={tmp_path / 'a'}", *run]))))
+    assert "mid_epoch" not in ref
+
+    real_save = checkpoint.save_checkpoint
+    seen = []
+
+    def interrupt(state, path):                 # KeyboardInterrupt right after the k-th mid-epoch write
+        real_save(state, path)
+        if "mid_epoch" in state:
+            seen.append((len(state["history"]), state["mid_epoch"]["batch"]))
+            if seen[-1] in ((0, 3), (1, 2)):
+                raise KeyboardInterrupt
+
+    monkeypatch.setattr(checkpoint, "save_checkpoint", interrupt)
+    cfg = load_config([f"out={tmp_path / 'b'}", *run, "train.checkpoint_minutes=1e-9"])   # after every batch
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg)                              # in the fit epoch, after its 3rd batch
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg)                              # resumed there; then in the rollout epoch, after its 2nd
+    assert seen[:4] == [(0, 1), (0, 2), (0, 3), (0, 4)] and (1, 2) in seen
+    monkeypatch.setattr(checkpoint, "save_checkpoint", real_save)
+    got = checkpoint.load_checkpoint(checkpoint.last_path(train(cfg)))
+    assert "mid_epoch" not in got and [r["epoch"] for r in got["history"]] == [1, 2]
+    for a, b in zip(ref["history"], got["history"]):
+        assert {k: v for k, v in a.items() if k != "seconds"} == {k: v for k, v in b.items() if k != "seconds"}
+    for k, v in ref["state_dict"].items():
+        assert torch.equal(v, got["state_dict"][k]), k
+
+
 def test_linear_prior_ends_on_whole_trajectories(tmp_path, tiny_block):
     """train.whole_epochs: after the (windowed) rollout phase, epochs on whole trajectories from
     rest with their own Adam and rate, in one command. At a zero rate its epoch validates the

@@ -571,7 +571,9 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     ``train.rollout_window`` steps, or whole), then ``train.whole_epochs`` epochs on whole
     trajectories at a restarted rate (``train.whole_lr``; session 17: after windows this lowered the
     block's σ by 15 %); best
-    checkpoint by the validation rollout error, ``model.last.ckpt`` after every epoch (resumed),
+    checkpoint by the validation rollout error, ``model.last.ckpt`` after every epoch and every
+    ``train.checkpoint_minutes`` within one (resumed, an interrupted epoch at its next batch with
+    the same order, rates and random streams; one process only, not under torchrun),
     ``metrics.csv`` with the phase of each epoch. Validation runs every epoch; with
     ``train.patience`` p > 0 a phase ends after p epochs without improving on its own best (the
     fit phase hands over to the rollouts, the rollouts to the whole trajectories, the last phase
@@ -654,6 +656,8 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
 
     gen = torch.Generator().manual_seed(seed)
     start, history, best_val = 0, [], math.inf
+    mid = None                                   # an interrupted epoch's place (checkpoint "mid_epoch")
+    every_s = 60.0 * float(_sel(tc, "checkpoint_minutes", 10)) if dist.world == 1 else 0.0
     patience = int(_sel(tc, "patience", 0))
     phase_best, stale = math.inf, 0              # early stopping ends a phase (the fit phase: on to rollouts)
     opt = optimizer(0)
@@ -668,12 +672,14 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
             start, history, best_val = (int(state.get("resume_at", state["epoch"])), list(state["history"]),
                                         float(state["best_val"]))
             phase_best, stale = float(state.get("phase_best", math.inf)), int(state.get("stale_rounds", 0))
-            opt = optimizer(start - 1)                               # the phase that wrote it
+            mid = state.get("mid_epoch")                             # written within epoch `start`
+            opt = optimizer(start if mid else start - 1)             # the phase that wrote it
             opt.load_state_dict(state["optimizer"])
             gen.set_state(state["rng"]["generator"])
             torch.set_rng_state(state["rng"]["torch"])
             if dist.main:
-                print(f"resuming from {last} at epoch {start}")
+                print(f"resuming from {last} at epoch {start}"
+                      + (f", batch {mid['batch'] + 1} of {len(mid['perm']) // max(1, int(tc.batch_size))}" if mid else ""))
     more = f" + {whole_epochs} whole-trajectory epochs" if whole_epochs else ""
     if dist.main:
         print(f"train (model.prior=linear): {len(train_trajs)} train / {len(val_trajs)} val / "
@@ -687,8 +693,8 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
         task = progress.add_task("train", total=epochs, completed=start, info="")
         epoch = start
         while epoch < epochs:
-            t0 = time.perf_counter()
-            if epoch == fit_epochs or (whole_epochs and epoch == roll_end):
+            t0 = time.perf_counter() - (mid["seconds"] if mid else 0.0)
+            if (epoch == fit_epochs or (whole_epochs and epoch == roll_end)) and not mid:
                 opt = optimizer(epoch)                               # phases 2 and 3 start their own Adam
                 phase_best, stale = math.inf, 0
             model.train()
@@ -703,11 +709,16 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                 phase, items, base_lr, decay = ("whole", whole.samples, identity["whole_lr"],
                                                 identity["whole_lr_decay"])
                 progress_at = lambda b: (epoch - roll_end + b / nb) / whole_epochs  # noqa: E731
-            perm = torch.randperm(len(items), generator=gen).tolist()
-            perm = perm[dist.rank:len(perm) // dist.world * dist.world:dist.world]   # this process's share
+            if mid:                         # an interrupted epoch goes on where its checkpoint left it
+                perm, b0, (total, data_total, deg_total) = list(mid["perm"]), int(mid["batch"]), mid["totals"]
+                mid = None
+            else:
+                perm = torch.randperm(len(items), generator=gen).tolist()
+                perm = perm[dist.rank:len(perm) // dist.world * dist.world:dist.world]   # this process's share
+                b0, total, data_total, deg_total = 0, 0.0, 0.0, 0.0
             nb = max(1, len(perm) // batch_size)
-            total = data_total = deg_total = 0.0
-            for b in range(nb):
+            saved_at = time.perf_counter()
+            for b in range(b0, nb):
                 for group in opt.param_groups:
                     group["lr"] = _lr(base_lr, decay, progress_at(b))
                 chosen = [items[j] for j in perm[b * batch_size:(b + 1) * batch_size]]
@@ -720,6 +731,18 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                 torch.nn.utils.clip_grad_norm_(net.parameters(), CLIP)
                 opt.step()
                 total, data_total, deg_total = total + float(loss.detach()), data_total + data_loss, deg_total + deg
+                if every_s > 0 and b + 1 < nb and time.perf_counter() - saved_at >= every_s:
+                    save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": epoch,
+                                     "val_error": history[-1]["val_error"] if history else math.nan,
+                                     "resume_at": epoch, "optimizer": opt.state_dict(), "history": history,
+                                     "best_val": best_val, "phase_best": phase_best, "stale_rounds": stale,
+                                     "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
+                                     "identity": identity,
+                                     "mid_epoch": {"perm": perm, "batch": b + 1, "totals": [total, data_total, deg_total],
+                                                   "seconds": time.perf_counter() - t0}}, last)
+                    saved_at = time.perf_counter()
+                    print(f"epoch {epoch + 1} ({phase}): batch {b + 1} of {nb}, loss {total / (b + 1):.3e}; "
+                          f"{last.name} written (train.checkpoint_minutes)", flush=True)
             total, data_total, deg_total = dist.mean([total, data_total, deg_total])
             if not math.isfinite(total):
                 raise DataError(f"{data.path}: training diverged (non-finite loss at epoch {epoch + 1}, {phase}); "
