@@ -220,7 +220,7 @@ def test_linear_prior_warm_start_straight_into_rollouts(tmp_path, tiny_block):
                                   "together"), res.stderr[-2000:]
 
 
-def test_linear_prior_resumes_an_interrupted_epoch_at_its_next_batch(tmp_path, tiny_block, monkeypatch):
+def test_linear_prior_resumes_an_interrupted_epoch_at_its_next_batch(tmp_path, tiny_block, monkeypatch, capsys):
     """train.checkpoint_minutes: model.last.ckpt is also written within an epoch, and a run
     interrupted there (once in the fit epoch, whose noise draws from the seeded generator, once in
     the rollout epoch) goes on at the next batch with the same order, rate and random streams:
@@ -252,6 +252,7 @@ def test_linear_prior_resumes_an_interrupted_epoch_at_its_next_batch(tmp_path, t
         train(cfg)                              # in the fit epoch, after its 3rd batch
     with pytest.raises(KeyboardInterrupt):
         train(cfg)                              # resumed there; then in the rollout epoch, after its 2nd
+    assert "within epoch 1, at batch 4 of" in capsys.readouterr().out
     assert seen[:4] == [(0, 1), (0, 2), (0, 3), (0, 4)] and (1, 2) in seen
     monkeypatch.setattr(checkpoint, "save_checkpoint", real_save)
     got = checkpoint.load_checkpoint(checkpoint.last_path(train(cfg)))

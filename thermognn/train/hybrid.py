@@ -678,8 +678,9 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
             gen.set_state(state["rng"]["generator"])
             torch.set_rng_state(state["rng"]["torch"])
             if dist.main:
-                print(f"resuming from {last} at epoch {start}"
-                      + (f", batch {mid['batch'] + 1} of {len(mid['perm']) // max(1, int(tc.batch_size))}" if mid else ""))
+                print(f"resuming from {last} " + (f"within epoch {start + 1}, at batch {mid['batch'] + 1} of "
+                                                   f"{len(mid['perm']) // max(1, int(tc.batch_size))}" if mid
+                                                   else f"at epoch {start}"))
     more = f" + {whole_epochs} whole-trajectory epochs" if whole_epochs else ""
     if dist.main:
         print(f"train (model.prior=linear): {len(train_trajs)} train / {len(val_trajs)} val / "
