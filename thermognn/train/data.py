@@ -134,8 +134,9 @@ def split_names(ds: Dataset, fractions, seed: int,
     if len(fr) != 3 or min(fr) < 0 or sum(fr) <= 0:
         raise DataError(f"train.split = {fractions}: expected three non-negative fractions")
     groups = _split_groups(ok, ds.split_groups)
-    if keep and _kept_part(groups, keep):
-        return _grown_split(groups, keep, fr, seed, ok)
+    kept = _kept_part(groups, keep) if keep else []
+    if kept:
+        return _grown_split(groups, kept, fr, seed, ok)
     n = len(groups)
     if n < 3:
         return {"train": list(ok), "val": list(ok), "test": list(ok)}
@@ -159,11 +160,11 @@ def _kept_part(groups: list[list[str]], keep: dict[str, list[str]]) -> list[str 
     return parts if "train" in parts else []
 
 
-def _grown_split(groups: list[list[str]], keep: dict[str, list[str]], fr: list[float], seed: int,
+def _grown_split(groups: list[list[str]], kept: list[str | None], fr: list[float], seed: int,
                  ok: list[str]) -> dict[str, list[str]]:
-    """``split_names`` with ``keep``: the kept groups in their parts, the new ones split by ``fr``
-    (rounded; no minimum of one, so a few new cases may all go to training)."""
-    kept = _kept_part(groups, keep)
+    """``split_names`` with ``keep``: the kept groups in their parts (``kept``, ``_kept_part``'s),
+    the new ones split by ``fr`` (rounded; no minimum of one, so a few new cases may all go to
+    training)."""
     new = [i for i, part in enumerate(kept) if part is None]
     n_val = int(round(fr[1] / sum(fr) * len(new)))
     n_test = int(round(fr[2] / sum(fr) * len(new)))

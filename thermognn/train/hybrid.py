@@ -655,6 +655,15 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
         return torch.optim.Adam(net.parameters(), lr=lr)
 
     gen = torch.Generator().manual_seed(seed)
+
+    def resume_state(epoch_done: int, val: float, resume_at: int, **extra) -> dict:
+        """``model.last.ckpt``'s contents: everything a resumed run needs to go on exactly."""
+        return {**base, "state_dict": model.state_dict(), "epoch": epoch_done, "val_error": val,
+                "resume_at": resume_at, "optimizer": opt.state_dict(), "history": history,
+                "best_val": best_val, "phase_best": phase_best, "stale_rounds": stale,
+                "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
+                "identity": identity, **extra}
+
     start, history, best_val = 0, [], math.inf
     mid = None                                   # an interrupted epoch's place (checkpoint "mid_epoch")
     every_s = 60.0 * float(_sel(tc, "checkpoint_minutes", 10)) if dist.world == 1 else 0.0
@@ -733,14 +742,10 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                 opt.step()
                 total, data_total, deg_total = total + float(loss.detach()), data_total + data_loss, deg_total + deg
                 if every_s > 0 and b + 1 < nb and time.perf_counter() - saved_at >= every_s:
-                    save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": epoch,
-                                     "val_error": history[-1]["val_error"] if history else math.nan,
-                                     "resume_at": epoch, "optimizer": opt.state_dict(), "history": history,
-                                     "best_val": best_val, "phase_best": phase_best, "stale_rounds": stale,
-                                     "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
-                                     "identity": identity,
-                                     "mid_epoch": {"perm": perm, "batch": b + 1, "totals": [total, data_total, deg_total],
-                                                   "seconds": time.perf_counter() - t0}}, last)
+                    save_checkpoint(resume_state(
+                        epoch, history[-1]["val_error"] if history else math.nan, epoch,
+                        mid_epoch={"perm": perm, "batch": b + 1, "totals": [total, data_total, deg_total],
+                                   "seconds": time.perf_counter() - t0}), last)
                     saved_at = time.perf_counter()
                     print(f"epoch {epoch + 1} ({phase}): batch {b + 1} of {nb}, loss {total / (b + 1):.3e}; "
                           f"{last.name} written (train.checkpoint_minutes)", flush=True)
@@ -771,11 +776,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
             row["seconds"] = time.perf_counter() - t0
             history.append(row)
             if dist.main:
-                save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": done, "val_error": val,
-                                 "resume_at": epoch, "optimizer": opt.state_dict(), "history": history,
-                                 "best_val": best_val, "phase_best": phase_best, "stale_rounds": stale,
-                                 "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
-                                 "identity": identity}, last)
+                save_checkpoint(resume_state(done, val, epoch), last)
                 _write_metrics(out_dir / "metrics.csv", history, fields)
             if tb is not None:
                 for key, value in row.items():
