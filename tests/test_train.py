@@ -174,6 +174,49 @@ def test_resume_after_interruption_matches_uninterrupted(tmp_path, monkeypatch):
         assert torch.allclose(a[k], b[k], rtol=1e-5, atol=1e-7), k
 
 
+def test_resume_within_an_epoch_goes_on_at_its_next_batch(tmp_path, monkeypatch, capsys):
+    """train.checkpoint_minutes in the general loop: model.last.ckpt is also written within an
+    epoch, and a run interrupted there (once in the first epoch, once in the third, whose drifted
+    states come from the weights its epoch began with) goes on at the next batch with the same
+    order, noise, probe directions and rate: the weights and every metrics column but the seconds
+    are the uninterrupted run's."""
+    import thermognn.train.loop as loop
+
+    for run in ("a", "b"):
+        write_oscillator_dataset(tmp_path / run / "dataset.h5", n_trajectories=4, steps=6)
+    extra = ("train.epochs=3", "train.noise=0.01", "train.rollout_pairs=2", "train.rest_rollout=4",
+             "train.rest_stability=10", "train.batch_size=2", "train.val_every=1")
+    ref = load_checkpoint(last_path(train(_cfg(tmp_path / "a", *extra))))
+    assert "mid_epoch" not in ref
+
+    real_save = loop.save_checkpoint
+    seen = []
+
+    def interrupt(state, path):                 # KeyboardInterrupt right after chosen mid-epoch writes
+        real_save(state, path)
+        if "mid_epoch" in state:
+            seen.append((len(state["history"]), state["mid_epoch"]["batch"]))
+            if seen[-1] in ((0, 3), (2, 2)):
+                raise KeyboardInterrupt
+
+    monkeypatch.setattr(loop, "save_checkpoint", interrupt)
+    cfg = _cfg(tmp_path / "b", *extra, "train.checkpoint_minutes=1e-9")     # after every batch
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg)                              # in epoch 1, after its 3rd batch
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg)                              # resumed there; then in epoch 3, after its 2nd
+    assert "within epoch 1, at batch 4 of" in capsys.readouterr().out
+    assert seen[:2] == [(0, 1), (0, 2)] and (0, 4) in seen and (1, 1) in seen
+    monkeypatch.setattr(loop, "save_checkpoint", real_save)
+    got = load_checkpoint(last_path(train(cfg)))
+    assert "within epoch 3, at batch 3 of" in capsys.readouterr().out
+    assert "mid_epoch" not in got and [r["epoch"] for r in got["history"]] == [1, 2, 3]
+    for a, b in zip(ref["history"], got["history"]):
+        assert {k: v for k, v in a.items() if k != "seconds"} == {k: v for k, v in b.items() if k != "seconds"}
+    for k, v in ref["state_dict"].items():
+        assert torch.equal(v, got["state_dict"][k]), k
+
+
 def test_generic_structure_trains(tmp_path):
     write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=4, steps=6, viscous=True)
     ckpt = train(_cfg(tmp_path, "train.epochs=2"))

@@ -1,5 +1,6 @@
 """Training loop: Adam + exponential decay, noise injection, best checkpoint by validation rollout
-error, early stopping, resume from ``model.last.ckpt``, optional data parallelism (torchrun)."""
+error, early stopping, resume from ``model.last.ckpt`` (also from within an epoch), optional data
+parallelism (torchrun)."""
 
 from __future__ import annotations
 
@@ -310,7 +311,10 @@ def print_rrmse_table(title: str, rows: dict[str, dict[str, float]]) -> None:
 
 def train(cfg) -> Path:
     """Train on ``cfg.paths.dataset``; write the best checkpoint ``cfg.paths.checkpoint`` and
-    ``<out>/metrics.csv``; resume from ``model.last.ckpt`` when present and compatible."""
+    ``<out>/metrics.csv``; resume from ``model.last.ckpt`` when present and compatible. In one
+    process it is also written every ``train.checkpoint_minutes`` within an epoch (its sample
+    order, the batch reached, the running sums, and the weights the epoch's drifted states came
+    from), and an interrupted epoch goes on at its next batch."""
     tc = cfg.train
     torch.set_num_threads(int(_sel(tc, "threads", 2)))
     dist = _Dist()
@@ -356,6 +360,8 @@ def train(cfg) -> Path:
     gen = torch.Generator().manual_seed(seed)
     start_epoch, history, best_val, stale = 0, [], math.inf, 0
     resumed_direction = None
+    mid = None                                   # an interrupted epoch's place (checkpoint "mid_epoch")
+    every_s = 60.0 * float(_sel(tc, "checkpoint_minutes", 10)) if dist.world == 1 else 0.0
 
     last = last_path(ckpt_path)
     if bool(_sel(tc, "resume", True)) and last.exists():
@@ -378,8 +384,11 @@ def train(cfg) -> Path:
             resumed_direction = state.get("rest_direction")
             start_epoch, history = int(state["epoch"]), list(state["history"])
             best_val, stale = float(state["best_val"]), int(state["stale_rounds"])
+            mid = state.get("mid_epoch")                             # written within epoch start_epoch + 1
             if dist.main:
-                print(f"resuming from {last} at epoch {start_epoch}")
+                print(f"resuming from {last} " + (
+                    f"within epoch {start_epoch + 1}, at batch {mid['batch'] + 1} of "
+                    f"{-(-len(mid['perm']) // max(1, int(tc.batch_size)))}" if mid else f"at epoch {start_epoch}"))
 
     pairs = samples(train_trajs, _sel(tc, "start_repeats", 1))
     n_rest, rest = rest_samples(_sel(tc, "rest_samples", "auto"), train_trajs, ds.effects,
@@ -420,28 +429,53 @@ def train(cfg) -> Path:
               + f"), structure {structure}, "
               f"{parameter_count(model)} parameters")
 
+    def resume_state(epoch_done: int, val: float, **extra) -> dict:
+        """``model.last.ckpt``'s contents: everything a resumed run needs to go on exactly."""
+        return {**base, "state_dict": model.state_dict(), "epoch": epoch_done, "val_error": val,
+                "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+                "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
+                "history": history, "best_val": best_val, "stale_rounds": stale,
+                "rest_direction": direction, "identity": training_identity(cfg, hparams, dtype_name), **extra}
+
     tb = _tensorboard(_sel(tc, "tensorboard", "auto"), out_dir / "tensorboard") if dist.main else None
     stopped = start_epoch >= epochs or (patience > 0 and stale >= patience)
     with _progress(disable=not dist.main) as progress:
         task = progress.add_task("train", total=epochs, completed=start_epoch, info="")
         epoch = start_epoch
         while not stopped and epoch < epochs:
-            t0 = time.perf_counter()
+            t0 = time.perf_counter() - (mid["seconds"] if mid else 0.0)
             items = list(pairs)
             rolled = None                                       # refreshed every epoch (resumes exactly)
+            drifting = (rollout_from > 0 and epoch + 1 >= rollout_from) or bool(rest_horizon)
+            # the weights the epoch's drifted states come from (an interrupted epoch's, kept in its checkpoint)
+            epoch_start = ((mid["epoch_start"] if mid else {k: v.clone() for k, v in model.state_dict().items()})
+                           if drifting else None)
+            if mid and drifting:
+                weights_now = {k: v.clone() for k, v in model.state_dict().items()}
+                model.load_state_dict(epoch_start)
             if rollout_from > 0 and epoch + 1 >= rollout_from:
                 rolled = drifted_states(model, data.graph, train_trajs, ds.dt)
                 items += [(i, s, 1) for i, s in pairs if s > 0]
             if rest_horizon:                                    # the model's own drift at rest, taken back
                 rolled = (rolled or [t.z for t in train_trajs]) + drifted_states(model, data.graph, [rest], ds.dt)
                 items += [(len(train_trajs), s, 1) for s in rest_steps]
+            if mid and drifting:
+                model.load_state_dict(weights_now)
             model.train()
-            perm = torch.randperm(len(items), generator=gen).tolist()
+            if mid:                         # an interrupted epoch goes on where its checkpoint left it
+                perm = list(mid["perm"])
+                tot, dat, dgn, grown = mid["totals"]
+                n_batches, n_probes = mid["counts"]
+            else:
+                perm = torch.randperm(len(items), generator=gen).tolist()
+                tot = dat = dgn = grown = 0.0
+                n_batches = n_probes = 0
+            mid = None
             n_use = len(perm) // dist.world * dist.world if dist.world > 1 else len(perm)
             mine = perm[dist.rank:n_use:dist.world]
-            tot = dat = dgn = grown = 0.0
-            n_batches = n_probes = 0
-            for b in range(0, len(mine), batch_size):
+            nb = -(-len(mine) // batch_size)
+            saved_at = time.perf_counter()
+            for b in range(n_batches * batch_size, len(mine), batch_size):
                 batch = make_batch(batch_trajs, [items[i] for i in mine[b:b + batch_size]], data.graph, rolled)
                 loss, dl, dg = step_loss(model, batch, ds.dt, noise, gen, lam_d, lam_g)
                 if lam_s > 0 and n_batches % probe_every == 0:   # a disturbance at rest must not grow
@@ -453,6 +487,15 @@ def train(cfg) -> Path:
                 dist.average_gradients(model)
                 opt.step()
                 tot, dat, dgn, n_batches = tot + float(loss.detach()), dat + dl, dgn + dg, n_batches + 1
+                if every_s > 0 and n_batches < nb and time.perf_counter() - saved_at >= every_s:
+                    save_checkpoint(resume_state(
+                        epoch, history[-1].get("val_error", math.nan) if history else math.nan,
+                        mid_epoch={"perm": perm, "batch": n_batches, "totals": [tot, dat, dgn, grown],
+                                   "counts": [n_batches, n_probes], "epoch_start": epoch_start,
+                                   "seconds": time.perf_counter() - t0}), last)
+                    saved_at = time.perf_counter()
+                    print(f"epoch {epoch + 1}: batch {n_batches} of {nb}, loss {tot / n_batches:.3e}; "
+                          f"{last.name} written (train.checkpoint_minutes)", flush=True)
             if not math.isfinite(tot):
                 raise DataError(f"{data.path}: training diverged (non-finite loss at epoch {epoch + 1}); "
                                 f"lower train.lr or check the dataset")
@@ -477,13 +520,7 @@ def train(cfg) -> Path:
             row["seconds"] = time.perf_counter() - t0
             history.append(row)
             if dist.main:
-                save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": epoch,
-                                 "val_error": row.get("val_error", math.nan), "optimizer": opt.state_dict(),
-                                 "scheduler": sched.state_dict(),
-                                 "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
-                                 "history": history, "best_val": best_val, "stale_rounds": stale,
-                                 "rest_direction": direction,
-                                 "identity": training_identity(cfg, hparams, dtype_name)}, last)
+                save_checkpoint(resume_state(epoch, row.get("val_error", math.nan)), last)
                 _write_metrics(out_dir / "metrics.csv", history)
                 if tb is not None:
                     for key, value in row.items():
