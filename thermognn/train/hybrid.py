@@ -573,7 +573,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     block's σ by 15 %); best
     checkpoint by the validation rollout error, ``model.last.ckpt`` after every epoch and every
     ``train.checkpoint_minutes`` within one (resumed, an interrupted epoch at its next batch with
-    the same order, rates and random streams; one process only, not under torchrun),
+    the same order, rates and random streams; under torchrun by as many processes),
     ``metrics.csv`` with the phase of each epoch. Validation runs every epoch; with
     ``train.patience`` p > 0 a phase ends after p epochs without improving on its own best (the
     fit phase hands over to the rollouts, the rollouts to the whole trajectories, the last phase
@@ -588,8 +588,8 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
 
     from .checkpoint import last_path, load_checkpoint, save_checkpoint, torch_dtype
     from .data import compute_stats
-    from .loop import (_base_checkpoint, _progress, _sel, _tensorboard, _write_metrics, print_rrmse_table,
-                       training_identity)
+    from .loop import (EpochCheckpoints, _base_checkpoint, _progress, _sel, _tensorboard, _write_metrics,
+                       print_rrmse_table, training_identity)
     from .model import build_model, parameter_count
     from .rollout import rollout_errors, validation_error
 
@@ -666,7 +666,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
 
     start, history, best_val = 0, [], math.inf
     mid = None                                   # an interrupted epoch's place (checkpoint "mid_epoch")
-    every_s = 60.0 * float(_sel(tc, "checkpoint_minutes", 10)) if dist.world == 1 else 0.0
+    saves = EpochCheckpoints(_sel(tc, "checkpoint_minutes", 10), dist)
     patience = int(_sel(tc, "patience", 0))
     phase_best, stale = math.inf, 0              # early stopping ends a phase (the fit phase: on to rollouts)
     opt = optimizer(0)
@@ -682,14 +682,16 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                                         float(state["best_val"]))
             phase_best, stale = float(state.get("phase_best", math.inf)), int(state.get("stale_rounds", 0))
             mid = state.get("mid_epoch")                             # written within epoch `start`
+            if mid:
+                order, next_batch, _ = saves.resume(mid, last, start + 1)
             opt = optimizer(start if mid else start - 1)             # the phase that wrote it
             opt.load_state_dict(state["optimizer"])
             gen.set_state(state["rng"]["generator"])
             torch.set_rng_state(state["rng"]["torch"])
             if dist.main:
-                print(f"resuming from {last} " + (f"within epoch {start + 1}, at batch {mid['batch'] + 1} of "
-                                                   f"{len(mid['perm']) // max(1, int(tc.batch_size))}" if mid
-                                                   else f"at epoch {start}"))
+                print(f"resuming from {last} " + (f"within epoch {start + 1}, at batch {next_batch + 1} of "
+                                                   f"{len(order) // dist.world // max(1, int(tc.batch_size))}"
+                                                   if mid else f"at epoch {start}"))
     more = f" + {whole_epochs} whole-trajectory epochs" if whole_epochs else ""
     if dist.main:
         print(f"train (model.prior=linear): {len(train_trajs)} train / {len(val_trajs)} val / "
@@ -720,14 +722,14 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                                                 identity["whole_lr_decay"])
                 progress_at = lambda b: (epoch - roll_end + b / nb) / whole_epochs  # noqa: E731
             if mid:                         # an interrupted epoch goes on where its checkpoint left it
-                perm, b0, (total, data_total, deg_total) = list(mid["perm"]), int(mid["batch"]), mid["totals"]
+                order, b0, (total, data_total, deg_total) = saves.resume(mid, last, epoch + 1)
                 mid = None
             else:
-                perm = torch.randperm(len(items), generator=gen).tolist()
-                perm = perm[dist.rank:len(perm) // dist.world * dist.world:dist.world]   # this process's share
+                order = torch.randperm(len(items), generator=gen).tolist()
                 b0, total, data_total, deg_total = 0, 0.0, 0.0, 0.0
+            perm = order[dist.rank:len(order) // dist.world * dist.world:dist.world]   # this process's share
             nb = max(1, len(perm) // batch_size)
-            saved_at = time.perf_counter()
+            saves.start()
             for b in range(b0, nb):
                 for group in opt.param_groups:
                     group["lr"] = _lr(base_lr, decay, progress_at(b))
@@ -741,14 +743,14 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                 torch.nn.utils.clip_grad_norm_(net.parameters(), CLIP)
                 opt.step()
                 total, data_total, deg_total = total + float(loss.detach()), data_total + data_loss, deg_total + deg
-                if every_s > 0 and b + 1 < nb and time.perf_counter() - saved_at >= every_s:
-                    save_checkpoint(resume_state(
-                        epoch, history[-1]["val_error"] if history else math.nan, epoch,
-                        mid_epoch={"perm": perm, "batch": b + 1, "totals": [total, data_total, deg_total],
-                                   "seconds": time.perf_counter() - t0}), last)
-                    saved_at = time.perf_counter()
-                    print(f"epoch {epoch + 1} ({phase}): batch {b + 1} of {nb}, loss {total / (b + 1):.3e}; "
-                          f"{last.name} written (train.checkpoint_minutes)", flush=True)
+                if saves.due(b + 1 < nb):
+                    place = saves.place(order, b + 1, [total, data_total, deg_total],
+                                        seconds=time.perf_counter() - t0)
+                    if dist.main:
+                        save_checkpoint(resume_state(epoch, history[-1]["val_error"] if history else math.nan,
+                                                     epoch, mid_epoch=place), last)
+                        print(f"epoch {epoch + 1} ({phase}): batch {b + 1} of {nb}, loss {total / (b + 1):.3e}; "
+                              f"{last.name} written (train.checkpoint_minutes)", flush=True)
             total, data_total, deg_total = dist.mean([total, data_total, deg_total])
             if not math.isfinite(total):
                 raise DataError(f"{data.path}: training diverged (non-finite loss at epoch {epoch + 1}, {phase}); "

@@ -92,6 +92,22 @@ class _Dist:
         self.dist.all_reduce(t, op=self.dist.ReduceOp.SUM)
         return (t / self.world).tolist()
 
+    def agree(self, flag: bool) -> bool:
+        """Rank 0's ``flag`` in every process (e.g. its clock's call to write a checkpoint)."""
+        if self.world == 1:
+            return flag
+        t = torch.tensor([1.0 if flag else 0.0], dtype=torch.float64)
+        self.dist.broadcast(t, src=0)
+        return bool(t.item())
+
+    def gather(self, values: list[float]) -> list[list[float]]:
+        """Each process's ``values``, in rank order (in every process)."""
+        if self.world == 1:
+            return [list(values)]
+        parts = [torch.zeros(len(values), dtype=torch.float64) for _ in range(self.world)]
+        self.dist.all_gather(parts, torch.tensor(values, dtype=torch.float64))
+        return [t.tolist() for t in parts]
+
     def barrier(self) -> None:
         if self.world > 1:
             self.dist.barrier()
@@ -99,6 +115,46 @@ class _Dist:
     def close(self) -> None:
         if self.world > 1 and self.dist.is_initialized():
             self.dist.destroy_process_group()
+
+
+class EpochCheckpoints:
+    """``train.checkpoint_minutes``: when ``model.last.ckpt`` is also written within an epoch, and
+    the place in the epoch it keeps (checkpoint key ``mid_epoch``), in one process or under
+    torchrun (rank 0's clock decides for all; every process's running sums are kept)."""
+
+    def __init__(self, minutes: float, dist: _Dist) -> None:
+        self.every_s, self.dist = 60.0 * float(minutes), dist
+        self.saved_at = time.perf_counter()
+
+    def start(self) -> None:
+        """An epoch (or its resumed part) begins: the clock starts."""
+        self.saved_at = time.perf_counter()
+
+    def due(self, more_batches: bool) -> bool:
+        """Whether to write now (the same answer in every process; a collective under torchrun)."""
+        if self.every_s <= 0:
+            return False
+        return self.dist.agree(more_batches and time.perf_counter() - self.saved_at >= self.every_s)
+
+    def place(self, order: list[int], batch: int, totals: list[float], **extra) -> dict:
+        """``mid_epoch``: the epoch's whole sample ``order``, the next ``batch`` of this process's
+        share and its running ``totals`` (every process calls this: it gathers all processes')."""
+        self.saved_at = time.perf_counter()
+        place = {"perm": order, "batch": batch, "totals": list(totals), **extra}
+        if self.dist.world > 1:
+            place.update(world=self.dist.world, rank_totals=self.dist.gather(list(totals)))
+        return place
+
+    def resume(self, place: dict, last: Path, epoch: int) -> tuple[list[int], int, list[float]]:
+        """The order, next batch and this process's running totals of an interrupted ``epoch``
+        (1-based); refused where it was written by another number of processes."""
+        world = int(place.get("world", 1))
+        if world != self.dist.world:
+            raise ConfigError(f"{last}: written within epoch {epoch} by {world} process(es), resumed by "
+                              f"{self.dist.world}; resume it with {world} (torchrun --nproc-per-node {world}) or "
+                              f"pass train.resume=false to train from scratch")
+        totals = place["rank_totals"][self.dist.rank] if world > 1 else place["totals"]
+        return list(place["perm"]), int(place["batch"]), list(totals)
 
 
 def step_loss(model: TIGNN, batch, dt: float, noise: float, generator: torch.Generator,
@@ -311,10 +367,11 @@ def print_rrmse_table(title: str, rows: dict[str, dict[str, float]]) -> None:
 
 def train(cfg) -> Path:
     """Train on ``cfg.paths.dataset``; write the best checkpoint ``cfg.paths.checkpoint`` and
-    ``<out>/metrics.csv``; resume from ``model.last.ckpt`` when present and compatible. In one
-    process it is also written every ``train.checkpoint_minutes`` within an epoch (its sample
+    ``<out>/metrics.csv``; resume from ``model.last.ckpt`` when present and compatible. It is also
+    written every ``train.checkpoint_minutes`` within an epoch (its sample
     order, the batch reached, the running sums, and the weights the epoch's drifted states came
-    from), and an interrupted epoch goes on at its next batch."""
+    from), and an interrupted epoch goes on at its next batch (under torchrun, resumed by as many
+    processes)."""
     tc = cfg.train
     torch.set_num_threads(int(_sel(tc, "threads", 2)))
     dist = _Dist()
@@ -361,7 +418,7 @@ def train(cfg) -> Path:
     start_epoch, history, best_val, stale = 0, [], math.inf, 0
     resumed_direction = None
     mid = None                                   # an interrupted epoch's place (checkpoint "mid_epoch")
-    every_s = 60.0 * float(_sel(tc, "checkpoint_minutes", 10)) if dist.world == 1 else 0.0
+    saves = EpochCheckpoints(_sel(tc, "checkpoint_minutes", 10), dist)
 
     last = last_path(ckpt_path)
     if bool(_sel(tc, "resume", True)) and last.exists():
@@ -385,10 +442,13 @@ def train(cfg) -> Path:
             start_epoch, history = int(state["epoch"]), list(state["history"])
             best_val, stale = float(state["best_val"]), int(state["stale_rounds"])
             mid = state.get("mid_epoch")                             # written within epoch start_epoch + 1
+            if mid:
+                order, next_batch, _ = saves.resume(mid, last, start_epoch + 1)
+                share = len(order) // dist.world
             if dist.main:
                 print(f"resuming from {last} " + (
-                    f"within epoch {start_epoch + 1}, at batch {mid['batch'] + 1} of "
-                    f"{-(-len(mid['perm']) // max(1, int(tc.batch_size)))}" if mid else f"at epoch {start_epoch}"))
+                    f"within epoch {start_epoch + 1}, at batch {next_batch + 1} of "
+                    f"{-(-share // max(1, int(tc.batch_size)))}" if mid else f"at epoch {start_epoch}"))
 
     pairs = samples(train_trajs, _sel(tc, "start_repeats", 1))
     n_rest, rest = rest_samples(_sel(tc, "rest_samples", "auto"), train_trajs, ds.effects,
@@ -463,9 +523,8 @@ def train(cfg) -> Path:
                 model.load_state_dict(weights_now)
             model.train()
             if mid:                         # an interrupted epoch goes on where its checkpoint left it
-                perm = list(mid["perm"])
-                tot, dat, dgn, grown = mid["totals"]
-                n_batches, n_probes = mid["counts"]
+                perm, n_batches, (tot, dat, dgn, grown) = saves.resume(mid, last, epoch + 1)
+                n_probes = int(mid["probes"])
             else:
                 perm = torch.randperm(len(items), generator=gen).tolist()
                 tot = dat = dgn = grown = 0.0
@@ -474,7 +533,7 @@ def train(cfg) -> Path:
             n_use = len(perm) // dist.world * dist.world if dist.world > 1 else len(perm)
             mine = perm[dist.rank:n_use:dist.world]
             nb = -(-len(mine) // batch_size)
-            saved_at = time.perf_counter()
+            saves.start()
             for b in range(n_batches * batch_size, len(mine), batch_size):
                 batch = make_batch(batch_trajs, [items[i] for i in mine[b:b + batch_size]], data.graph, rolled)
                 loss, dl, dg = step_loss(model, batch, ds.dt, noise, gen, lam_d, lam_g)
@@ -487,15 +546,16 @@ def train(cfg) -> Path:
                 dist.average_gradients(model)
                 opt.step()
                 tot, dat, dgn, n_batches = tot + float(loss.detach()), dat + dl, dgn + dg, n_batches + 1
-                if every_s > 0 and n_batches < nb and time.perf_counter() - saved_at >= every_s:
-                    save_checkpoint(resume_state(
-                        epoch, history[-1].get("val_error", math.nan) if history else math.nan,
-                        mid_epoch={"perm": perm, "batch": n_batches, "totals": [tot, dat, dgn, grown],
-                                   "counts": [n_batches, n_probes], "epoch_start": epoch_start,
-                                   "seconds": time.perf_counter() - t0}), last)
-                    saved_at = time.perf_counter()
-                    print(f"epoch {epoch + 1}: batch {n_batches} of {nb}, loss {tot / n_batches:.3e}; "
-                          f"{last.name} written (train.checkpoint_minutes)", flush=True)
+                if saves.due(n_batches < nb):
+                    place = saves.place(perm, n_batches, [tot, dat, dgn, grown], probes=n_probes,
+                                        epoch_start=epoch_start, seconds=time.perf_counter() - t0)
+                    if dist.main:
+                        save_checkpoint(resume_state(
+                            epoch, history[-1].get("val_error", math.nan) if history else math.nan,
+                            mid_epoch=place), last)
+                        print(f"epoch {epoch + 1}: batch {n_batches} of {nb}, loss {tot / n_batches:.3e}; "
+                              f"{last.name} written (train.checkpoint_minutes)", flush=True)
+            tot, dat, dgn, grown = dist.mean([tot, dat, dgn, grown])     # over all processes' samples
             if not math.isfinite(tot):
                 raise DataError(f"{data.path}: training diverged (non-finite loss at epoch {epoch + 1}); "
                                 f"lower train.lr or check the dataset")
