@@ -263,47 +263,28 @@ def test_linear_prior_resumes_an_interrupted_epoch_at_its_next_batch(tmp_path, t
         assert torch.equal(v, got["state_dict"][k]), k
 
 
-def test_linear_prior_data_parallel_resumes_within_an_epoch(tmp_path, tiny_block):
+def test_linear_prior_data_parallel_resumes_within_an_epoch(tmp_path, tiny_block, torchrun_train):
     """model=linear_prior under torchrun: rank 0 dying right after a mid-epoch write of
     model.last.ckpt (in the rollout epoch) loses nothing; two processes resume at the next batch
     and end with the uninterrupted two-process run's weights and metrics."""
-    import os
-    from pathlib import Path
-
     import torch
 
     from thermognn.train.checkpoint import last_path, load_checkpoint
 
-    script = tmp_path / "run.py"
-    script.write_text(
-        "import sys\nimport thermognn.train.checkpoint as checkpoint\nfrom thermognn.core.config import load_config\n"
-        "from thermognn.train import train\nout, data, stop = sys.argv[1], sys.argv[2], int(sys.argv[3])\n"
-        "real = checkpoint.save_checkpoint\n"
-        "def interrupt(state, path):\n    real(state, path)\n"
-        "    if stop and 'mid_epoch' in state and (len(state['history']), state['mid_epoch']['batch']) == (1, stop):\n"
-        "        raise SystemExit('interrupted')\n"
-        "checkpoint.save_checkpoint = interrupt\n"
-        "train(load_config([f'out={out}', f'paths.dataset={data}', 'model=linear_prior', 'model.hidden=16',\n"
-        "                   'model.message_passing=2', 'train.threads=1', 'train.epochs=1', 'train.rollout_epochs=1',\n"
-        "                   'train.rollout_window=1', 'train.noise=0.01', 'train.batch_size=1',\n"
-        "                   'train.checkpoint_minutes=1e-9']))\n")
-    torchrun = Path(sys.executable).with_name("torchrun")
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-
-    def run(out, stop):
-        return subprocess.run([str(torchrun), "--standalone", "--nproc_per_node=2", str(script), str(out),
-                               str(tiny_block), str(stop)], capture_output=True, text=True, timeout=600, env=env)
-
-    r = run(tmp_path / "a", 0)
+    run = [f"paths.dataset={tiny_block}", "model=linear_prior", "model.hidden=16", "model.message_passing=2",
+           "train.threads=1", "train.epochs=1", "train.rollout_epochs=1", "train.rollout_window=1",
+           "train.noise=0.01", "train.batch_size=1"]
+    saver = "thermognn.train.checkpoint"
+    r = torchrun_train(tmp_path / "a", 0, run, module=saver)
     assert r.returncode == 0, r.stdout[-1500:] + r.stderr[-1500:]
-    assert run(tmp_path / "b", 2).returncode != 0                  # rank 0 dies in the rollout epoch, after batch 2
+    assert torchrun_train(tmp_path / "b", 2, run, module=saver).returncode != 0   # in the rollout epoch
     assert load_checkpoint(tmp_path / "b" / "model.last.ckpt")["mid_epoch"]["batch"] == 2
-    r = run(tmp_path / "b", 0)
+    r = torchrun_train(tmp_path / "b", 0, run, module=saver)
     assert r.returncode == 0, r.stdout[-1500:] + r.stderr[-1500:]
     assert "within epoch 2, at batch 3 of" in r.stdout
     ref, got = (load_checkpoint(last_path(tmp_path / name / "model.ckpt")) for name in ("a", "b"))
     assert [r["phase"] for r in got["history"]] == ["fit", "rollout"]
-    for a, b in zip(ref["history"], got["history"]):
+    for a, b in zip(ref["history"], got["history"], strict=True):
         assert {k: v for k, v in a.items() if k != "seconds"} == {k: v for k, v in b.items() if k != "seconds"}
     for k, v in ref["state_dict"].items():
         assert torch.equal(v, got["state_dict"][k]), k

@@ -444,46 +444,24 @@ def test_data_parallel_with_torchrun(tmp_path):
     assert [int(row["epoch"]) for row in _rows(tmp_path)] == [1, 2]
 
 
-def test_data_parallel_resumes_within_an_epoch(tmp_path):
+def test_data_parallel_resumes_within_an_epoch(tmp_path, torchrun_train):
     """Under torchrun too, model.last.ckpt is written within an epoch (rank 0's clock decides for
     both processes) with the whole sample order and each process's running sums; rank 0 dying
     after such a write loses nothing: the resumed two-process run ends with the uninterrupted
     one's weights and metrics. Resuming with another number of processes is refused by name."""
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    script = tmp_path / "run.py"
-    script.write_text(
-        "import sys\nimport thermognn.train.loop as loop\nfrom thermognn.core.config import load_config\n"
-        "from thermognn.train import train\nout, stop = sys.argv[1], int(sys.argv[2])\nreal = loop.save_checkpoint\n"
-        "def interrupt(state, path):\n    real(state, path)\n"
-        "    if stop and 'mid_epoch' in state and (len(state['history']), state['mid_epoch']['batch']) == (1, stop):\n"
-        "        raise SystemExit('interrupted')\n"
-        "loop.save_checkpoint = interrupt\n"
-        "train(load_config([f'out={out}', 'train.epochs=2', 'train.val_every=1', 'model.hidden=8',\n"
-        "                   'model.message_passing=1', 'train.threads=1', 'train.batch_size=2', 'train.noise=0.01',\n"
-        "                   'train.rest_rollout=3', 'train.checkpoint_minutes=1e-9']))\n")
-    torchrun = Path(sys.executable).with_name("torchrun")
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-
-    def run(out, stop, n=2):
-        return subprocess.run([str(torchrun), "--standalone", f"--nproc_per_node={n}", str(script), str(out),
-                               str(stop)], capture_output=True, text=True, timeout=300, env=env)
-
+    run = ["train.epochs=2", "train.val_every=1", "model.hidden=8", "model.message_passing=1", "train.threads=1",
+           "train.batch_size=2", "train.noise=0.01", "train.rest_rollout=3"]
     for name in ("a", "b"):
         write_oscillator_dataset(tmp_path / name / "dataset.h5", n_trajectories=4, steps=6)
-    r = run(tmp_path / "a", 0)
+    r = torchrun_train(tmp_path / "a", 0, run)
     assert r.returncode == 0, r.stdout[-1500:] + r.stderr[-1500:]
     assert "epoch 2: batch 2 of" in r.stdout                      # mid-epoch writes under torchrun
-    r = run(tmp_path / "b", 2)                                     # rank 0 dies in epoch 2, after batch 2
-    assert r.returncode != 0
+    assert torchrun_train(tmp_path / "b", 2, run).returncode != 0  # rank 0 dies in epoch 2, after batch 2
     mid = load_checkpoint(last_path(tmp_path / "b" / "model.ckpt"))["mid_epoch"]
     assert mid["batch"] == 2 and mid["world"] == 2 and len(mid["rank_totals"]) == 2
-    r = run(tmp_path / "b", 0, n=1)
+    r = torchrun_train(tmp_path / "b", 0, run, processes=1)
     assert r.returncode != 0 and "written within epoch 2 by 2 process(es), resumed by 1" in r.stderr
-    r = run(tmp_path / "b", 0)
+    r = torchrun_train(tmp_path / "b", 0, run)
     assert r.returncode == 0, r.stdout[-1500:] + r.stderr[-1500:]
     assert "within epoch 2, at batch 3 of" in r.stdout
     ref, got = (load_checkpoint(last_path(tmp_path / name / "model.ckpt")) for name in ("a", "b"))
