@@ -368,10 +368,9 @@ def print_rrmse_table(title: str, rows: dict[str, dict[str, float]]) -> None:
 def train(cfg) -> Path:
     """Train on ``cfg.paths.dataset``; write the best checkpoint ``cfg.paths.checkpoint`` and
     ``<out>/metrics.csv``; resume from ``model.last.ckpt`` when present and compatible. It is also
-    written every ``train.checkpoint_minutes`` within an epoch (its sample
-    order, the batch reached, the running sums, and the weights the epoch's drifted states came
-    from), and an interrupted epoch goes on at its next batch (under torchrun, resumed by as many
-    processes)."""
+    written every ``train.checkpoint_minutes`` within an epoch (the epoch's sample order, the batch
+    reached, the running sums, and the weights the epoch's drifted states came from), and an
+    interrupted epoch goes on at its next batch (under torchrun, resumed by as many processes)."""
     tc = cfg.train
     torch.set_num_threads(int(_sel(tc, "threads", 2)))
     dist = _Dist()
