@@ -375,16 +375,20 @@ def test_one_step_errors_vanish_on_the_models_own_rollout(trained):
     data = load_data(cfg.paths.dataset, cfg.train.split, int(cfg.seed), torch.float64, parts=("test",))
     t = data.of("test")[0]
     own = TrajectoryTensors("own", ro.rollout(model, data.graph, t.z[0], t.force, data.dt), t.force, t.time)
-    chunk, ro.ONE_STEP_CHUNK = ro.ONE_STEP_CHUNK, 3             # several chunks, the last one short
+    chunk, nodes = ro.ONE_STEP_CHUNK, ro.ONE_STEP_NODES
     try:
+        ro.ONE_STEP_CHUNK = 3                                   # several chunks, the last one short
         whole, per_step = ro.one_step_errors(model, data.graph, [own], data.layout, data.dt)
+        real, _ = ro.one_step_errors(model, data.graph, [t], data.layout, data.dt)
+        ro.ONE_STEP_NODES = data.graph.n_nodes                  # the node budget: one snapshot a pass
+        alone, _ = ro.one_step_errors(model, data.graph, [t], data.layout, data.dt)
     finally:
-        ro.ONE_STEP_CHUNK = chunk
+        ro.ONE_STEP_CHUNK, ro.ONE_STEP_NODES = chunk, nodes
     assert all(len(v) == t.z.shape[0] - 1 for v in per_step.values())
     assert all(v < 1e-9 for v in whole.values() if math.isfinite(v)) and math.isfinite(whole["q"])
-    # against the data, the same model's one-step error is a real, finite number
-    real, _ = ro.one_step_errors(model, data.graph, [t], data.layout, data.dt)
+    # against the data, the same model's one-step error is a real, finite number, however chunked
     assert real["q"] > 1e-6
+    assert all(math.isclose(real[g], alone[g], rel_tol=1e-9) for g in real if math.isfinite(real[g]))
 
 
 def test_early_stopping(tmp_path):
