@@ -143,7 +143,13 @@ def test_watchdog_fades_on_stalled_physics_and_recovers(exported_model, tmp_path
     assert force[a] > 0.03 and np.all(force[a + 200:b] == 0.0)       # faded to zero within 200 ms
     assert np.abs(np.diff(force[a:b])).max() < 0.02                  # a fade, not a step
     assert force[b:].max() > 0.02                                    # back after resuming
-    assert np.abs(np.diff(force[b:])).max() < 0.05                   # through a ramp, no full-force step
+    # through a ramp, no full-force step: 10 ms after resuming the gains are at most 0.1 (watchdog)
+    # and 0.05 (ramp-in), so the force is a small part of what it comes back to, although the tool
+    # went on pressing during the stall (the commanded force is then ~4x that); and no tick of the
+    # ramp's first 100 ms jumps. (Not after it: there the spring's own force changes up to 0.06 N
+    # a tick when physics steps arrive late under CPU load, session 39's flake.)
+    assert force[b:b + 10].max() < 0.05 * force[b:].max()
+    assert np.abs(np.diff(force[b:b + 100])).max() < 0.05
 
 
 def test_nan_from_model_stops_with_zero_force(tmp_path):
