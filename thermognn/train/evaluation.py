@@ -278,6 +278,25 @@ def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors]) -> dict:
             "note": ""}
 
 
+def linear_validation_error(data: LoadedData, trajs: list[TrajectoryTensors]) -> str:
+    """The linearised FE model's score by ``validation_error``'s metric (``trajectory_error``
+    averaged over the finite groups and trajectories) on ``trajs``, as a clause for ``train``'s
+    opening line: the number a learned model's ``val_error`` has to beat ("" where the dataset
+    holds no operators or the linear model cannot step it). Groups the linear model does not
+    predict (Prony internal variables) are left out of its mean and say so."""
+    if not trajs:
+        return ""
+    linear = linear_baseline(data, trajs)
+    if linear.get("note") or "whole_per_trajectory" not in linear:
+        return ""
+    values = [v for w in linear["whole_per_trajectory"] for v in w.values() if math.isfinite(v)]
+    if not values:
+        return ""
+    left_out = [g for g in data.layout.names if not math.isfinite(linear["whole"][g])]
+    return (f"; the linearised FE model's validation error {float(np.mean(values)):.3e}"
+            + (f" (without {', '.join(left_out)})" if left_out else "") + ", the number val_error has to beat")
+
+
 def error_left(model: list[dict[str, float]], linear: list[dict[str, float]], groups: list[str]) -> dict[str, float]:
     """The share of the linearised FE model's error that a learned model leaves: per group, the mean
     over trajectories of the model's whole-rollout error divided by the linear model's on the same

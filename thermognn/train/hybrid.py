@@ -588,6 +588,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
 
     from .checkpoint import last_path, load_checkpoint, save_checkpoint, torch_dtype
     from .data import compute_stats
+    from .evaluation import linear_validation_error
     from .loop import (EpochCheckpoints, _base_checkpoint, _progress, _sel, _tensorboard, _write_metrics,
                        print_rrmse_table, training_identity)
     from .model import build_model, parameter_count
@@ -697,7 +698,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
         print(f"train (model.prior=linear): {len(train_trajs)} train / {len(val_trajs)} val / "
               f"{len(data.split['test'])} test trajectories, {fit_epochs} fit + {roll_epochs} rollout epochs{more}, "
               f"{parameter_count(model)} parameters, {model.prior.free_index.numel()} free DOFs"
-              + (f", {dist.world} processes" if dist.world > 1 else ""))
+              + (f", {dist.world} processes" if dist.world > 1 else "") + linear_validation_error(data, val_trajs))
 
     tb = _tensorboard(_sel(tc, "tensorboard", "auto"), out_dir / "tensorboard") if dist.main else None
     fields = ["epoch", "phase", "lr", "loss", "data_loss", "degeneracy_loss", "val_error", "seconds"]

@@ -397,6 +397,7 @@ def train(cfg) -> Path:
         print(f"train.init's split kept; new trajectories: {new['train']} train / {new['val']} val / {new['test']} test")
     structure = resolve_structure(_sel(cfg, "model.structure", "auto"), ds.effects, ds.config_yaml)
     hparams = hyperparameters(cfg.model, ds.layout.dim, velocity_columns(ds.layout), structure == "hamiltonian")
+    from .evaluation import linear_validation_error     # (evaluation imports this module)
     train_trajs, val_trajs = data.of("train"), data.of("val")
     if prior == "linear":                                # the linearised FE step + learned remainders
         return train_linear_prior(cfg, data, hparams, dtype_name, structure, ckpt_path, out_dir, dist, phases)
@@ -486,7 +487,7 @@ def train(cfg) -> Path:
               f"trajectories, {len(pairs)} steps ({n_rest} at rest"
               + (f", {len(rest_steps)} more from its own {rest_horizon}-step rollout at rest" if rest_horizon else "")
               + f"), structure {structure}, "
-              f"{parameter_count(model)} parameters")
+              f"{parameter_count(model)} parameters" + linear_validation_error(data, val_trajs))
 
     def resume_state(epoch_done: int, val: float, **extra) -> dict:
         """``model.last.ckpt``'s contents: everything a resumed run needs to go on exactly."""
