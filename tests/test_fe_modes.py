@@ -257,6 +257,20 @@ def test_generate_stores_time_resolution(tmp_path, monkeypatch):
     assert report["modes"] == report["free_dofs"] == 3 * int((d.mesh.node_type != 1).sum())
     assert report["trajectories"] == 2 and report["dt"] == pytest.approx(0.01)
     assert 0 <= report["strain_unresolved"] <= 1 and set(report["linear_rollout_error"]) == {"u", "v"}
+    # rotations (thermognn/core/kinematics.py): a block pressed gently hardly turns, so the linear
+    # stress of its own displacements is close to its stress, corotated or not
+    rot = report["rotations"]
+    assert rot["trajectories"] == 2 and 0 < rot["rotation_max_deg"] < 20                # cells under the load point turn most
+    assert 0 < rot["stress_plain"] < 0.2 and 0 < rot["stress_corotated"] < 0.2
+    # the plain cell formula is generate's stress operator: Σ u of the stored /linear
+    from thermognn.core.kinematics import linear_cell_stress, node_average, shape_gradients
+
+    lin, mesh, z = d.linear_solid(), d.mesh, d.read("traj_1").z
+    mu, kappa = 2 * 1.0e4, 2 / 1.0e-5                                       # the block: 2 C10, 2 / D1
+    plain = node_average(linear_cell_stress(z[..., 0:3], mesh.nodes, mesh.tets, kappa - 2 * mu / 3, mu),
+                         mesh.tets, shape_gradients(mesh.nodes, mesh.tets)[1], len(mesh.nodes))
+    sigma_u = (lin.stress @ lin.free_rows(z[..., 0:3] - mesh.nodes[None]).T).T.reshape(plain.shape)
+    assert np.allclose(plain, sigma_u, rtol=1e-9, atol=1e-9 * np.abs(sigma_u).max())
 
     def broken(*a, **k):
         raise RuntimeError("boom")

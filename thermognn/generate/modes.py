@@ -404,8 +404,32 @@ def diagnose(solid, trajectories, layout, dt: float, max_dofs: int | None = None
     out.update(energy_shares(K, M, free, solid.nodes, counted(), layout, dt, modes=(omega, phi)))
     out["linear_rollout_error"] = linear_rollout_error(linear, solid.nodes, trajectories(), layout, dt)
     out["trajectories"] = count
+    out["rotations"] = rotations(solid, trajectories, layout, dt, count)
     out["seconds"] = round(time.perf_counter() - t0, 3)
     return out
+
+
+#: rotation_report reads at most this many trajectories, evenly spaced (about 1 s each on the liver)
+MAX_ROTATION_TRAJECTORIES = 12
+
+
+def rotations(solid, trajectories, layout, dt: float, count: int) -> dict | None:
+    """``thermognn.core.kinematics.rotation_report`` of the data (P1 tets; None otherwise): how
+    far its cells rotate, and how far the linear stress of its own displacements is from its
+    stress, plain and corotated, with the law's moduli at rest (as ``linear_stress``) and its
+    Prony terms for a viscous solid; over at most ``MAX_ROTATION_TRAJECTORIES`` of the ``count``
+    trajectories, evenly spaced."""
+    from thermognn.core.kinematics import rotation_report
+
+    if solid.cells.shape[1] != 4 or count < 1:
+        return None
+    k = min(count, MAX_ROTATION_TRAJECTORIES)
+    pick = set(np.linspace(0, count - 1, k).round().astype(int).tolist())
+    mu = solid.mat.shear_modulus
+    prony = tuple((float(t.g), float(t.tau)) for t in solid.mat.prony) if solid.viscous else ()
+    report = rotation_report(solid.nodes, solid.cells, (t for i, t in enumerate(trajectories()) if i in pick),
+                             layout, solid.mat.bulk_modulus - 2.0 * mu / 3.0, mu, prony, dt)
+    return report
 
 
 def describe(report: dict, scene: str = "") -> list[str]:
@@ -426,8 +450,21 @@ def describe(report: dict, scene: str = "") -> list[str]:
         if lin.get("v") is not None:
             text += f", v {100 * lin['v']:.1f} %"
     lines = [text]
+    rot = report.get("rotations")
+    if rot:
+        line = (f"rotations{where}: cells rotate up to {rot['rotation_max_deg']:.0f}° (RMS {rot['rotation_rms_deg']:.1f}° "
+                f"at the last step)")
+        if rot.get("stress_plain") is not None:
+            line += (f"; the linear stress of the data's own displacements is off by {pct(rot['stress_plain'])} of its "
+                     f"stress, corotated {pct(rot['stress_corotated'])}")
+        lines.append(line)
     if report["strain_unresolved"] > 0.5:
         lines.append("[yellow]hint[/]: most of this data's strain energy is in modes dt does not resolve: it "
                      "responds quasi-statically, and explicit learned steps reproduce such data poorly "
                      "(see docs/accuracy.md)")
+    if rot and rot.get("stress_plain") is not None and rot["stress_plain"] > 0.1 \
+            and rot["stress_corotated"] < 0.5 * rot["stress_plain"]:
+        lines.append("[yellow]hint[/]: the cells' rotations are read as strain by the solid linearised at rest "
+                     "(a spurious pressure): model=linear_prior's stress remainder has to undo it where a "
+                     "corotated one would not (see docs/accuracy.md, session 40)")
     return lines
