@@ -13,7 +13,7 @@ errors of q, v, σ for both models, and ms a step.
 
     .venv/bin/python benchmarks/corotated_baseline.py runs/s40_liver96/dataset.h5 [--split test] [--max K]
 
-The moduli at rest (μ0, K0 [Pa]) are read from the dataset's scene config; the split is the
+The moduli at rest (μ0, K0 [Pa]) are the dataset's scene law's; the split is the
 training default (seed 0, 0.8/0.1/0.1, as ``thermognn train`` draws it; the one torch import). docs/accuracy.md,
 session 40. Rayleigh damping and gravity-free quasi-static data are not handled (refused).
 """
@@ -34,11 +34,12 @@ from thermognn.core.schema import Dataset
 
 
 def moduli(ds: Dataset) -> tuple[float, float]:
-    """(μ0, K0) [Pa] of the scene's law at rest (as ``Material.shear_modulus``/``bulk_modulus``)."""
-    mat = yaml.safe_load(ds.config_yaml)["scene"]["material"]
-    if mat["law"] == "neo_hookean":
-        return 2.0 * mat["C10"], 2.0 / mat["D1"]
-    return float(sum(mat["mu"])), 2.0 / mat["D"][0]
+    """(μ0, K0) [Pa] of the dataset's scene law at rest (``Material.shear_modulus``, ``bulk_modulus``;
+    the FE side's module, which needs UFL: this script runs in the project's venv)."""
+    from thermognn.generate.materials import material_from_config
+
+    mat = material_from_config(yaml.safe_load(ds.config_yaml)["scene"]["material"])
+    return mat.shear_modulus, mat.bulk_modulus
 
 
 def element_stiffness(X, tets, lam, mu):
