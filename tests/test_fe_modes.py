@@ -257,11 +257,12 @@ def test_generate_stores_time_resolution(tmp_path, monkeypatch):
     assert report["modes"] == report["free_dofs"] == 3 * int((d.mesh.node_type != 1).sum())
     assert report["trajectories"] == 2 and report["dt"] == pytest.approx(0.01)
     assert 0 <= report["strain_unresolved"] <= 1 and set(report["linear_rollout_error"]) == {"u", "v"}
-    # rotations (thermognn/core/kinematics.py): a block pressed gently hardly turns, so the linear
-    # stress of its own displacements is close to its stress, corotated or not
+    # rotations (thermognn/core/kinematics.py): the cells under the load point turn about 10°, enough
+    # for the plain linear stress of the data's own displacements to be 10 % off its stress; the
+    # corotated one is not (measured: 0.100 and 0.0079)
     rot = report["rotations"]
-    assert rot["trajectories"] == 2 and 0 < rot["rotation_max_deg"] < 20                # cells under the load point turn most
-    assert 0 < rot["stress_plain"] < 0.2 and 0 < rot["stress_corotated"] < 0.2
+    assert rot["trajectories"] == 2 and 0 < rot["rotation_max_deg"] < 20
+    assert 0 < rot["stress_plain"] < 0.2 and 0 < rot["stress_corotated"] < 0.25 * rot["stress_plain"]
     # the plain cell formula is generate's stress operator: Σ u of the stored /linear
     from thermognn.core.kinematics import linear_cell_stress, node_average, shape_gradients
 

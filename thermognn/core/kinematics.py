@@ -5,18 +5,19 @@ cell, F = R and ε = sym(R) − I ≠ 0: a linear stress σ = λ tr(ε) I + 2 μ
 that is not strained (for a rotation by θ about one axis, tr ε = 2 (cos θ − 1) ≈ −θ², a spurious
 pressure of about K θ²). The corotational form removes it: with the polar decomposition F = R U
 (``polar_rotations``), the strain is measured in the cell's rotated frame, ε̃ = sym(Rᵀ F) − I,
-and the stress rotated back::
+the volume change as J − 1 = det F − 1, and the stress rotated back::
 
-    σ_cell = R (λ tr(ε̃) I + 2 μ ε̃) Rᵀ                          [Pa]
+    σ_cell = R (K (J − 1) I + 2 μ dev ε̃) Rᵀ,    K = λ + 2μ/3          [Pa]
 
 (with a Prony series on its isochoric part 2 μ dev ε̃, relaxed as ``LinearSolid`` relaxes Σ u).
-For small rotations it is the linear stress; for a rigid rotation it is zero.
+For small strains and rotations it is the linear stress; for a rigid rotation it is zero; and
+unlike tr ε̃, J − 1 gives no pressure to an isochoric motion (a simple shear) at second order.
 
 ``rotation_report`` is ``generate``'s diagnostic of it: how far the cells of the data rotate,
 and how far the linear stress of the data's *own* displacements is from the data's stress,
 plain and corotated. Where the plain one is far off and the corotated one is not, the response
 is geometrically nonlinear (large rotations), and a prior linearised at rest has to learn the
-rotations (docs/accuracy.md, session 40: the liver's test cases, 3.4 against 0.55).
+rotations (docs/accuracy.md, session 40: on the liver's test cases 231 % plain, 39 % corotated).
 
 Numpy only (no torch, no dolfinx): ``generate`` and the benchmarks use it alike.
 """
@@ -62,12 +63,6 @@ def polar_rotations(F: np.ndarray) -> np.ndarray:
 def rotation_angles(R: np.ndarray) -> np.ndarray:
     """Angle [rad] of each rotation R [..., 3, 3]: cos θ = (tr R − 1) / 2."""
     return np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0))
-
-
-def _isotropic(eps: np.ndarray, lam: float, mu: float) -> np.ndarray:
-    """λ tr(ε) I + 2 μ ε for strains [..., 3, 3]."""
-    tr = np.trace(eps, axis1=-2, axis2=-1)[..., None, None]
-    return lam * tr * np.eye(3) + 2.0 * mu * eps
 
 
 def _relax(sig_vol: np.ndarray, sig_iso: np.ndarray, prony: Sequence[tuple[float, float]], dt: float) -> np.ndarray:

@@ -427,9 +427,8 @@ def rotations(solid, trajectories, layout, dt: float, count: int) -> dict | None
     pick = set(np.linspace(0, count - 1, k).round().astype(int).tolist())
     mu = solid.mat.shear_modulus
     prony = tuple((float(t.g), float(t.tau)) for t in solid.mat.prony) if solid.viscous else ()
-    report = rotation_report(solid.nodes, solid.cells, (t for i, t in enumerate(trajectories()) if i in pick),
-                             layout, solid.mat.bulk_modulus - 2.0 * mu / 3.0, mu, prony, dt)
-    return report
+    return rotation_report(solid.nodes, solid.cells, (t for i, t in enumerate(trajectories()) if i in pick),
+                           layout, solid.mat.bulk_modulus - 2.0 * mu / 3.0, mu, prony, dt)
 
 
 def describe(report: dict, scene: str = "") -> list[str]:
