@@ -15,7 +15,7 @@ errors of q, v, σ for both models, and ms a step.
 
 The moduli at rest (μ0, K0 [Pa]) are the dataset's scene law's; the split is the
 training default (seed 0, 0.8/0.1/0.1, as ``thermognn train`` draws it; the one torch import). docs/accuracy.md,
-session 40. Rayleigh damping and gravity-free quasi-static data are not handled (refused).
+session 40. Rayleigh damping and quasi-static data (no inertia) are refused.
 """
 
 from __future__ import annotations
@@ -181,7 +181,8 @@ def main() -> None:
           f"is off by {100 * rep['stress_plain']:.0f} % of its stress, corotated {100 * rep['stress_corotated']:.0f} %")
     rows = []
     for k, name in enumerate(names):
-        z, force = ds.read(name).z, ds.read(name).force
+        traj = ds.read(name)
+        z, force = traj.z, traj.force
         u0, v0 = (z[0, :, 0:3] - X).ravel(), z[0, :, sq].ravel()
         forces = force.reshape(force.shape[0], -1)
         if k == 0:                                                     # the frozen-rotation check
