@@ -87,9 +87,15 @@ def linear_cell_stress(q: np.ndarray, X: np.ndarray, tets: np.ndarray, lam: floa
     Prony series on the isochoric part) along the positions q [S, N, 3] [m] of nodes X [N, 3]:
     plain, ε = sym(F) − I, or ``corotated``, ε̃ = sym(Rᵀ F) − I in each cell's rotated frame and
     the stress rotated back (module docstring; the relaxation runs in the rotated frame)."""
-    grad, _ = shape_gradients(X, tets)
-    F = deformation_gradients(q, tets, grad)                          # [S, T, 3, 3]
-    R = polar_rotations(F) if corotated else None
+    F = deformation_gradients(q, tets, shape_gradients(X, tets)[0])   # [S, T, 3, 3]
+    return _cell_stress(F, polar_rotations(F) if corotated else None, lam, mu, prony, dt)
+
+
+def _cell_stress(F: np.ndarray, R: np.ndarray | None, lam: float, mu: float,
+                 prony: Sequence[tuple[float, float]], dt: float) -> np.ndarray:
+    """``linear_cell_stress`` from the cells' F [S, T, 3, 3], corotated by their polar rotations R
+    (same shape) or plain (R None)."""
+    corotated = R is not None
     local = np.swapaxes(R, -1, -2) @ F if corotated else F
     eps = 0.5 * (local + np.swapaxes(local, -1, -2)) - np.eye(3)
     tr = np.trace(eps, axis1=-2, axis2=-1)[..., None, None]
@@ -134,8 +140,9 @@ def rotation_report(X: np.ndarray, tets: np.ndarray, trajectories: Iterable, lay
     rot_max, rot_rms, plain, corot, count = 0.0, [], [], [], 0
     for traj in trajectories:
         z = np.asarray(traj.z, dtype=float)                           # [S, N, D]
-        q = z[..., 0:3]
-        theta = rotation_angles(polar_rotations(deformation_gradients(q, tets, grad)))   # [S, T]
+        F = deformation_gradients(z[..., 0:3], tets, grad)          # [S, T, 3, 3]
+        R = polar_rotations(F)
+        theta = rotation_angles(R)                                    # [S, T]
         rot_max = max(rot_max, float(theta.max()))
         rot_rms.append(float(np.sqrt((w * theta[-1] ** 2).sum())))
         count += 1
@@ -143,8 +150,8 @@ def rotation_report(X: np.ndarray, tets: np.ndarray, trajectories: Iterable, lay
             truth = z[1:, :, layout.slice("sigma")]
             norm = np.linalg.norm(truth)
             if norm > 0:
-                for out, rotated in ((plain, False), (corot, True)):
-                    cell = linear_cell_stress(q, X, tets, lam, mu, prony, dt, corotated=rotated)
+                for out, rotation in ((plain, None), (corot, R)):
+                    cell = _cell_stress(F, rotation, lam, mu, prony, dt)
                     out.append(float(np.linalg.norm(node_average(cell, tets, volume, len(X))[1:] - truth) / norm))
     if not count:
         return None
