@@ -407,11 +407,18 @@ def test_relaxing_prior_model_steps_its_carried_internal_variables():
     rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
 
+    graph = Graph(ref, edges, node_type, torch.zeros(0, 3, dtype=torch.long))
+    fe = [TrajectoryTensors("fe", z, f, torch.arange(len(f)) * dt)]
     saved = _zero_remainders(net)
     with torch.enable_grad():
         zero = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
+        zero_step, _ = one_step_errors(model, graph, fe, layout, dt)
     assert rel(zero, lin) < 1e-12 and rel(zero[..., 6:12], lin[..., 6:12]) < 1e-10
     net.load_state_dict(saved)
+    # evaluate's linearised FE one step (linear_fe: the prior alone) is the zero network's, whatever the weights
+    linear_step, _ = one_step_errors(model, graph, fe, layout, dt, linear_fe=True)
+    assert all(abs(linear_step[g] - zero_step[g]) < 1e-9 * zero_step[g] for g in zero_step), (linear_step, zero_step)
+    assert min(linear_step.values()) > 1e-4
     with torch.enable_grad():
         batched = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
         assert rel(batched[..., 3:6], lin[..., 3:6]) > 1e-6              # the network corrects something
@@ -421,7 +428,6 @@ def test_relaxing_prior_model_steps_its_carried_internal_variables():
             for k in range(1, len(f)):
                 states.append(stepper.step(states[-1], f[k], edges, node_type, ref, torch.tensor(dt)))
             assert rel(torch.stack(states)[..., :12], batched) < 1e-9
-        graph = Graph(ref, edges, node_type, torch.zeros(0, 3, dtype=torch.long))
         own = [TrajectoryTensors("own", batched, f, torch.arange(len(f)) * dt)]
         errors, _ = one_step_errors(model, graph, own, layout, dt)
         assert max(errors.values()) < 1e-8, errors

@@ -79,6 +79,7 @@ def test_demo_with_the_linear_prior(tmp_path):
         assert 0 < errors[g] < 1 and 0 < errors[f"linear_fe_{g}"] < 1, g
     assert "model.prior = linear" in (tmp_path / "eval" / "summary.md").read_text()
     assert "gentle loads" in (tmp_path / "eval" / "summary.md").read_text()
+    assert "one step from the true state" in res.stdout and "; the linearised FE model's: q " in res.stdout
     for g in ("q", "v", "sigma"):        # the preset's second-order remainders: the linear model, to O(load)
         assert 0 < errors[f"gentle_gap_{g}"] < 3e-2 * errors[f"linear_gap_{g}"] + 1e-4, g
     from thermognn.export.exporter import verify
