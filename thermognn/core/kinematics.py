@@ -82,17 +82,19 @@ def _relax(sig_vol: np.ndarray, sig_iso: np.ndarray, prony: Sequence[tuple[float
 
 def linear_cell_stress(q: np.ndarray, X: np.ndarray, tets: np.ndarray, lam: float, mu: float,
                        prony: Sequence[tuple[float, float]] = (), dt: float = 1.0,
-                       corotated: bool = False) -> np.ndarray:
+                       corotated: bool = False, volume_from_det: bool = True) -> np.ndarray:
     """Cauchy stress [S, T, 3, 3] [Pa] of the linear solid (Lamé λ, μ [Pa] at rest, optional
     Prony series on the isochoric part) along the positions q [S, N, 3] [m] of nodes X [N, 3]:
     plain, ε = sym(F) − I, or ``corotated``, ε̃ = sym(Rᵀ F) − I in each cell's rotated frame and
-    the stress rotated back (module docstring; the relaxation runs in the rotated frame)."""
+    the stress rotated back (module docstring; the relaxation runs in the rotated frame), its
+    volume change J − 1, or with ``volume_from_det`` False tr ε̃: the stress whose divergence the
+    corotated force K_e (Rᵀ x − X) is (``thermognn.core.corotated``'s own, for its rollouts)."""
     F = deformation_gradients(q, tets, shape_gradients(X, tets)[0])   # [S, T, 3, 3]
-    return _cell_stress(F, polar_rotations(F) if corotated else None, lam, mu, prony, dt)
+    return _cell_stress(F, polar_rotations(F) if corotated else None, lam, mu, prony, dt, volume_from_det)
 
 
 def _cell_stress(F: np.ndarray, R: np.ndarray | None, lam: float, mu: float,
-                 prony: Sequence[tuple[float, float]], dt: float) -> np.ndarray:
+                 prony: Sequence[tuple[float, float]], dt: float, volume_from_det: bool = True) -> np.ndarray:
     """``linear_cell_stress`` from the cells' F [S, T, 3, 3], corotated by their polar rotations R
     (same shape) or plain (R None)."""
     corotated = R is not None
@@ -102,7 +104,7 @@ def _cell_stress(F: np.ndarray, R: np.ndarray | None, lam: float, mu: float,
     dev = eps - tr / 3.0 * np.eye(3)
     # volume change: tr ε, or J − 1 where corotated (tr(U − I) is not the volume change at second
     # order: a simple shear, J = 1, would get a spurious pressure λ γ²/8 from it)
-    dilatation = np.linalg.det(F)[..., None, None] - 1.0 if corotated else tr
+    dilatation = np.linalg.det(F)[..., None, None] - 1.0 if corotated and volume_from_det else tr
     sig = _relax((lam + 2.0 * mu / 3.0) * dilatation * np.eye(3), 2.0 * mu * dev, prony, dt)
     return R @ sig @ np.swapaxes(R, -1, -2) if corotated else sig
 

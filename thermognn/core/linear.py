@@ -66,7 +66,8 @@ class LinearSolid:
     ('newmark' | 'quasi_static' | another name, which :meth:`rollout` refuses), Newmark β, γ,
     body_force [n] N (gravity, or None); for a viscous solid its Prony terms prony ((ḡ_i, τ_i [s]),
     ...) with the isochoric parts stiffness_iso [n, n] N/m and stress_iso [6N, n] Pa/m of K and Σ
-    (module docstring; () and None for an elastic one)."""
+    (module docstring; () and None for an elastic one); the law's shear and bulk moduli at rest
+    μ0, K0 [Pa] (None where unknown: the corotated baseline, ``thermognn.core.corotated``, needs them)."""
 
     stiffness: np.ndarray
     mass: np.ndarray
@@ -80,6 +81,8 @@ class LinearSolid:
     prony: tuple[tuple[float, float], ...] = ()
     stiffness_iso: np.ndarray | None = None
     stress_iso: np.ndarray | None = None
+    shear_modulus: float | None = None
+    bulk_modulus: float | None = None
     #: LU factorisations by (integrator, dt) (and of K, "instantaneous"), made on the first rollout that needs them
     _factors: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 

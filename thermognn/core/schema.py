@@ -28,7 +28,9 @@ Layout (units SI)::
         stiffness_iso       (n, n)   K_iso [N/m]      viscous solids: the isochoric parts of K
         stress_iso          (6N, n)  Σ_iso [Pa/m]     and Σ, which the Prony series relaxes
                             attrs: rayleigh (αM [1/s], βK [s]), integrator, beta, gamma,
-                            prony (JSON [[ḡ_i, τ_i [s]], ...]; viscous solids)
+                            prony (JSON [[ḡ_i, τ_i [s]], ...]; viscous solids),
+                            shear_modulus, bulk_modulus (μ0, K0 [Pa] at rest; optional, since
+                            session 42: the corotated baseline, ``thermognn.core.corotated``)
                             (``thermognn.core.linear.LinearSolid``: the physics baseline)
     /trajectories/<name>/   attrs: status ('ok' | 'failed'), reason (str), load_point (3,) [m],
                                    split_group (optional str: trajectories sharing one land in
@@ -187,6 +189,9 @@ class DatasetWriter:
                         "beta": float(linear.beta), "gamma": float(linear.gamma)})
         if linear.prony:
             g.attrs["prony"] = json.dumps([[float(a), float(b)] for a, b in linear.prony])
+        for name in ("shear_modulus", "bulk_modulus"):
+            if getattr(linear, name) is not None:
+                g.attrs[name] = float(getattr(linear, name))
 
     def set_time_resolution(self, report: dict) -> None:
         """Store generate's time-resolution diagnostic (JSON) on the root; finalised with the file."""
@@ -307,7 +312,8 @@ class Dataset:
                     body_force=g["body_force"][()] if "body_force" in g else None,
                     prony=tuple((float(a), float(b)) for a, b in json.loads(str(g.attrs.get("prony", "[]")))),
                     stiffness_iso=_read_csr(g, "stiffness_iso") if "stiffness_iso" in g else None,
-                    stress_iso=_read_csr(g, "stress_iso") if "stress_iso" in g else None)
+                    stress_iso=_read_csr(g, "stress_iso") if "stress_iso" in g else None,
+                    **{k: float(g.attrs[k]) for k in ("shear_modulus", "bulk_modulus") if k in g.attrs})
             except KeyError as exc:
                 raise DataError(f"{self.path}: /linear lacks {exc}") from None
         n = int(free.sum())

@@ -295,7 +295,8 @@ def linear_solid(solid, sparse: bool = True) -> LinearSolid:
     """The solid linearised at rest (``thermognn.core.linear.LinearSolid``): K, M over the free
     DOFs (:func:`rest_operators`), the stress operator (:func:`linear_stress`), the solid's
     Rayleigh damping, Newmark β, γ and integrator ('quasi_static' without inertia), the
-    gravity load (:func:`body_force`) over the free DOFs, and for a viscous solid its Prony terms
+    gravity load (:func:`body_force`) over the free DOFs, the law's moduli at rest (μ0, K0: the
+    corotated baseline's), and for a viscous solid its Prony terms
     with the isochoric parts of K and Σ they relax (:func:`rest_stiffness` of the law's
     isochoric stress)."""
     K, M, free = rest_operators(solid, sparse=sparse)
@@ -314,7 +315,9 @@ def linear_solid(solid, sparse: bool = True) -> LinearSolid:
                        rayleigh=tuple(float(r) for r in opt.rayleigh),
                        integrator=opt.integrator if solid.inertia else "quasi_static",
                        beta=float(opt.beta), gamma=float(opt.gamma),
-                       body_force=None if gravity is None else gravity.ravel()[free], **viscous)
+                       body_force=None if gravity is None else gravity.ravel()[free],
+                       shear_modulus=float(solid.mat.shear_modulus), bulk_modulus=float(solid.mat.bulk_modulus),
+                       **viscous)
 
 
 def linear_rollout_error(linear: LinearSolid, nodes: np.ndarray, trajectories: Iterable, layout,

@@ -29,6 +29,7 @@ import torch
 from omegaconf import OmegaConf
 
 from thermognn.core.config import project_path
+from thermognn.core.corotated import CorotatedSolid
 from thermognn.core.errors import ConfigError, DataError
 from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
@@ -244,27 +245,34 @@ def hardest(whole: list[dict[str, float]], mean: dict[str, float], groups: list[
     return sorted(range(len(whole)), key=lambda k: -score[k] if math.isfinite(score[k]) else math.inf)
 
 
-def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors]) -> dict:
+def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors], corotated: bool = False) -> dict:
     """The linearised FE model (the dataset's ``/linear`` operators, ``thermognn.core.linear``; no
     learning) rolled out over the same trajectories, from the same first states under the same
-    loads. Returns {"snapshot": {group: mean per-snapshot RRMSE}, "whole": {group: mean
-    whole-rollout error}, "whole_per_trajectory": [{group: whole-rollout error}, one per
-    trajectory], "ms_per_step": wall time of one linear step [ms], "note": ""}; groups the
-    linear model does not predict (Prony internal variables; sigma without a stress operator) are
-    NaN. Without operators (datasets written before them, or too large for dense operators), or
-    for an integrator it does not reproduce: {"note": why} alone."""
+    loads; with ``corotated`` the same solid corotated per cell (``thermognn.core.corotated``:
+    each cell's linear force and stress in its rotated frame, implicit in the rotations). Returns
+    {"snapshot": {group: mean per-snapshot RRMSE}, "whole": {group: mean whole-rollout error},
+    "whole_per_trajectory": [{group: whole-rollout error}, one per trajectory], "ms_per_step":
+    wall time of one step [ms], "sweeps": mean fixed-point sweeps a step (corotated; 1 else),
+    "note": ""}; groups the model does not predict (Prony internal variables; sigma without a
+    stress operator) are NaN. Without operators (datasets written before them, or too large for
+    dense operators), without the moduli the corotated model needs, or for an integrator it
+    does not reproduce: {"note": why} alone."""
     lin = data.dataset.linear_solid()
     if lin is None:
         return {"note": "the dataset holds no linearised FE operators (regenerate it to add them)"}
     groups = data.layout.names
-    predicted = {"q"} | ({"v"} if lin.integrator == "newmark" else set()) \
-        | ({"sigma"} if lin.stress is not None else set())
     X = data.reference_positions()
+    try:
+        solid = CorotatedSolid.of(lin, X, data.dataset.mesh.tets) if corotated else lin
+    except ValueError as exc:
+        return {"note": str(exc)}
+    predicted = {"q"} | ({"v"} if lin.integrator == "newmark" else set()) \
+        | ({"sigma"} if lin.stress is not None or corotated else set())
     per_traj, whole, elapsed, steps = [], [], 0.0, 0
     try:
         for t in trajs:
             t0 = time.perf_counter()
-            pred = lin.rollout_states(t.z.double().numpy(), t.force.double().numpy(), X, data.layout, data.dt)
+            pred = solid.rollout_states(t.z.double().numpy(), t.force.double().numpy(), X, data.layout, data.dt)
             elapsed += time.perf_counter() - t0
             steps += pred.shape[0] - 1
             pred_t, truth = torch.as_tensor(pred), t.z.double()
@@ -275,7 +283,7 @@ def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors]) -> dict:
     hide = lambda d: {g: (d[g] if g in predicted else math.nan) for g in groups}  # noqa: E731
     return {"snapshot": hide(_mean_groups(per_traj, groups)), "whole": hide(_mean_groups(whole, groups)),
             "whole_per_trajectory": [hide(w) for w in whole], "ms_per_step": 1e3 * elapsed / max(steps, 1),
-            "note": ""}
+            "sweeps": solid.count.mean if corotated else 1.0, "note": ""}
 
 
 def linear_validation_error(data: LoadedData, trajs: list[TrajectoryTensors]) -> str:
@@ -391,7 +399,9 @@ def evaluate(cfg) -> dict:
     linearised FE operators "linear_fe_<group>" / "linear_fe_whole_<group>" (per-snapshot and
     whole-rollout test errors of :func:`linear_baseline`), "linear_fe_ms_per_step" and
     "linear_fe_left_<group>" / "linear_fe_left_train_<group>" (:func:`error_left` on the test
-    trajectories and on the training ones evaluate rolls out)}."""
+    trajectories and on the training ones evaluate rolls out), and for datasets with the moduli at
+    rest the corotated FE model's "corotated_fe_<group>", "corotated_fe_whole_<group>",
+    "corotated_fe_ms_per_step" and "corotated_fe_sweeps" (``linear_baseline(corotated=True)``)}."""
     torch.set_num_threads(int(OmegaConf.select(cfg, "train.threads", default=2)))
     ckpt_path = project_path(cfg.paths.checkpoint)
     ckpt = load_checkpoint(ckpt_path)
@@ -424,6 +434,7 @@ def evaluate(cfg) -> dict:
     by_load = by_peak_load(loads, per_traj, whole_traj, groups)
     linear = linear_baseline(data, test)
     linear_train = linear_baseline(data, train_trajs) if "snapshot" in linear else {}
+    corotated = linear_baseline(data, test, corotated=True)
     left = {}                      # the share of the linear model's error the model leaves, test and train
     if "snapshot" in linear and "snapshot" in linear_train:
         left = {"test": error_left(whole_traj, linear["whole_per_trajectory"], groups),
@@ -583,6 +594,12 @@ def evaluate(cfg) -> dict:
         mean_test.update({f"linear_fe_whole_{g}": linear["whole"][g] for g in groups})
         mean_test["linear_fe_ms_per_step"] = linear["ms_per_step"]
         rows["linearised FE, test"] = linear["snapshot"]
+    if "snapshot" in corotated:
+        mean_test.update({f"corotated_fe_{g}": corotated["snapshot"][g] for g in groups})
+        mean_test.update({f"corotated_fe_whole_{g}": corotated["whole"][g] for g in groups})
+        mean_test["corotated_fe_ms_per_step"] = corotated["ms_per_step"]
+        mean_test["corotated_fe_sweeps"] = corotated["sweeps"]
+        rows["corotated FE, test"] = corotated["snapshot"]
     if left:
         mean_test.update({f"linear_fe_left_{g}": left["test"][g] for g in groups})
         mean_test.update({f"linear_fe_left_train_{g}": left["train"][g] for g in groups})
@@ -600,19 +617,29 @@ def evaluate(cfg) -> dict:
         print("evaluate: of the linearised FE model's whole-rollout error the model leaves (mean ratio per "
               "trajectory) " + "; ".join(f"{part} " + ", ".join(f"{g} {_fmt(left[part][g])}" for g in groups)
                                          for part in ("train", "test")))
+    for label, base in (("linearised", linear), ("corotated", corotated)):
+        if "whole" in base:
+            print(f"evaluate: the {label} FE model's whole-rollout test error "
+                  + ", ".join(f"{g} {_fmt(base['whole'][g])}" for g in groups)
+                  + f" at {base['ms_per_step']:.2f} ms a step"
+                  + (f" ({base['sweeps']:.1f} sweeps)" if label == "corotated" else ""))
     print(f"evaluate: {ms:.2f} ms per step ({data.graph.n_nodes} nodes, {torch.get_num_threads()} threads); "
           f"wrote {out}")
 
     def linear_rows(kind: str) -> list[str]:
-        if kind not in linear:
-            return []
-        return ["| linearised FE, test | " + " | ".join(_fmt(linear[kind][g]) for g in groups) + " |"]
+        return [f"| {label} FE, test | " + " | ".join(_fmt(base[kind][g]) for g in groups) + " |"
+                for label, base in (("linearised", linear), ("corotated", corotated)) if kind in base]
 
     linear_line = ("The linearised FE model (the dataset's own K, M and stress operator at rest, stepped by "
                    "the data's integrator; no learning; rows `linearised FE` above; nan: a group it does not "
                    f"predict) steps in {linear['ms_per_step']:.3f} ms (scipy, one sparse LU solve): the physics baseline a "
                    "learned model has to beat." if "snapshot" in linear
                    else f"Linearised FE baseline: not computed, {linear['note']}.")
+    corotated_line = ("The corotated FE model (the same solid with each cell's linear force and stress in its "
+                      "rotated frame, implicit in the rotations: no spurious strain from a rotation; rows "
+                      f"`corotated FE`) steps in {corotated['ms_per_step']:.3f} ms ({corotated['sweeps']:.1f} "
+                      "fixed-point sweeps of one sparse LU a step): the baseline where the cells turn far."
+                      if "snapshot" in corotated else f"Corotated FE baseline: not computed, {corotated['note']}.")
     lines = [f"# Evaluation of `{ckpt_path}`", "",
              f"- dataset: `{ds_path}` (scene `{data.dataset.scene}`, {data.graph.n_nodes} nodes, "
              f"D = {data.layout.dim}, dt = {data.dt} s)",
@@ -660,7 +687,7 @@ def evaluate(cfg) -> dict:
                 "|---|---|" + "---|" * len(groups),
                 *(f"| {test[k].name} | {where(k)} | " + " | ".join(_fmt(whole_traj[k][g]) for g in groups) + " |"
                   for k in worst), ""] if worst else []),
-             linear_line, "",
+             linear_line, corotated_line, "",
              *(["The share of the linearised FE model's whole-rollout error that the model leaves (the mean "
                 "over trajectories of the ratio of the two; `linear_fe_whole_*` in `rrmse_per_trajectory.csv`): "
                 "on the training trajectories how well the network fits the nonlinearity, on the test ones how "
