@@ -286,21 +286,25 @@ def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors], corotated:
             "sweeps": solid.count.mean if corotated else 1.0, "note": ""}
 
 
-def linear_validation_error(data: LoadedData, trajs: list[TrajectoryTensors]) -> str:
+def linear_validation_error(data: LoadedData, trajs: list[TrajectoryTensors], corotated: bool = False) -> str:
     """The linearised FE model's score by ``validation_error``'s metric (``trajectory_error``
     averaged over the finite groups and trajectories) on ``trajs``, as a clause for ``train``'s
     opening line: the number a learned model's ``val_error`` has to beat ("" where the dataset
     holds no operators or the linear model cannot step it). Groups the linear model does not
-    predict (Prony internal variables) are left out of its mean and say so."""
+    predict (Prony internal variables) are left out of its mean and say so. With ``corotated``
+    the corotated FE model's too (a corotated prior's own baseline)."""
     if not trajs:
         return ""
-    linear = linear_baseline(data, trajs)
+    clause = linear_validation_error(data, trajs) if corotated else ""
+    linear = linear_baseline(data, trajs, corotated=corotated)
     if linear.get("note") or "whole_per_trajectory" not in linear:
-        return ""
+        return clause
     values = [v for w in linear["whole_per_trajectory"] for v in w.values() if math.isfinite(v)]
     if not values:
-        return ""
+        return clause
     left_out = [g for g in data.layout.names if not math.isfinite(linear["whole"][g])]
+    if corotated:
+        return clause + f"; the corotated FE model's {float(np.mean(values)):.3e}"
     return (f"; the linearised FE model's validation error {float(np.mean(values)):.3e}"
             + (f" (without {', '.join(left_out)})" if left_out else "") + ", the number val_error has to beat")
 

@@ -49,6 +49,7 @@ import time
 from pathlib import Path
 from typing import Dict, List, NamedTuple, Optional, Tuple
 
+import numpy as np
 import torch
 from omegaconf import OmegaConf
 from torch import Tensor, nn
@@ -56,7 +57,7 @@ from torch import Tensor, nn
 from thermognn.core.errors import ConfigError, DataError
 
 from .model import TIGNN, grown_blocks, load_grown
-from .prior import NewmarkPrior
+from .prior import CorotatedNewmarkPrior, NewmarkPrior
 
 #: the state layout the prior steps: positions, velocities and stresses, nothing else
 LAYOUT = ["q", "v", "sigma"]
@@ -357,17 +358,31 @@ def prior_settings(cfg_model) -> dict:
     if not isinstance(relax, bool):
         raise ConfigError(f"model.prior_relax = {relax!r}, expected true | false (the prior relaxes as the "
                           f"viscous FE solid does)")
+    corotated = OmegaConf.select(cfg_model, "prior_corotated", default=False)
+    if not isinstance(corotated, bool):
+        raise ConfigError(f"model.prior_corotated = {corotated!r}, expected true | false (the prior's solid "
+                          f"corotated per cell)")
+    rotation_sweeps = OmegaConf.select(cfg_model, "prior_rotation_sweeps", default=3)
+    if not isinstance(rotation_sweeps, int) or isinstance(rotation_sweeps, bool) or rotation_sweeps < 1:
+        raise ConfigError(f"model.prior_rotation_sweeps = {rotation_sweeps!r}, expected an integer >= 1 "
+                          f"(fixed-point sweeps of the corotated step)")
+    if corotated and relax:
+        raise ConfigError("model.prior_corotated = true with model.prior_relax = true: the corotated prior does "
+                          "not relax yet (set model.prior_relax=false: the remainders take the relaxation)")
     settings = {"kind": "linear", "sweeps": sweeps, "positions_only": inputs == "positions"}
     if order != 1:
         settings["order"] = int(order)
     if relax:                                     # absent when false: older checkpoints keep their settings
         settings["relax"] = True
+    if corotated:                                 # the corotated step's fixed-point sweeps
+        settings["corotated"] = int(rotation_sweeps)
     return settings
 
 
-def build_prior(ds, dt: float, relax: bool = False) -> NewmarkPrior:
+def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0) -> NewmarkPrior:
     """The dataset's ``/linear`` as a NewmarkPrior (float64), relaxing as its viscous solid does
-    with ``relax``; one-line errors where it cannot be."""
+    with ``relax``, or corotated per cell with ``corotated`` > 0 fixed-point sweeps a step
+    (:class:`CorotatedNewmarkPrior`); one-line errors where it cannot be."""
     names = list(ds.layout.names)
     if names != LAYOUT:
         raise ConfigError(f"model.prior = linear: {ds.path} has state variables {names}, expected {LAYOUT} "
@@ -376,7 +391,17 @@ def build_prior(ds, dt: float, relax: bool = False) -> NewmarkPrior:
     if linear is None:
         raise DataError(f"{ds.path}: no linearised FE operators (/linear) for model.prior = linear "
                         f"(regenerate the dataset with this version of thermognn generate)")
+    if corotated and (linear.shear_modulus is None or linear.bulk_modulus is None):
+        raise DataError(f"{ds.path}: /linear holds no moduli at rest for model.prior_corotated = true "
+                        f"(regenerate the dataset with this version of thermognn generate)")
     try:
+        if corotated:
+            tets = np.asarray(ds.mesh.tets)
+            if tets.ndim != 2 or tets.shape[1] != 4 or len(tets) == 0:
+                raise ValueError("the corotated prior needs P1 tets in /mesh/tets")
+            mu = float(linear.shear_modulus)
+            return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets,
+                                         float(linear.bulk_modulus) - 2.0 * mu / 3.0, mu, sweeps=int(corotated))
         return NewmarkPrior(linear, len(ds.mesh.nodes), float(dt), relax=relax)
     except ValueError as exc:
         raise ConfigError(f"model.prior = linear: {ds.path}: {exc}") from None
@@ -385,7 +410,8 @@ def build_prior(ds, dt: float, relax: bool = False) -> NewmarkPrior:
 def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
     """The LinearPriorModel of a network, the checkpoint's ``prior`` settings and the dataset."""
     X = torch.as_tensor(ds.mesh.nodes, dtype=torch.float64)
-    return LinearPriorModel(net, build_prior(ds, dt, bool(settings.get("relax", False))), X,
+    return LinearPriorModel(net, build_prior(ds, dt, bool(settings.get("relax", False)),
+                                             int(settings.get("corotated", 0))), X,
                             bool(settings.get("positions_only", True)),
                             int(settings.get("sweeps", 1)), int(settings.get("order", 1)))
 
@@ -698,7 +724,8 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
         print(f"train (model.prior=linear): {len(train_trajs)} train / {len(val_trajs)} val / "
               f"{len(data.split['test'])} test trajectories, {fit_epochs} fit + {roll_epochs} rollout epochs{more}, "
               f"{parameter_count(model)} parameters, {model.prior.free_index.numel()} free DOFs"
-              + (f", {dist.world} processes" if dist.world > 1 else "") + linear_validation_error(data, val_trajs))
+              + (f", {dist.world} processes" if dist.world > 1 else "")
+              + linear_validation_error(data, val_trajs, corotated="corotated" in settings))
 
     tb = _tensorboard(_sel(tc, "tensorboard", "auto"), out_dir / "tensorboard") if dist.main else None
     fields = ["epoch", "phase", "lr", "loss", "data_loss", "degeneracy_loss", "val_error", "seconds"]

@@ -40,7 +40,7 @@ few thousand free DOFs), so a step is one dense product.
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Tuple
 
 import numpy as np
 import torch
@@ -154,10 +154,15 @@ class NewmarkPrior(nn.Module):
         return full.reshape(B, self.n_nodes, 3)
 
     # --- the step ---------------------------------------------------------------------------
+    def elastic_force(self, u: Tensor) -> Tensor:
+        """The prior's elastic internal force [B, n] N at free-DOF displacements u [B, n]: K u
+        (unrelaxed; :class:`CorotatedNewmarkPrior`: corotated per cell)."""
+        return self.stiffness(u)
+
     def initial_acceleration(self, u0: Tensor, v0: Tensor, f0: Tensor, G0: Tensor) -> Tensor:
         """a0 [B, n] from the equation of motion at the start, M a0 = f0 − K u0 + G0 − αM M v0
         (the FE starts from its own balance too)."""
-        rhs = f0 + self.body_force - self.stiffness(u0) + G0 - self.alpha_m * self.mass(v0)
+        rhs = f0 + self.body_force - self.elastic_force(u0) + G0 - self.alpha_m * self.mass(v0)
         return rhs @ self.mass_inv.T
 
     def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
@@ -257,13 +262,160 @@ class NewmarkPrior(nn.Module):
         h = self.internal_history(uf)                                              # [S, T, n + 6N]
         # f_int,lin at every step's end: K u1 (the unrelaxed prior), or K u1 + Σ ḡ_i (h_i^f − K_iso u1)
         # (= K_Δt u1 + history_force, with the step's own update of h)
-        f_lin = self.stiffness(uf[1:])
+        elastic = self.elastic_force(uf)                                            # [S, n]: K u, or corotated
+        f_lin = elastic[1:]
         if self.n_terms:
             f_lin = f_lin + self._relaxation(self.stiffness_iso(uf[1:]), h[1:, :, :self.n_free])
         # (1 + c) G1 − c G0 = M a1 + αM M v1 + c K (u1 − u0) + f_int,lin − f1 at every step's end
-        lumped = (self.mass(a[1:] + self.alpha_m * vf[1:]) + c * self.stiffness(uf[1:] - uf[:-1]) + f_lin
+        lumped = (self.mass(a[1:] + self.alpha_m * vf[1:]) + c * (elastic[1:] - elastic[:-1]) + f_lin
                   - ff[1:] - self.body_force)                                      # [S - 1, n]
         G = torch.zeros_like(uf)
         for s in range(S - 1):
             G[s + 1] = (lumped[s] + c * G[s]) / (1.0 + c)
         return G, sigma - self.stress(u) - self.stress_relaxation(uf, h)
+
+
+#: Newton iterations of :func:`polar_rotation`: from singular values in [0.5, 1.5], six reach round-off
+POLAR_ITERATIONS = 8
+
+
+def polar_rotation(F: Tensor, iterations: int = POLAR_ITERATIONS) -> Tensor:
+    """R of the polar decomposition F = R U [..., 3, 3] (det F > 0) by Newton's iteration
+    R ← (R + R⁻ᵀ) / 2 from R = F, which takes each singular value s to (s + 1/s) / 2. Smooth
+    where F = I, so autograd of any order passes (an SVD's gradient is undefined where singular
+    values coincide, as they do at rest); scriptable."""
+    R = F
+    for _ in range(iterations):
+        R = 0.5 * (R + torch.linalg.inv(R).transpose(-1, -2))
+    return R
+
+
+class CorotatedNewmarkPrior(NewmarkPrior):
+    """The Newmark step of the solid corotated per P1 cell (``thermognn.core.corotated``): each
+    cell's linear force R_e K_e (R_eᵀ x_e − X_e) and linear stress in its rotated frame, the
+    rotations R_e implicit in each step (``sweeps`` fixed-point sweeps, each one dense solve
+    [B, n, n]; docs/accuracy.md, session 42: two reach the shell's converged errors). With the
+    remainders G = f_corot(u) − f_int(u) and H = σ − σ_corot (what ``remainders`` recovers) it is
+    the FE step; with none, the corotated FE model ``evaluate`` reports. The rotations are
+    differentiable (:func:`polar_rotation`), so rollouts back-propagate through them. Elastic only
+    (no Prony relaxation: a viscous solid's is left to the remainders).
+
+    X [N, 3] m, tets [T, 4], Lamé λ, μ [Pa] at rest; the operators of ``linear`` as
+    :class:`NewmarkPrior` takes them (its K is the assembled K_e; its Σ is not used)."""
+
+    def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
+                 lam: float, mu: float, sweeps: int = 3, dtype: torch.dtype = torch.float64) -> None:
+        super().__init__(linear, n_nodes, dt, dtype)
+        from thermognn.core.corotated import element_stiffness
+        from thermognn.core.kinematics import shape_gradients
+
+        X, tets = np.asarray(X, dtype=float), np.asarray(tets, dtype=np.int64)
+        T, n = len(tets), self.n_free
+        Ke, _ = element_stiffness(X, tets, lam, mu)                                   # [T, 12, 12] N/m
+        grad, volume = shape_gradients(X, tets)                                       # [T, 4, 3], [T]
+        index = np.full(3 * n_nodes, -1)
+        index[np.asarray(linear.free, dtype=bool)] = np.arange(n)
+        dofs = index[(3 * tets[:, :, None] + np.arange(3)).reshape(T, 12)]            # [T, 12] free index or −1
+        rows, cols = np.repeat(dofs, 12, axis=1).ravel(), np.tile(dofs, (1, 12)).ravel()   # [T 144]
+        keep = np.flatnonzero((rows >= 0) & (cols >= 0))
+        weight = np.zeros(n_nodes)
+        np.add.at(weight, tets.ravel(), np.repeat(volume, 4))
+        buffers = {
+            "cell_nodes": torch.as_tensor(tets),                                      # [T, 4]
+            "cell_dofs": torch.as_tensor((3 * tets[:, :, None] + np.arange(3)).reshape(-1)),  # [12 T] of 3N
+            "shape_grad": torch.as_tensor(grad, dtype=dtype),                         # [T, 4, 3] 1/m
+            "cell_X": torch.as_tensor(X[tets], dtype=dtype),                          # [T, 4, 3] m
+            "cell_K": torch.as_tensor(Ke, dtype=dtype),                               # [T, 12, 12] N/m
+            "pair_keep": torch.as_tensor(keep),                                       # [k] of T 144
+            "pair_flat": torch.as_tensor(rows[keep] * n + cols[keep]),                # [k] of n n
+            "cell_volume": torch.as_tensor(volume, dtype=dtype),                      # [T] m³
+            "node_weight": torch.as_tensor(weight, dtype=dtype),                      # [N] m³
+            "reference": torch.as_tensor(X, dtype=dtype),                             # [N, 3] m
+            "mass_dense": _dense(linear.mass).to(dtype)}                              # [n, n] kg
+        for name, value in buffers.items():
+            self.register_buffer(name, value, persistent=False)
+        self.lam, self.mu, self.sweeps = float(lam), float(mu), int(sweeps)
+
+    # --- per cell -------------------------------------------------------------------------------
+    def positions(self, u: Tensor) -> Tensor:
+        """Nodal positions x [B, N, 3] m of free-DOF displacements u [B, n]."""
+        return self.reference.unsqueeze(0) + self.scatter(u)
+
+    def rotations(self, x: Tensor) -> Tuple[Tensor, Tensor]:
+        """(R [B, T, 3, 3], F [B, T, 3, 3]) of the cells at positions x [B, N, 3]."""
+        xe = x[:, self.cell_nodes]                                                    # [B, T, 4, 3]
+        F = torch.einsum("btai,taj->btij", xe, self.shape_grad)
+        return polar_rotation(F), F
+
+    def local(self, R: Tensor, x: Tensor) -> Tensor:
+        """R_eᵀ x_e − X_e [B, T, 12] m (x [B, N, 3]); x = X gives R_eᵀ X_e − X_e."""
+        xe = x[:, self.cell_nodes]                                                    # [B, T, 4, 3]
+        d = torch.einsum("btji,btaj->btai", R, xe) - self.cell_X.unsqueeze(0)
+        return d.reshape(d.shape[0], d.shape[1], 12)
+
+    def to_free(self, R: Tensor, fe: Tensor) -> Tensor:
+        """Cell forces fe [B, T, 12] in the rotated frames, rotated back and summed into the free DOFs [B, n]."""
+        B, T = fe.shape[0], fe.shape[1]
+        f = torch.einsum("btij,btaj->btai", R, fe.reshape(B, T, 4, 3)).reshape(B, -1)   # [B, 12 T]
+        full = fe.new_zeros(B, 3 * self.n_nodes).index_add(1, self.cell_dofs, f)        # [B, 3N]
+        return full.index_select(1, self.free_index)
+
+    def elastic_force(self, u: Tensor) -> Tensor:
+        """Σ_e R_e K_e (R_eᵀ x_e − X_e) [B, n] N at free-DOF displacements u [B, n]."""
+        x = self.positions(u)
+        R, _ = self.rotations(x)
+        return self.to_free(R, torch.einsum("tij,btj->bti", self.cell_K, self.local(R, x)))
+
+    def rotated_stiffness(self, R: Tensor) -> Tensor:
+        """Σ_e R_e K_e R_eᵀ over the free DOFs [B, n, n] N/m (dense)."""
+        B, T = R.shape[0], R.shape[1]
+        K = self.cell_K.reshape(T, 4, 3, 4, 3)
+        KR = torch.einsum("ztij,tajck,ztlk->ztaicl", R, K, R).reshape(B, T * 144)
+        values = KR.index_select(1, self.pair_keep)                                    # [B, k]
+        n = self.n_free
+        return KR.new_zeros(B, n * n).index_add(1, self.pair_flat, values).reshape(B, n, n)
+
+    # --- the step -------------------------------------------------------------------------------
+    def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
+             G1: Tensor, h0: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(u1, v1, a1, h1) as :meth:`NewmarkPrior.step`, with the corotated internal force:
+        M a1 + αM M v1 + c (f(u1) − f(u0)) + f(u1) = f1 + (1 + c) G1 − c G0, f(u1) = K_R u1 +
+        Σ_e R_e K_e (R_eᵀ X_e − X_e) with R at the latest iterate of u1 (``sweeps`` solves)."""
+        predictor = self.c0 * (u0 + self.dt * v0) + self.c1 * a0
+        inertia = self.mass(self.mass_factor * predictor - self.alpha_m * v0
+                            - self.alpha_m * self.dt * (1.0 - self.gamma) * a0)
+        x0 = self.positions(u0)
+        R, _ = self.rotations(x0)                                                           # at the step's start
+        rhs = (inertia + self.c * self.to_free(R, torch.einsum("tij,btj->bti", self.cell_K, self.local(R, x0)))
+               + f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0)                  # [B, n] N
+        mass = self.c0 * self.mass_factor * self.mass_dense                                  # [n, n] kg/s²
+        reference = self.reference.unsqueeze(0).expand(u0.shape[0], -1, -1)
+        u1 = u0
+        for sweep in range(self.sweeps):         # fixed-point sweeps: the rotations of the latest u1
+            if sweep > 0:
+                R, _ = self.rotations(self.positions(u1))
+            offset = self.to_free(R, torch.einsum("tij,btj->bti", self.cell_K, self.local(R, reference)))
+            A = mass + (1.0 + self.c) * self.rotated_stiffness(R)                            # [B, n, n] N/m
+            u1 = torch.linalg.solve(A, (rhs - (1.0 + self.c) * offset).unsqueeze(-1)).squeeze(-1)
+        a1 = self.c0 * u1 - predictor
+        v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
+        return u1, v1, a1, h0
+
+    def stress(self, u: Tensor, H: Optional[Tensor] = None) -> Tensor:
+        """Nodal Cauchy stress σ_corot + H [B, N, 6] Pa (Voigt 11 22 33 12 13 23) of the nodal
+        displacements u [B, N, 3] m: per cell R (λ tr ε̃ I + 2 μ ε̃) Rᵀ, ε̃ = sym(Rᵀ F) − I (the
+        stress the corotated force balances), volume-averaged at the nodes as the dataset's."""
+        B = u.shape[0]
+        R, F = self.rotations(self.reference.unsqueeze(0) + u)
+        local = R.transpose(-1, -2) @ F
+        eye = torch.eye(3, dtype=u.dtype, device=u.device)
+        eps = 0.5 * (local + local.transpose(-1, -2)) - eye
+        tr = eps.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
+        sig = R @ (self.lam * tr * eye + 2.0 * self.mu * eps) @ R.transpose(-1, -2)        # [B, T, 3, 3]
+        voigt = torch.stack([sig[..., 0, 0], sig[..., 1, 1], sig[..., 2, 2], sig[..., 0, 1], sig[..., 0, 2],
+                             sig[..., 1, 2]], -1) * self.cell_volume.view(1, -1, 1)          # [B, T, 6]
+        T = voigt.shape[1]
+        nodal = voigt.new_zeros(B, self.n_nodes, 6).index_add(
+            1, self.cell_nodes.reshape(-1), voigt.unsqueeze(2).expand(B, T, 4, 6).reshape(B, 4 * T, 6))
+        corot = nodal / self.node_weight.view(1, -1, 1)
+        return corot if H is None else corot + H
