@@ -10,22 +10,10 @@ from thermognn.core.corotated import CorotatedSolid, element_stiffness
 from thermognn.core.linear import LinearSolid
 from thermognn.core.state import state_layout
 
+from shapes import cube, rotation  # tests/shapes.py
+
 LAM, MU = 18.0e3, 2.0e3                     # [Pa]
 RHO = 1000.0                                # [kg/m³]
-
-
-def cube():
-    """The cube of side 0.1 m in 6 tets around its diagonal (8 nodes)."""
-    X = np.array([[i, j, k] for k in (0, 1) for j in (0, 1) for i in (0, 1)], dtype=float) * 0.1
-    tets = np.array([[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]])
-    return X, tets
-
-
-def rotation(axis, theta):
-    """Rodrigues: the rotation by theta [rad] about the unit vector axis [3]."""
-    a = np.asarray(axis, float) / np.linalg.norm(axis)
-    A = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(theta) * A + (1 - math.cos(theta)) * A @ A
 
 
 def assembled(X, tets, Ke):

@@ -281,6 +281,23 @@ def test_generate_stores_time_resolution(tmp_path, monkeypatch):
     assert d.ok_names == ["traj_0"] and d.time_resolution is None
 
 
+def _prior_rollout(prior, u, v, f, G, H):
+    """A NewmarkPrior's (or CorotatedNewmarkPrior's) rollout from the first of the displacements
+    u, velocities v [S, N, 3] under the loads f [S, N, 3], with the remainders G [S, n] and H
+    (None or [S, N, 6]), its Prony internal variables carried: (U, V [S, N, 3], σ [S, N, 6])."""
+    import torch
+
+    uf, vf = prior.gather(u[:1]), prior.gather(v[:1])
+    h = prior.internal_variables(uf)                                      # [1, T, n + 6N]
+    a = prior.initial_acceleration(uf, vf, prior.gather(f[:1]), G[:1])
+    us, vs, hs = [uf], [vf], [h]
+    for k in range(1, len(f)):
+        uf, vf, a, h = prior.step(uf, vf, a, prior.gather(f[k:k + 1]), G[k - 1:k], G[k:k + 1], h)
+        us, vs, hs = us + [uf], vs + [vf], hs + [h]
+    U, Uf, Hs = prior.scatter(torch.cat(us)), torch.cat(us), torch.cat(hs)
+    return U, prior.scatter(torch.cat(vs)), prior.stress(U, H) + prior.stress_relaxation(Uf, Hs)
+
+
 def test_newmark_prior_with_the_exact_remainders_is_the_fe_step():
     """thermognn/train/prior.py: the data's Newmark step on the linearised solid, plus the
     internal-force remainder G = K u − f_int(u) and the stress remainder H = σ − Σ u. With
@@ -301,22 +318,10 @@ def test_newmark_prior_with_the_exact_remainders_is_the_fe_step():
     assert float(G[0].abs().max()) == 0.0
     assert float(G.norm() / prior.gather(f).norm()) > 0.05
 
-    def rollout(G, H):
-        uf, vf = prior.gather(u[:1]), prior.gather(v[:1])
-        a = prior.initial_acceleration(uf, vf, prior.gather(f[:1]), G[:1])
-        us, vs = [uf], [vf]
-        for k in range(1, len(f)):
-            uf, vf, a, _ = prior.step(uf, vf, a, prior.gather(f[k:k + 1]), G[k - 1:k], G[k:k + 1],
-                                      prior.internal_variables(uf))
-            us.append(uf)
-            vs.append(vf)
-        U = prior.scatter(torch.cat(us))
-        return U, prior.scatter(torch.cat(vs)), prior.stress(U, H)
-
     rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
-    U, V, Sig = rollout(G, H)
+    U, V, Sig = _prior_rollout(prior, u, v, f, G, H)
     assert rel(U, u) < 1e-9 and rel(V, v) < 1e-9 and rel(Sig, sigma) < 1e-9
-    U, V, Sig = rollout(torch.zeros_like(G), None)
+    U, V, Sig = _prior_rollout(prior, u, v, f, torch.zeros_like(G), None)
     lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
     assert rel(U, lin[..., 0:3] - torch.as_tensor(X)) < 1e-10 and rel(V, lin[..., 3:6]) < 1e-10
     assert rel(Sig, lin[..., layout.slice("sigma")]) < 1e-10
@@ -356,20 +361,9 @@ def test_relaxing_prior_with_the_exact_remainders_is_the_viscous_fe_step():
         assert prior.n_terms == 2
         G, H = prior.remainders(u, v, sigma, f)
 
-        def rollout(G, H):
-            uf, vf = prior.gather(u[:1]), prior.gather(v[:1])
-            h = prior.internal_variables(uf)                              # [1, T, n + 6N]
-            a = prior.initial_acceleration(uf, vf, prior.gather(f[:1]), G[:1])
-            us, vs, hs = [uf], [vf], [h]
-            for k in range(1, len(f)):
-                uf, vf, a, h = prior.step(uf, vf, a, prior.gather(f[k:k + 1]), G[k - 1:k], G[k:k + 1], h)
-                us, vs, hs = us + [uf], vs + [vf], hs + [h]
-            U, Uf, Hs = prior.scatter(torch.cat(us)), torch.cat(us), torch.cat(hs)
-            return U, prior.scatter(torch.cat(vs)), prior.stress(U, H) + prior.stress_relaxation(Uf, Hs)
-
-        U, V, Sig = rollout(G, H)
+        U, V, Sig = _prior_rollout(prior, u, v, f, G, H)
         assert rel(U, u) < 1e-9 and rel(V, v) < 1e-9 and rel(Sig, sigma) < 1e-9, load
-        U, V, Sig = rollout(torch.zeros_like(G), None)
+        U, V, Sig = _prior_rollout(prior, u, v, f, torch.zeros_like(G), None)
         lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
         assert rel(U, lin[..., 0:3] - torch.as_tensor(X)) < 1e-10 and rel(V, lin[..., 3:6]) < 1e-10
         assert rel(Sig, lin[..., layout.slice("sigma")]) < 1e-10
@@ -733,26 +727,14 @@ def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders
     rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
 
-    def rollout(prior, G, H):
-        uf, vf = prior.gather(u[:1]), prior.gather(v[:1])
-        a = prior.initial_acceleration(uf, vf, prior.gather(f[:1]), G[:1])
-        us, vs = [uf], [vf]
-        for k in range(1, len(f)):
-            uf, vf, a, _ = prior.step(uf, vf, a, prior.gather(f[k:k + 1]), G[k - 1:k], G[k:k + 1],
-                                      prior.internal_variables(uf))
-            us.append(uf)
-            vs.append(vf)
-        U = prior.scatter(torch.cat(us))
-        return U, prior.scatter(torch.cat(vs)), prior.stress(U, H)
-
     prior = CorotatedNewmarkPrior(linear, len(X), dt, X, s_tets, kappa - 2 * mu / 3, mu, sweeps=8)
     G, H = prior.remainders(u, v, sigma, f)
-    U, V, Sig = rollout(prior, G, H)
+    U, V, Sig = _prior_rollout(prior, u, v, f, G, H)
     assert rel(U, u) < 1e-8 and rel(V, v) < 1e-7 and rel(Sig, sigma) < 1e-8
     G_lin, H_lin = NewmarkPrior(linear, len(X), dt).remainders(u, v, sigma, f)
     assert float(G.norm()) < 0.5 * float(G_lin.norm()) and float(H.norm()) < 0.5 * float(H_lin.norm())
     prior = CorotatedNewmarkPrior(linear, len(X), dt, X, s_tets, kappa - 2 * mu / 3, mu, sweeps=3)
-    U, V, Sig = rollout(prior, torch.zeros_like(G), None)
+    U, V, Sig = _prior_rollout(prior, u, v, f, torch.zeros_like(G), None)
     fe = torch.as_tensor(CorotatedSolid.of(linear, X, s_tets, max_sweeps=3, tol=0.0)
                          .rollout_states(traj.z, traj.force, X, layout, dt))
     assert rel(U, fe[..., 0:3] - torch.as_tensor(X)) < 1e-10 and rel(V, fe[..., 3:6]) < 1e-10

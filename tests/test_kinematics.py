@@ -12,22 +12,10 @@ from thermognn.core.kinematics import (deformation_gradients, linear_cell_stress
                                        rotation_angles, rotation_report, shape_gradients)
 from thermognn.core.state import StateLayout
 
+from shapes import cube, rotation  # tests/shapes.py
+
 LAM, MU = 18.0e3, 2.0e3                     # [Pa]
 K = LAM + 2.0 * MU / 3.0                    # bulk modulus [Pa]
-
-
-def cube():
-    """The unit cube [m] in 6 tets around its diagonal (8 nodes)."""
-    X = np.array([[i, j, k] for k in (0, 1) for j in (0, 1) for i in (0, 1)], dtype=float) * 0.1
-    tets = np.array([[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]])
-    return X, tets
-
-
-def rotation(axis, theta):
-    """Rodrigues: the rotation by theta [rad] about the unit vector axis [3]."""
-    a = np.asarray(axis, float) / np.linalg.norm(axis)
-    A = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(theta) * A + (1 - math.cos(theta)) * A @ A
 
 
 def test_shape_gradients_and_deformation_gradient_of_an_affine_motion():

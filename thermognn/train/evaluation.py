@@ -40,6 +40,7 @@ from .data import (Graph, LoadedData, TrajectoryTensors, check_fingerprint, load
                    velocity_columns)
 from .loop import print_rrmse_table, rest_growth
 from .hybrid import LinearPriorModel
+from .prior import CorotatedNewmarkPrior
 from .model import parameter_count
 from .rollout import one_step_errors, rollout, rrmse_per_step, trajectory_error, trajectory_rrmse
 
@@ -425,6 +426,7 @@ def evaluate(cfg) -> dict:
         print(f"evaluate: stepping the trained model with {stepped}")
     model = model_from_checkpoint(ckpt, data.dataset).eval()
     prior = isinstance(model, LinearPriorModel)      # the network learned remainders, not E and S
+    prior_name = "corotated" if prior and isinstance(model.prior, CorotatedNewmarkPrior) else "linearised"
     groups = data.layout.names
     test = data.of("test")
     train_trajs = [data.trajectories[n] for n in train_names]
@@ -513,7 +515,7 @@ def evaluate(cfg) -> dict:
     files.append("one_step_vs_time.csv")
     print("evaluate: one step from the true state, error of its change (test): "
           + ", ".join(f"{g} {_fmt(step_test[g])}" for g in groups)
-          + ("; the linearised FE model's: " + ", ".join(f"{g} {_fmt(step_linear[g])}" for g in groups)
+          + (f"; the {prior_name} FE model's: " + ", ".join(f"{g} {_fmt(step_linear[g])}" for g in groups)
              if step_linear else ""))
 
     # energy, entropy and degeneracy along each test rollout
@@ -661,7 +663,7 @@ def evaluate(cfg) -> dict:
              "degeneracy M dE/dz = 0 is not exact; with exact kinematics also dE/dq . (v - the "
              "network's dq/dt); `energy_error` in `energy_entropy.csv`)", drift_line,
              *([gentle_line] if gentle_line else []),
-             *(["- model.prior = linear: the data's Newmark step of the linearised solid with the network's "
+             *([f"- model.prior = linear: the data's Newmark step of the {prior_name} solid with the network's "
                 "remainders G and H; the network's E and S are not the body's energy and entropy (energy "
                 "columns nan); its one step from a true state takes the data's own Newmark acceleration "
                 "there, recovered from the velocities"] if prior else []), "",
@@ -709,8 +711,8 @@ def evaluate(cfg) -> dict:
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
              "| test | " + " | ".join(_fmt(step_test[g]) for g in groups) + " |",
              "| train | " + " | ".join(_fmt(step_train[g]) for g in groups) + " |",
-             *(["| linearised FE, test | " + " | ".join(_fmt(step_linear[g]) for g in groups) + " |", "",
-                "The linearised FE model's row is the model's prior alone from the same true states (no "
+             *([f"| {prior_name} FE, test | " + " | ".join(_fmt(step_linear[g]) for g in groups) + " |", "",
+                f"The {prior_name} FE model's row is the model's prior alone from the same true states (no "
                 "network): the figure the learned step is measured against. Where the body moves nearly "
                 "quasi-statically (loads balanced by the internal force, little inertia) a step's change "
                 "is a small difference of large forces, and both can exceed 1 while the rollouts track."]
