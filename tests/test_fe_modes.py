@@ -739,6 +739,9 @@ def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders
                          .rollout_states(traj.z, traj.force, X, layout, dt))
     assert rel(U, fe[..., 0:3] - torch.as_tensor(X)) < 1e-10 and rel(V, fe[..., 3:6]) < 1e-10
     assert rel(Sig, fe[..., 6:12]) < 1e-10
+    bad = prior.gather(u[1:2]) * float("nan")                          # a state gone non-finite
+    with pytest.raises(RuntimeError, match="corotated prior: a non-finite state"):
+        prior.step(bad, bad, bad, prior.gather(f[1:2]), G[:1], G[1:2], prior.internal_variables(bad))
 
     ref = torch.as_tensor(X, dtype=torch.float32)
     torch.manual_seed(0)

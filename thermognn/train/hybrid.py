@@ -763,8 +763,15 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                     group["lr"] = _lr(base_lr, decay, progress_at(b))
                 chosen = [items[j] for j in perm[b * batch_size:(b + 1) * batch_size]]
                 g = mesh(len(chosen))
-                loss, data_loss, deg = (fit.loss(chosen, g, gen) if phase == "fit" else
-                                        (rollouts if phase == "rollout" else whole).loss(chosen, g))
+                try:
+                    loss, data_loss, deg = (fit.loss(chosen, g, gen) if phase == "fit" else
+                                            (rollouts if phase == "rollout" else whole).loss(chosen, g))
+                except RuntimeError as exc:                  # the corotated step met a non-finite state
+                    if "corotated prior:" not in str(exc):
+                        raise
+                    raise DataError(f"{data.path}: training diverged at epoch {epoch + 1}, batch {b + 1} ({phase}: "
+                                    f"{str(exc).strip().splitlines()[-1]}); lower train.lr or train.rollout_lr "
+                                    f"({last.name} resumes from its last write)") from None
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 dist.average_gradients(net)

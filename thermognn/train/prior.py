@@ -396,7 +396,10 @@ class CorotatedNewmarkPrior(NewmarkPrior):
                 R, _ = self.rotations(self.positions(u1))
             offset = self.to_free(R, torch.einsum("tij,btj->bti", self.cell_K, self.local(R, reference)))
             A = mass + (1.0 + self.c) * self.rotated_stiffness(R)                            # [B, n, n] N/m
-            u1 = torch.linalg.solve(A, (rhs - (1.0 + self.c) * offset).unsqueeze(-1)).squeeze(-1)
+            b = rhs - (1.0 + self.c) * offset
+            if not bool(torch.isfinite(b).all()):      # a cell flattened, or the remainders blew up
+                raise RuntimeError("corotated prior: a non-finite state (a cell inverted, or the remainders diverged)")
+            u1 = torch.linalg.solve(A, b.unsqueeze(-1)).squeeze(-1)
         a1 = self.c0 * u1 - predictor
         v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
         return u1, v1, a1, h0
