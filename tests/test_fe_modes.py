@@ -739,6 +739,18 @@ def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders
                          .rollout_states(traj.z, traj.force, X, layout, dt))
     assert rel(U, fe[..., 0:3] - torch.as_tensor(X)) < 1e-10 and rel(V, fe[..., 3:6]) < 1e-10
     assert rel(Sig, fe[..., 6:12]) < 1e-10
+    threads = torch.get_num_threads()                                 # a batch steps as its samples alone,
+    torch.set_num_threads(2)                                          # with two threads too (solve_each)
+    try:
+        G2 = torch.cat([G[2:3], 2 * G[2:3]])
+        pair = prior.step(prior.gather(u[1:3]), prior.gather(v[1:3]), prior.gather(v[1:3]), prior.gather(f[2:4]),
+                          G2, G2, prior.internal_variables(prior.gather(u[1:3])))[0]
+        alone = torch.cat([prior.step(prior.gather(u[k:k + 1]), prior.gather(v[k:k + 1]), prior.gather(v[k:k + 1]),
+                                      prior.gather(f[k + 1:k + 2]), G2[k - 1:k], G2[k - 1:k],
+                                      prior.internal_variables(prior.gather(u[k:k + 1])))[0] for k in (1, 2)])
+    finally:
+        torch.set_num_threads(threads)
+    assert rel(pair, alone) < 1e-12
     bad = prior.gather(u[1:2]) * float("nan")                          # a state gone non-finite
     with pytest.raises(RuntimeError, match="corotated prior: a non-finite state"):
         prior.step(bad, bad, bad, prior.gather(f[1:2]), G[:1], G[1:2], prior.internal_variables(bad))

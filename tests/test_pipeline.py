@@ -353,3 +353,38 @@ def test_linear_prior_of_first_order_trains_evaluates_and_exports(tmp_path, tiny
     step = verify(tmp_path / "model.pt")["step"]
     assert "order" not in step and "second order" not in describe_step(step)
     assert "second order" in describe_step({**step, "order": 2})
+
+
+def test_corotated_prior_through_train_evaluate_and_export(tmp_path, tiny_block):
+    """`model.prior_corotated=true`: train (its opening line gives the corotated FE model's
+    validation error beside the linearised one's), evaluate (the corotated baseline's rows and
+    its own one step, named as such) and export (scripted, checked against the eager model by
+    export itself; its step metadata names the corotated solid) on the tiny block; a relaxing
+    corotated prior is refused with one line."""
+    from thermognn.core.state import describe_step
+    from thermognn.export.exporter import verify
+    from thermognn.train.checkpoint import load_checkpoint
+
+    res = _train_prior(tmp_path, tiny_block, "model.prior_corotated=true", "model.prior_rotation_sweeps=2",
+                       "train.epochs=0", "train.rollout_epochs=1", "train.rollout_window=3")
+    assert "the corotated FE model's" in res.stdout and "the linearised FE model's validation error" in res.stdout
+    assert load_checkpoint(tmp_path / "model.ckpt")["prior"]["corotated"] == 2
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "evaluate", f"out={tmp_path}",
+                          f"paths.dataset={tiny_block}", "train.eval_max_train=1"],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    errors = json.loads((tmp_path / "eval" / "rrmse.json").read_text())
+    for g in ("q", "v", "sigma"):
+        assert 0 < errors[f"corotated_fe_whole_{g}"] < 1 and math.isfinite(errors[f"whole_{g}"]), g
+    assert errors["corotated_fe_sweeps"] >= 1 and errors["corotated_fe_ms_per_step"] > 0
+    summary = (tmp_path / "eval" / "summary.md").read_text()
+    assert "| corotated FE, test |" in summary and "corotated solid (2 rotation sweeps)" in summary
+    assert "; the corotated FE model's: q " in res.stdout                     # its prior's own one step
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={tmp_path}",
+                          f"paths.dataset={tiny_block}"], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    assert "corotated solid" in describe_step(verify(tmp_path / "model.pt")["step"])
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'r'}",
+                          f"paths.dataset={tiny_block}", "model=linear_prior", "model.prior_corotated=true",
+                          "model.prior_relax=true"], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 2 and "does not relax yet" in res.stderr.strip().splitlines()[-1], res.stderr[-2000:]

@@ -96,7 +96,9 @@ def describe_step(step) -> str:
     if step.get("prior") == "linear":
         calls = int(step.get("sweeps", 1))
         second = int(step.get("order", 1)) == 2
-        return (f"the data's Newmark step of the linearised solid with learned remainders"
+        solid = (f"corotated solid ({int(step['corotated'])} rotation sweeps)" if step.get("corotated")
+                 else "linearised solid")
+        return (f"the data's Newmark step of the {solid} with learned remainders"
                 + (" of second order" if second else "")
                 + f" ({calls} network call{'s' if calls > 1 else ''} a step"
                 + (", each on the state and its half-way state" if second else "") + ")")

@@ -137,12 +137,13 @@ def model_step(ckpt: dict) -> dict:
     """How the checkpoint's model steps (``step`` metadata of exported files, ``describe_step``):
     the TIGNN's ``step_settings``, or for a linear-prior model {"integrator": "newmark",
     "prior": "linear", "sweeps": network calls per step, "kinematics": "exact"} (and "order": 2
-    for second-order remainders)."""
+    for second-order remainders, "corotated": the rotation sweeps of a corotated prior)."""
     from .model import step_settings
 
     prior = ckpt.get("prior")
     if prior:
         return {"integrator": "newmark", "prior": str(prior.get("kind", "linear")),
                 "sweeps": int(prior.get("sweeps", 1)), "kinematics": "exact",
-                **({"order": 2} if int(prior.get("order", 1)) == 2 else {})}
+                **({"order": 2} if int(prior.get("order", 1)) == 2 else {}),
+                **({"corotated": int(prior["corotated"])} if prior.get("corotated") else {})}
     return step_settings(ckpt.get("hparams", {}))

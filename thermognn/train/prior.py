@@ -40,7 +40,7 @@ few thousand free DOFs), so a step is one dense product.
 
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from typing import List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -275,6 +275,16 @@ class NewmarkPrior(nn.Module):
         return G, sigma - self.stress(u) - self.stress_relaxation(uf, h)
 
 
+def solve_each(A: Tensor, b: Tensor) -> Tensor:
+    """x [B, n] with A[i] x[i] = b[i] (A [B, n, n], b [B, n]), one LU per sample: torch 2.13's
+    CPU build fails batched LU factorisations with more than one thread (MKL's DLASWP rejects the
+    pivots: "Pivots given to lu_solve must all be greater or equal to 1"), single ones do not."""
+    xs: List[Tensor] = []
+    for i in range(A.shape[0]):
+        xs.append(torch.linalg.solve(A[i], b[i]))
+    return torch.stack(xs)
+
+
 #: Newton iterations of :func:`polar_rotation`: from singular values in [0.5, 1.5], six reach round-off
 POLAR_ITERATIONS = 8
 
@@ -399,7 +409,7 @@ class CorotatedNewmarkPrior(NewmarkPrior):
             b = rhs - (1.0 + self.c) * offset
             if not bool(torch.isfinite(b).all()):      # a cell flattened, or the remainders blew up
                 raise RuntimeError("corotated prior: a non-finite state (a cell inverted, or the remainders diverged)")
-            u1 = torch.linalg.solve(A, b.unsqueeze(-1)).squeeze(-1)
+            u1 = solve_each(A, b)
         a1 = self.c0 * u1 - predictor
         v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
         return u1, v1, a1, h0
