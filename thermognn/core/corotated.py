@@ -17,8 +17,8 @@ with R_e at the latest iterate of u1, repeated (fixed-point sweeps) until u1 mov
 ``tol`` of the step's increment (plus 1e-13 of the mesh's size: round-off, where a step hardly
 moves) or ``max_sweeps`` are done. Rotations frozen at the step's start
 (one sweep) lag them by a step, and that lag is what fails where the rotations move fast: on the
-shell's snap-through (docs/accuracy.md, session 42) the one-sweep form is 60 % / 79 % off in v / σ
-over whole rollouts, two sweeps 8.5 % / 8.1 %, more sweeps the same. The Rayleigh stiffness term
+shell's snap-through (docs/accuracy.md, session 42) the one-sweep form is 60 % off in v over
+whole rollouts, two sweeps 8.5 %, more sweeps the same (σ 4.7 %). The Rayleigh stiffness term
 damps the change of the corotated elastic force, c (f_el(x1) − f_el(x0)), c = βK/dt, so a rigid
 rotation is not damped. The stress is the corotated linear stress per cell
 (``linear_cell_stress(corotated=True, volume_from_det=False)``), node-averaged as the dataset
@@ -29,7 +29,7 @@ block of ``tests/test_fe_modes.py`` at 1 N, ν = 0.45, σ 36 % off with J − 1,
 
 K_e is built from the Lamé moduli at rest (λ, μ [Pa]) that ``generate`` stores with ``/linear``
 (``LinearSolid.shear_modulus``, ``bulk_modulus``): over P1 cells the assembled K_e are the stored
-K (``tests/test_corotated.py``); with every R_e held at I this is the linearised model exactly.
+K (``tests/test_fe_modes.py``); with every R_e held at I this is the linearised model exactly.
 One sparse LU a sweep. Numpy and scipy only (no torch, no dolfinx).
 """
 
