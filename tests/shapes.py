@@ -1,4 +1,5 @@
-"""Small closed-form geometry shared by the numpy-only tests (test_kinematics, test_corotated)."""
+"""Small closed-form geometry and assembly shared by the tests (test_kinematics, test_corotated,
+test_fe_modes)."""
 
 import math
 
@@ -17,3 +18,13 @@ def rotation(axis, theta):
     a = np.asarray(axis, float) / np.linalg.norm(axis)
     A = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
     return np.eye(3) + math.sin(theta) * A + (1 - math.cos(theta)) * A @ A
+
+
+def assembled(X, tets, Ke):
+    """Σ_e K_e over all 3N DOFs [3N, 3N] (dense), cell matrices Ke [T, 12, 12] node-major (3 a + c)."""
+    n = 3 * len(X)
+    out = np.zeros((n, n))
+    dofs = (3 * np.asarray(tets)[:, :, None] + np.arange(3)).reshape(len(tets), 12)
+    for e in range(len(tets)):
+        out[np.ix_(dofs[e], dofs[e])] += Ke[e]
+    return out

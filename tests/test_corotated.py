@@ -10,20 +10,10 @@ from thermognn.core.corotated import CorotatedSolid, element_stiffness
 from thermognn.core.linear import LinearSolid
 from thermognn.core.state import state_layout
 
-from shapes import cube, rotation  # tests/shapes.py
+from shapes import assembled, cube, rotation  # tests/shapes.py
 
 LAM, MU = 18.0e3, 2.0e3                     # [Pa]
 RHO = 1000.0                                # [kg/m³]
-
-
-def assembled(X, tets, Ke):
-    """Σ_e K_e over all 3N DOFs [3N, 3N] (dense)."""
-    n = 3 * len(X)
-    out = np.zeros((n, n))
-    dofs = (3 * tets[:, :, None] + np.arange(3)).reshape(len(tets), 12)
-    for e in range(len(tets)):
-        out[np.ix_(dofs[e], dofs[e])] += Ke[e]
-    return out
 
 
 def cube_solid(clamp_bottom: bool, rayleigh=(0.0, 0.0), prony=()):

@@ -122,12 +122,8 @@ class CorotatedSolid:
 
     @classmethod
     def of(cls, lin: LinearSolid, X: np.ndarray, tets: np.ndarray, **options) -> "CorotatedSolid":
-        """From the moduli ``lin`` carries (``generate`` stores them with ``/linear``); ValueError
-        naming what is missing where it carries none (a dataset written before them)."""
-        if lin.shear_modulus is None or lin.bulk_modulus is None:
-            raise ValueError("the dataset's /linear holds no moduli at rest (regenerate it to add them)")
-        mu = float(lin.shear_modulus)
-        return cls(lin, X, tets, float(lin.bulk_modulus) - 2.0 * mu / 3.0, mu, **options)
+        """From the moduli ``lin`` carries (``LinearSolid.lame``; ValueError where it carries none)."""
+        return cls(lin, X, tets, *lin.lame(), **options)
 
     # -- per cell ------------------------------------------------------------------------------
     def rotations(self, x: np.ndarray) -> np.ndarray:
@@ -200,8 +196,9 @@ class CorotatedSolid:
             pred = c0 * (u + dt * v) + c1 * a                             # a1 = c0 u1 − pred
             rhs = F[s] + M @ pred + c * f_el + alpha_m * (M @ (g * dt * pred - v - dt * (1 - g) * a))
             u_it, sweeps = u, 0
-            while True:
-                R = self.rotations(self.positions(u_it))
+            while True:                          # R: the rotations of u_it (the step's start: the last step's end)
+                if sweeps > 0:
+                    R = self.rotations(self.positions(u_it))
                 d_old = self.local(R, x)
                 hist = sum((gi * (decay * hi - w * np.einsum("tij,tj->ti", self.K_iso, d_old))
                             for (gi, decay, w), hi in zip(terms, h)), np.zeros_like(d_old))

@@ -86,6 +86,14 @@ class LinearSolid:
     #: LU factorisations by (integrator, dt) (and of K, "instantaneous"), made on the first rollout that needs them
     _factors: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
+    def lame(self) -> tuple[float, float]:
+        """The Lamé moduli at rest (λ = K0 − 2 μ0 / 3, μ0) [Pa]; ValueError where the moduli are
+        unknown (a dataset written before ``generate`` stored them with ``/linear``)."""
+        if self.shear_modulus is None or self.bulk_modulus is None:
+            raise ValueError("the dataset's /linear holds no moduli at rest (regenerate it to add them)")
+        mu = float(self.shear_modulus)
+        return float(self.bulk_modulus) - 2.0 * mu / 3.0, mu
+
     @property
     def viscous(self) -> bool:
         return bool(self.prony) and self.stiffness_iso is not None

@@ -391,17 +391,19 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0) -> Newma
     if linear is None:
         raise DataError(f"{ds.path}: no linearised FE operators (/linear) for model.prior = linear "
                         f"(regenerate the dataset with this version of thermognn generate)")
-    if corotated and (linear.shear_modulus is None or linear.bulk_modulus is None):
-        raise DataError(f"{ds.path}: /linear holds no moduli at rest for model.prior_corotated = true "
-                        f"(regenerate the dataset with this version of thermognn generate)")
+    if corotated:
+        try:
+            lam, mu = linear.lame()
+        except ValueError:
+            raise DataError(f"{ds.path}: /linear holds no moduli at rest for model.prior_corotated = true "
+                            f"(regenerate the dataset with this version of thermognn generate)") from None
     try:
         if corotated:
             tets = np.asarray(ds.mesh.tets)
             if tets.ndim != 2 or tets.shape[1] != 4 or len(tets) == 0:
                 raise ValueError("the corotated prior needs P1 tets in /mesh/tets")
-            mu = float(linear.shear_modulus)
-            return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets,
-                                         float(linear.bulk_modulus) - 2.0 * mu / 3.0, mu, sweeps=int(corotated))
+            return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
+                                         sweeps=int(corotated))
         return NewmarkPrior(linear, len(ds.mesh.nodes), float(dt), relax=relax)
     except ValueError as exc:
         raise ConfigError(f"model.prior = linear: {ds.path}: {exc}") from None

@@ -87,10 +87,11 @@ class NewmarkPrior(nn.Module):
     The operators are buffers left out of the state dict (they are rebuilt from the dataset's
     ``/linear``; a TorchScript file keeps them): the sparse ``stiffness`` K, ``mass`` M,
     ``stress_operator`` Σ (from all 3N nodal DOFs) and, relaxing, ``stiffness_iso`` and
-    ``stress_iso``; the dense ``step_inverse`` (the effective stiffness's inverse) and ``mass_inv``."""
+    ``stress_iso``; the dense ``step_inverse`` (the effective stiffness's inverse; empty with
+    ``step_matrix`` False, for a subclass that steps otherwise) and ``mass_inv``."""
 
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, dtype: torch.dtype = torch.float64,
-                 relax: bool = False) -> None:
+                 relax: bool = False, step_matrix: bool = True) -> None:
         super().__init__()
         if linear.integrator != "newmark":
             raise ValueError(f"linear prior: integrator {linear.integrator!r}, only newmark is reproduced")
@@ -110,7 +111,8 @@ class NewmarkPrior(nn.Module):
         n = K.shape[0]
         step_stiffness = _dense(linear.step_stiffness(dt)) if terms else K       # K_Δt
         # u1 = S⁻¹ (M (mass_factor p − αM v0 − αM dt (1 − γ) a0) + c K u0 + f1 + (1 + c) G1 − c G0 − history)
-        step_inverse = torch.linalg.inv(self.c0 * self.mass_factor * M + self.c * K + step_stiffness)
+        step_inverse = (torch.linalg.inv(self.c0 * self.mass_factor * M + self.c * K + step_stiffness)
+                        if step_matrix else torch.zeros(0, 0, dtype=torch.float64))   # (a subclass's own step)
         mass_inv = torch.linalg.inv(M)
         del K, M, step_stiffness
         free = np.asarray(linear.free, dtype=bool)                                   # [3N]
@@ -315,7 +317,7 @@ class CorotatedNewmarkPrior(NewmarkPrior):
 
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
                  lam: float, mu: float, sweeps: int = 3, dtype: torch.dtype = torch.float64) -> None:
-        super().__init__(linear, n_nodes, dt, dtype)
+        super().__init__(linear, n_nodes, dt, dtype, step_matrix=False)      # its step solves anew
         from thermognn.core.corotated import element_stiffness
         from thermognn.core.kinematics import shape_gradients
 
