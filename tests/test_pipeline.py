@@ -203,7 +203,8 @@ def test_linear_prior_warm_start_straight_into_rollouts(tmp_path, tiny_block):
     """train.epochs=0 with model=linear_prior and train.init: a fine-tune of rollouts only (say,
     whole trajectories after training on windows). At a zero rate its one epoch validates the
     source's weights: the source's own validation error, also when the fine-tune grows the network
-    by a processor block. No epochs at all is a one-line error."""
+    by a processor block. With ``train.rollout_recompute`` a fine-tune makes the same updates. No
+    epochs at all is a one-line error."""
     from thermognn.train.checkpoint import load_checkpoint
 
     _train_prior(tmp_path / "src", tiny_block, "train.epochs=1", "train.rollout_epochs=1", "train.rollout_window=1")
@@ -221,6 +222,19 @@ def test_linear_prior_warm_start_straight_into_rollouts(tmp_path, tiny_block):
     grown = load_checkpoint(tmp_path / "grown" / "model.last.ckpt")
     assert grown["hparams"]["message_passing"] == 3
     assert abs(grown["history"][0]["val_error"] - src["history"][-1]["val_error"]) <= 1e-6 * src["history"][-1]["val_error"]
+    # train.rollout_recompute (each step's graph recomputed in the backward pass, for memory):
+    # the same fine-tune at a rate, the same updates (to float32 round-off, which Adam's
+    # normalised steps carry into the weights)
+    for name, extra in (("plain", ()), ("recomputed", ("train.rollout_recompute=true",))):
+        _train_prior(tmp_path / name, tiny_block, "train.epochs=0", "train.rollout_epochs=1", "train.rollout_lr=1e-3",
+                     f"train.init={tmp_path / 'src' / 'model.last.ckpt'}", *extra)
+    plain, recomputed = (load_checkpoint(tmp_path / n / "model.last.ckpt") for n in ("plain", "recomputed"))
+    val = plain["history"][0]["val_error"]
+    assert val != src["history"][-1]["val_error"]                                     # it did learn
+    assert abs(recomputed["history"][0]["val_error"] - val) <= 1e-4 * val
+    update = {k: w - src["state_dict"][k] for k, w in plain["state_dict"].items() if w.is_floating_point()}
+    gap = sum(float((recomputed["state_dict"][k] - src["state_dict"][k] - d).square().sum()) for k, d in update.items())
+    assert gap ** 0.5 <= 1e-3 * sum(float(d.square().sum()) for d in update.values()) ** 0.5
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'none'}",
                           f"paths.dataset={tiny_block}", "model=linear_prior", "train.epochs=0", "train.rollout_epochs=0"],
                          capture_output=True, text=True, timeout=600)

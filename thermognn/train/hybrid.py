@@ -511,8 +511,9 @@ class _RolloutPhase:
     validation and the test report, so gentle load cases are not drowned by the strong ones).
     Samples are (trajectory, first state)."""
 
-    def __init__(self, model: LinearPriorModel, trajs, window: int = 0, scale: str = "data") -> None:
-        self.model, self.trajs = model, trajs
+    def __init__(self, model: LinearPriorModel, trajs, window: int = 0, scale: str = "data",
+                 recompute: bool = False) -> None:
+        self.model, self.trajs, self.recompute = model, trajs, recompute
         Z = [t.z.double() for t in trajs]
         X = model.reference_positions
         self.Z = Z
@@ -549,11 +550,52 @@ class _RolloutPhase:
             if self.internal:                # the relaxing prior: the data's history, and H relative to it
                 h = torch.stack([self.internal[i][s] for i, s in chosen])
                 H = H - self.model.prior.stress_relaxation(u, h)     # begin's H is σ − Σ u (unpack of a start)
-        pred = self.model.roll(u, v, a, G, H, h, forces, *mesh, W, True, r0)
+        pred = (recomputed_roll(self.model, (u, v, a, G, H, h), forces, mesh, W, r0) if self.recompute
+                else self.model.roll(u, v, a, G, H, h, forces, *mesh, W, True, r0))
         rows = torch.tensor([i for i, _ in chosen])
         loss = sum(((pred[:, 1:, :, sl] - truth[:, 1:, :, sl]) / sc[rows].view(-1, 1, 1, 1)).pow(2).mean()
                    for sl, sc in self.scales)
         return loss, float(loss.detach()), 0.0
+
+
+def _checkpointed_advance(model: LinearPriorModel, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
+                          u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, h: Tensor, f1: Tensor,
+                          rest_rates: Optional[Tensor]) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """``LinearPriorModel.advance`` as ``recomputed_roll``'s checkpoint runs it: with gradients on
+    (the recomputation in the backward pass) the step with its whole graph; with them off (the
+    forward pass) the step's values alone, its network still differentiated for ∂E/∂z and ∂S/∂z
+    but nothing kept."""
+    if torch.is_grad_enabled():
+        return model.advance(u, v, a, G, H, h, f1, edge_index, node_type, ref_pos, True, rest_rates)
+    with torch.enable_grad():
+        out = model.advance(u.detach(), v.detach(), a.detach(), G.detach(), H.detach(), h.detach(), f1,
+                            edge_index, node_type, ref_pos, False,
+                            None if rest_rates is None else rest_rates.detach())
+    return tuple(x.detach() for x in out)
+
+
+def recomputed_roll(model: LinearPriorModel, start: Tuple[Tensor, ...], forces: Tensor, mesh: Tuple[Tensor, ...],
+                    steps: int, rest_rates: Optional[Tensor]) -> Tensor:
+    """``LinearPriorModel.roll`` (with gradients) that keeps only the states between steps for the
+    backward pass and recomputes each step's graph there (``torch.utils.checkpoint``, reentrant:
+    the non-reentrant form still keeps the graphs of the network's own autograd.grad): memory
+    grows by one carried state a step instead of a whole step's graph (shell, 40 steps of the
+    corotated prior: over 24 GiB without), for about one more forward pass of time. Same values
+    and gradients as ``roll`` (tests/test_pipeline.py); gradients reach the weights through
+    ``loss.backward()`` only (reentrant checkpoints do not pass ``torch.autograd.grad``).
+
+    start: (u, v, a, G, H, h) as ``begin`` gives them; forces [B, S, N, 3]; mesh: (edge_index,
+    node_type, ref_pos). Returns the physical states [B, steps + 1, N, D] (float64)."""
+    from torch.utils.checkpoint import checkpoint
+
+    u, v, a, G, H, h = start
+    S = forces.shape[1]
+    out = [model.state(u, v, H, h)]
+    for s in range(1, steps + 1):
+        u, v, a, G, H, h = checkpoint(_checkpointed_advance, model, *mesh, u, v, a, G, H, h,
+                                      forces[:, min(s, S - 1)], rest_rates, use_reentrant=True)
+        out.append(model.state(u, v, H, h))
+    return torch.stack(out, 1)
 
 
 class Phases(NamedTuple):
@@ -665,10 +707,11 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
 
     fit = _FitPhase(model, train_trajs, G_true, H_true, float(_sel(tc, "noise", 0.1)),
                     float(_sel(tc, "lambda_data", 100.0)), float(_sel(tc, "lambda_degeneracy", 1.0)))
-    rollouts = _RolloutPhase(model, train_trajs, window, scale)
+    recompute = bool(_sel(tc, "rollout_recompute", False))
+    rollouts = _RolloutPhase(model, train_trajs, window, scale, recompute)
     # phase 3: whole trajectories; the rollout phase's own where its samples already are (no windows)
     whole = (rollouts if not whole_epochs or all(s == 0 for _, s in rollouts.samples)
-             else _RolloutPhase(model, train_trajs, 0, scale))
+             else _RolloutPhase(model, train_trajs, 0, scale, recompute))
     batch_size = max(1, int(tc.batch_size))
     copies: Dict[int, object] = {}
 
