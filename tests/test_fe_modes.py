@@ -613,15 +613,16 @@ def test_second_order_remainders_make_gentle_loads_exactly_linear():
     assert rel(b, a) < 1e-12
 
 
-def test_second_order_rollouts_take_the_rest_rates_once_with_the_same_gradients():
-    """A rollout of ``model.prior_order=2`` evaluates r(z₀, 0) once for all its steps
-    (``LinearPriorModel.rest_rates_once``), not at every step: on the damped 12 mm bend with a
-    random network, unanchored and with gradients as in training, two bodies' states and the
-    weights' gradients are those of steps that each evaluate it afresh."""
-    torch = pytest.importorskip("torch")
+def _two_bent_bodies(corotated: bool):
+    """A random second-order ``LinearPriorModel`` (float64, unanchored, as in training) on the
+    damped 12 mm bend with the linearised prior or the corotated one (2 sweeps), and two bodies to
+    roll out 3 steps: (net, model, graph tensors of two mesh copies, z0 [2, N, D], loads
+    [2, 4, N, 3], 3)."""
+    import torch
+
     from thermognn.train.hybrid import LinearPriorModel
     from thermognn.train.model import TIGNN
-    from thermognn.train.prior import NewmarkPrior
+    from thermognn.train.prior import CorotatedNewmarkPrior, NewmarkPrior
 
     layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph()
     ref = torch.as_tensor(X)
@@ -629,10 +630,26 @@ def test_second_order_rollouts_take_the_rest_rates_once_with_the_same_gradients(
     net = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, velocity_edges=True).double()
     net.set_stats({"z_std": z.reshape(-1, 12).std(0) + 1e-3, "f_std": torch.full((3,), 0.1),
                    "dzdt_std": torch.full((12,), 3e-2)})
-    model = LinearPriorModel(net, NewmarkPrior(linear, len(X), dt), ref, positions_only=False, order=2)
-    steps, N = 3, len(X)
+    if corotated:
+        mu, kappa = linear.shear_modulus, linear.bulk_modulus
+        tets = _bent_block(1.0, "newmark")[0].cells[:, :4]
+        prior = CorotatedNewmarkPrior(linear, len(X), dt, X, tets, kappa - 2 * mu / 3, mu, sweeps=2)
+    else:
+        prior = NewmarkPrior(linear, len(X), dt)
+    model = LinearPriorModel(net, prior, ref, positions_only=False, order=2)
+    N = len(X)
     mesh = (torch.cat([edges, edges + N], 1), torch.cat([node_type, node_type]), torch.cat([ref, ref]))
     z0, forces = torch.stack([z[2], z[5]]), torch.stack([f[2:6], f[5:9]])          # [2, N, D], [2, 4, N, 3]
+    return net, model, mesh, z0, forces, 3
+
+
+def test_second_order_rollouts_take_the_rest_rates_once_with_the_same_gradients():
+    """A rollout of ``model.prior_order=2`` evaluates r(z₀, 0) once for all its steps
+    (``LinearPriorModel.rest_rates_once``), not at every step: on the damped 12 mm bend with a
+    random network, unanchored and with gradients as in training, two bodies' states and the
+    weights' gradients are those of steps that each evaluate it afresh."""
+    torch = pytest.importorskip("torch")
+    net, model, mesh, z0, forces, steps = _two_bent_bodies(corotated=False)
 
     def states_and_gradients(once):
         net.zero_grad()
@@ -661,23 +678,9 @@ def test_recomputed_rollouts_give_the_same_states_and_gradients():
     two bodies' states and the weights' gradients through ``loss.backward()`` are those of
     ``LinearPriorModel.roll``, which keeps every step's graph."""
     torch = pytest.importorskip("torch")
-    from thermognn.train.hybrid import LinearPriorModel, recomputed_roll
-    from thermognn.train.model import TIGNN
-    from thermognn.train.prior import CorotatedNewmarkPrior
+    from thermognn.train.hybrid import recomputed_roll
 
-    layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph()
-    mu, kappa = linear.shear_modulus, linear.bulk_modulus
-    tets = _bent_block(1.0, "newmark")[0].cells[:, :4]
-    ref = torch.as_tensor(X)
-    torch.manual_seed(0)
-    net = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, velocity_edges=True).double()
-    net.set_stats({"z_std": z.reshape(-1, 12).std(0) + 1e-3, "f_std": torch.full((3,), 0.1),
-                   "dzdt_std": torch.full((12,), 3e-2)})
-    prior = CorotatedNewmarkPrior(linear, len(X), dt, X, tets, kappa - 2 * mu / 3, mu, sweeps=2)
-    model = LinearPriorModel(net, prior, ref, positions_only=False, order=2)
-    steps, N = 3, len(X)
-    mesh = (torch.cat([edges, edges + N], 1), torch.cat([node_type, node_type]), torch.cat([ref, ref]))
-    z0, forces = torch.stack([z[2], z[5]]), torch.stack([f[2:6], f[5:9]])          # [2, N, D], [2, 4, N, 3]
+    net, model, mesh, z0, forces, steps = _two_bent_bodies(corotated=True)
 
     def states_and_gradients(recompute):
         net.zero_grad()
