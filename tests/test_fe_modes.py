@@ -672,14 +672,12 @@ def test_second_order_rollouts_take_the_rest_rates_once_with_the_same_gradients(
 
 
 def test_recomputed_rollouts_give_the_same_states_and_gradients():
-    """``train.rollout_recompute`` (``hybrid.recomputed_roll``: each step's graph recomputed in
-    the backward pass, what lets the shell train on whole 40-step trajectories in 2 GiB instead of
-    over 24): on the damped 12 mm bend with the corotated prior and a random second-order network,
-    two bodies' states and the weights' gradients through ``loss.backward()`` are those of
-    ``LinearPriorModel.roll``, which keeps every step's graph."""
+    """``train.rollout_recompute`` (``LinearPriorModel.roll`` with ``recompute``: each step's graph
+    recomputed in the backward pass, what lets the shell train on whole 40-step trajectories in
+    2 GiB instead of over 24): on the damped 12 mm bend with the corotated prior and a random
+    second-order network, two bodies' states and the weights' gradients through
+    ``loss.backward()`` are those of the rollout that keeps every step's graph."""
     torch = pytest.importorskip("torch")
-    from thermognn.train.hybrid import recomputed_roll
-
     net, model, mesh, z0, forces, steps = _two_bent_bodies(corotated=True)
 
     def states_and_gradients(recompute):
@@ -687,8 +685,7 @@ def test_recomputed_rollouts_give_the_same_states_and_gradients():
         with torch.enable_grad():
             r0 = model.rest_rates_once(2, *mesh, True)
             start = model.begin(z0, forces[:, 0], *mesh, True, r0)
-            pred = (recomputed_roll(model, start, forces, mesh, steps, r0) if recompute
-                    else model.roll(*start, forces, *mesh, steps, True, r0))
+            pred = model.roll(*start, forces, *mesh, steps, True, r0, recompute)
             pred[:, 1:, :, 3:12].pow(2).sum().backward()
         return pred.detach(), torch.cat([p.grad.flatten() for p in net.parameters() if p.grad is not None])
 

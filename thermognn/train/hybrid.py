@@ -320,16 +320,32 @@ class LinearPriorModel(nn.Module):
 
     def roll(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, h: Tensor, forces: Tensor,
              edge_index: Tensor, node_type: Tensor, ref_pos: Tensor, steps: int, create_graph: bool,
-             rest_rates: Optional[Tensor] = None) -> Tensor:
+             rest_rates: Optional[Tensor] = None, recompute: bool = False) -> Tensor:
         """``rollouts`` from its start (u, v, a, G, H, h), e.g. ``begin``'s with another acceleration
         and internal variables;
         ``rest_rates`` as ``rest_rates_once`` gives them (None: each step evaluates its own where
-        it needs them, as ``network_remainders`` says)."""
+        it needs them, as ``network_remainders`` says).
+
+        ``recompute`` (with ``create_graph``; ``train.rollout_recompute``): keep only the states
+        between steps for the backward pass and recompute each step's graph there
+        (``torch.utils.checkpoint``, reentrant: the non-reentrant form still keeps the graphs of
+        the network's own autograd.grad), so memory grows by one carried state a step instead of
+        a whole step's graph (shell, 40 steps of the corotated prior: over 24 GiB without), for
+        about one more forward pass of time; same values and gradients
+        (tests/test_fe_modes.py), which reach the weights through ``loss.backward()`` only
+        (reentrant checkpoints do not pass ``torch.autograd.grad``)."""
+        from torch.utils.checkpoint import checkpoint
+
         S = forces.shape[1]
         out = [self.state(u, v, H, h)]
         for s in range(1, steps + 1):
-            u, v, a, G, H, h = self.advance(u, v, a, G, H, h, forces[:, min(s, S - 1)], edge_index, node_type,
-                                            ref_pos, create_graph, rest_rates)
+            f1 = forces[:, min(s, S - 1)]
+            if recompute and create_graph:
+                u, v, a, G, H, h = checkpoint(_checkpointed_advance, self, edge_index, node_type, ref_pos,
+                                              u, v, a, G, H, h, f1, rest_rates, use_reentrant=True)
+            else:
+                u, v, a, G, H, h = self.advance(u, v, a, G, H, h, f1, edge_index, node_type, ref_pos, create_graph,
+                                                rest_rates)
             out.append(self.state(u, v, H, h))
         return torch.stack(out, 1)
 
@@ -550,8 +566,7 @@ class _RolloutPhase:
             if self.internal:                # the relaxing prior: the data's history, and H relative to it
                 h = torch.stack([self.internal[i][s] for i, s in chosen])
                 H = H - self.model.prior.stress_relaxation(u, h)     # begin's H is σ − Σ u (unpack of a start)
-        pred = (recomputed_roll(self.model, (u, v, a, G, H, h), forces, mesh, W, r0) if self.recompute
-                else self.model.roll(u, v, a, G, H, h, forces, *mesh, W, True, r0))
+        pred = self.model.roll(u, v, a, G, H, h, forces, *mesh, W, True, r0, self.recompute)
         rows = torch.tensor([i for i, _ in chosen])
         loss = sum(((pred[:, 1:, :, sl] - truth[:, 1:, :, sl]) / sc[rows].view(-1, 1, 1, 1)).pow(2).mean()
                    for sl, sc in self.scales)
@@ -561,7 +576,7 @@ class _RolloutPhase:
 def _checkpointed_advance(model: LinearPriorModel, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                           u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, h: Tensor, f1: Tensor,
                           rest_rates: Optional[Tensor]) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """``LinearPriorModel.advance`` as ``recomputed_roll``'s checkpoint runs it: with gradients on
+    """``LinearPriorModel.advance`` as ``roll``'s checkpoint runs it (``recompute``): with gradients on
     (the recomputation in the backward pass) the step with its whole graph; with them off (the
     forward pass) the step's values alone, its network still differentiated for ∂E/∂z and ∂S/∂z
     but nothing kept."""
@@ -572,30 +587,6 @@ def _checkpointed_advance(model: LinearPriorModel, edge_index: Tensor, node_type
                             edge_index, node_type, ref_pos, False,
                             None if rest_rates is None else rest_rates.detach())
     return tuple(x.detach() for x in out)
-
-
-def recomputed_roll(model: LinearPriorModel, start: Tuple[Tensor, ...], forces: Tensor, mesh: Tuple[Tensor, ...],
-                    steps: int, rest_rates: Optional[Tensor]) -> Tensor:
-    """``LinearPriorModel.roll`` (with gradients) that keeps only the states between steps for the
-    backward pass and recomputes each step's graph there (``torch.utils.checkpoint``, reentrant:
-    the non-reentrant form still keeps the graphs of the network's own autograd.grad): memory
-    grows by one carried state a step instead of a whole step's graph (shell, 40 steps of the
-    corotated prior: over 24 GiB without), for about one more forward pass of time. Same values
-    and gradients as ``roll`` (tests/test_pipeline.py); gradients reach the weights through
-    ``loss.backward()`` only (reentrant checkpoints do not pass ``torch.autograd.grad``).
-
-    start: (u, v, a, G, H, h) as ``begin`` gives them; forces [B, S, N, 3]; mesh: (edge_index,
-    node_type, ref_pos). Returns the physical states [B, steps + 1, N, D] (float64)."""
-    from torch.utils.checkpoint import checkpoint
-
-    u, v, a, G, H, h = start
-    S = forces.shape[1]
-    out = [model.state(u, v, H, h)]
-    for s in range(1, steps + 1):
-        u, v, a, G, H, h = checkpoint(_checkpointed_advance, model, *mesh, u, v, a, G, H, h,
-                                      forces[:, min(s, S - 1)], rest_rates, use_reentrant=True)
-        out.append(model.state(u, v, H, h))
-    return torch.stack(out, 1)
 
 
 class Phases(NamedTuple):
