@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from thermognn.core.config import load_config
-from thermognn.core.errors import DataError
+from thermognn.core.errors import ConfigError, DataError
 from thermognn.train import train
 from thermognn.train.checkpoint import last_path, load_checkpoint, model_from_checkpoint
 from thermognn.train.data import load_data
@@ -883,3 +883,71 @@ def test_linear_prior_settings_and_datasets_it_cannot_use(trained, tmp_path):
     ckpt = {"prior": {"kind": "linear", "sweeps": 1, "positions_only": True}, "hparams": {}}
     with pytest.raises(ConfigError, match="rollout.integrator: a model.prior=linear model steps with"):
         with_rollout(ckpt, _cfg(tmp_path, "rollout.integrator=midpoint"))
+
+
+def test_train_device_is_checked():
+    """train.device: cpu | cuda | cuda:N | auto; anything else, or a GPU torch cannot see, is one line."""
+    from thermognn.train.device import training_device
+
+    assert training_device("cpu") == torch.device("cpu")
+    assert training_device(None) == torch.device("cpu")
+    assert training_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    for bad in ("tpu", "meta", "gpu0"):
+        with pytest.raises(ConfigError, match=rf"train.device = '{bad}'.*expected cpu, cuda, cuda:N or auto"):
+            training_device(bad)
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match=r"train.device = 'cuda', but torch sees no CUDA GPU here"):
+            training_device("cuda")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without a GPU")
+def test_training_on_a_missing_gpu_fails_in_one_line(tmp_path):
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=4, steps=4)
+    with pytest.raises(ConfigError, match="train.device = 'cuda', but torch sees no CUDA GPU"):
+        train(_cfg(tmp_path, "train.epochs=1", "train.device=cuda"))
+    assert not (tmp_path / "model.ckpt").exists()
+
+
+def test_checkpoints_hold_cpu_tensors(tmp_path):
+    """``on_cpu`` keeps a checkpoint's structure (ordered state dicts, lists, tuples, plain values);
+    every tensor in it comes back on the CPU (from a GPU, where there is one)."""
+    from collections import OrderedDict
+
+    from thermognn.train.checkpoint import on_cpu
+
+    where = "cuda" if torch.cuda.is_available() else "cpu"
+    ckpt = {"state_dict": OrderedDict(w=torch.arange(3.0, device=where)), "history": [{"loss": 1.5}],
+            "rng": (torch.ones(2, device=where), 7), "name": "x"}
+    out = on_cpu(ckpt)
+    assert type(out["state_dict"]) is OrderedDict and isinstance(out["rng"], tuple)
+    assert out["state_dict"]["w"].device.type == "cpu" and out["rng"][0].device.type == "cpu"
+    assert out["state_dict"]["w"].tolist() == [0.0, 1.0, 2.0] and out["rng"][1] == 7
+    assert out["history"] == [{"loss": 1.5}] and out["name"] == "x"
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (train.device=cuda)")
+def test_training_on_the_gpu_follows_the_cpu(tmp_path):
+    """The same run on the GPU and on the CPU: the same random draws (made on the CPU), so the
+    epochs' losses and validation errors agree to float32 round-off; the GPU's checkpoint holds
+    CPU tensors and rolls out on the CPU as its validation error says; resumed on the CPU, the
+    GPU's interrupted run goes on."""
+    runs = {}
+    for dev in ("cpu", "cuda"):
+        out = tmp_path / dev
+        write_oscillator_dataset(out / "dataset.h5", n_trajectories=6, steps=10)
+        ckpt = train(_cfg(out, "train.epochs=4", f"train.device={dev}"))
+        runs[dev] = (_rows(out), load_checkpoint(ckpt))
+    for a, b in zip(runs["cpu"][0], runs["cuda"][0], strict=True):
+        for key in ("loss", "val_error"):
+            if a[key]:
+                assert float(b[key]) == pytest.approx(float(a[key]), rel=1e-2), (key, a, b)
+    gpu = runs["cuda"][1]
+    assert all(v.device.type == "cpu" for v in gpu["state_dict"].values())
+    model = model_from_checkpoint(gpu)
+    data = load_data(tmp_path / "cuda" / "dataset.h5", [0.8, 0.1, 0.1], 0, torch.float32)
+    t = data.of("val")[0]
+    pred = rollout(model, data.graph, t.z[0], t.force, data.dataset.dt)
+    assert torch.isfinite(pred).all()
+    # the GPU's run, 2 epochs more on the CPU from its model.last.ckpt
+    train(_cfg(tmp_path / "cuda", "train.epochs=6", "train.device=cpu"))
+    assert [int(r["epoch"]) for r in _rows(tmp_path / "cuda")] == [1, 2, 3, 4, 5, 6]

@@ -37,11 +37,23 @@ def last_path(best: str | Path) -> Path:
     return best.with_name(best.stem + ".last" + best.suffix)
 
 
+def on_cpu(obj):
+    """``obj`` with every tensor in it (in dicts, lists and tuples) moved to the CPU."""
+    if isinstance(obj, torch.Tensor):
+        return obj.detach().cpu() if obj.device.type != "cpu" else obj
+    if isinstance(obj, dict):
+        return type(obj)((k, on_cpu(v)) for k, v in obj.items())
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(on_cpu(v) for v in obj)
+    return obj
+
+
 def save_checkpoint(ckpt: dict, path: str | Path) -> Path:
-    """Write atomically (a crash never leaves a half-written checkpoint)."""
+    """Write atomically (a crash never leaves a half-written checkpoint), with CPU tensors only:
+    a model trained on a GPU (``train.device``) loads on a machine without one."""
     path = Path(path)
     with atomic_path(path) as tmp:
-        torch.save(ckpt, tmp)
+        torch.save(on_cpu(ckpt), tmp)
     return path
 
 

@@ -74,7 +74,7 @@ class LoadedData:
     def reference_positions(self) -> np.ndarray:
         """The mesh's reference positions X [N, 3] [m] as the states store them (rounded to
         ``state_dtype``; float64 array), so that q − X is zero at rest."""
-        return torch.as_tensor(self.dataset.mesh.nodes, dtype=self.state_dtype).double().numpy()
+        return torch.as_tensor(self.dataset.mesh.nodes, dtype=self.state_dtype).double().cpu().numpy()
 
     def read(self, name: str) -> TrajectoryTensors:
         """Trajectory ``name`` as tensors (read once, then kept in ``trajectories``)."""

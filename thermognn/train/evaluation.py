@@ -113,13 +113,13 @@ def write_vtu(path: Path, ds: Dataset, traj: TrajectoryTensors, pred: torch.Tens
     layout = ds.layout
     X = ds.mesh.nodes
     point_data = {"node_type": np.asarray(ds.mesh.node_type, np.int32)}
-    for label, z in (("pred", pred[step].double().numpy()), ("true", traj.z[step].double().numpy())):
+    for label, z in (("pred", pred[step].double().cpu().numpy()), ("true", traj.z[step].double().cpu().numpy())):
         point_data[f"u_{label}"] = z[:, 0:3] - X
         for name in layout.names[1:]:
             point_data[f"{name}_{label}"] = z[:, layout.slice(name)]
     for name in layout.names:
         sl = layout.slice(name)
-        point_data[f"{name}_error"] = np.linalg.norm(pred[step].double().numpy()[:, sl] - traj.z[step].double().numpy()[:, sl],
+        point_data[f"{name}_error"] = np.linalg.norm(pred[step].double().cpu().numpy()[:, sl] - traj.z[step].double().cpu().numpy()[:, sl],
                                                      axis=1)
     mesh = meshio.Mesh(X, [("tetra", np.asarray(ds.mesh.tets, np.int64))], point_data=point_data)
     with atomic_path(path) as tmp:
@@ -140,7 +140,7 @@ def rest_drift(model, graph: Graph, rest: TrajectoryTensors, steps: int, velocit
     pred = rollout(model, graph, rest.z[0], rest.force[:1], dt, steps)      # [steps + 1, N, D]
     q = (pred[:, :, 0:3] - pred[:1, :, 0:3]).abs().flatten(1).amax(1)
     v = pred[:, :, velocity_cols].abs().flatten(1).amax(1) if velocity_cols else torch.zeros_like(q)
-    return torch.stack([q, v], 1).double().numpy()
+    return torch.stack([q, v], 1).double().cpu().numpy()
 
 
 #: power iterations for the growth factor at rest
@@ -158,7 +158,8 @@ def rest_growth_factors(model, graph: Graph, rest: TrajectoryTensors, dt: float,
     ``train.rest_stability`` trains against, all sizes in one pass per iteration, each started
     from the same seeded direction. Above 1 the rest state is unstable at that size: the drift
     grows geometrically from any rate bias; at or below 1 it stays bounded."""
-    start = torch.randn((1, *rest.z.shape[1:]), generator=torch.Generator().manual_seed(0), dtype=rest.z.dtype)
+    start = torch.randn((1, *rest.z.shape[1:]), generator=torch.Generator().manual_seed(0), dtype=rest.z.dtype,
+                        device="cpu").to(rest.z.device)
     direction = start.repeat(len(sizes), 1, 1)                          # [K, N, D]
     growth = torch.full((len(sizes),), math.nan)
     for _ in range(iterations):
@@ -273,7 +274,7 @@ def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors], corotated:
     try:
         for t in trajs:
             t0 = time.perf_counter()
-            pred = solid.rollout_states(t.z.double().numpy(), t.force.double().numpy(), X, data.layout, data.dt)
+            pred = solid.rollout_states(t.z.double().cpu().numpy(), t.force.double().cpu().numpy(), X, data.layout, data.dt)
             elapsed += time.perf_counter() - t0
             steps += pred.shape[0] - 1
             pred_t, truth = torch.as_tensor(pred), t.z.double()
@@ -352,7 +353,7 @@ def gentle_load_gaps(model: LinearPriorModel, data: LoadedData, traj: Trajectory
     for scale in scales:
         forces = traj.force.double() * scale
         pred = rollout(model, data.graph, z0[0], forces, data.dt).double()
-        ref = torch.as_tensor(lin.rollout_states(z0.numpy(), forces.numpy(), X, data.layout, data.dt))
+        ref = torch.as_tensor(lin.rollout_states(z0.cpu().numpy(), forces.cpu().numpy(), X, data.layout, data.dt))
         gaps = {}
         for g in data.layout.names:
             sl = data.layout.slice(g)

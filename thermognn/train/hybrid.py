@@ -509,7 +509,7 @@ class _FitPhase:
         f = torch.stack([self.trajs[i].force[s] for i, s in chosen])                      # [k, N, 3]
         y = torch.stack([self.targets[i][s] for i, s in chosen])
         if self.noisy:                       # (no draw without noise: the generator also orders the epochs)
-            z = z + torch.randn(z.shape, generator=gen, dtype=z.dtype) * self.noise
+            z = z + torch.randn(z.shape, generator=gen, dtype=z.dtype, device="cpu").to(z.device) * self.noise
         r, deg = self.model.network_remainders(z, f, g.edge_index, g.node_type, g.ref_pos, True)   # [k, N, D]
         data_loss = ((r - y).pow(2) * self.weight).sum() / (self.weight.sum() * k)
         return self.lambda_data * data_loss + self.lambda_degeneracy * deg, float(data_loss.detach()), float(deg.detach())
@@ -717,7 +717,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
               else identity["whole_lr"])
         return torch.optim.Adam(net.parameters(), lr=lr)
 
-    gen = torch.Generator().manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)             # on the CPU, whatever train.device
 
     def resume_state(epoch_done: int, val: float, resume_at: int, **extra) -> dict:
         """``model.last.ckpt``'s contents: everything a resumed run needs to go on exactly."""
@@ -789,7 +789,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                 order, b0, (total, data_total, deg_total) = saves.resume(mid, last, epoch + 1)
                 mid = None
             else:
-                order = torch.randperm(len(items), generator=gen).tolist()
+                order = torch.randperm(len(items), generator=gen, device="cpu").tolist()
                 b0, total, data_total, deg_total = 0, 0.0, 0.0, 0.0
             perm = order[dist.rank:len(order) // dist.world * dist.world:dist.world]   # this process's share
             nb = max(1, len(perm) // batch_size)

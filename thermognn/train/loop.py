@@ -23,6 +23,7 @@ from .checkpoint import (FORMAT, last_path, load_checkpoint, model_from_checkpoi
 from .data import (LoadedData, check_fingerprint, compute_stats, fingerprint, load_data, make_batch,
                    rest_rollout_steps, rest_samples, rest_trajectory, samples,
                    velocity_columns)
+from .device import training_device
 from .hybrid import prior_kind, train_linear_prior, training_phases
 from .model import TIGNN, build_model, grown_blocks, hyperparameters, load_grown, parameter_count
 from .rollout import rollout, rollout_errors, validation_error
@@ -168,7 +169,7 @@ def step_loss(model: TIGNN, batch, dt: float, noise: float, generator: torch.Gen
     z, z_next = batch.z, batch.z_next                                   # [B*N, D]
     free = model.free_entries(batch.node_type, z)                      # [B*N, D]
     if noise > 0:
-        eps = torch.randn(z.shape, generator=generator, dtype=z.dtype) * (noise * dt) * model.dzdt_std
+        eps = torch.randn(z.shape, generator=generator, dtype=z.dtype, device="cpu").to(z.device) * (noise * dt) * model.dzdt_std
         z = z + eps * free
     at = model.rate_state(z, z_next)                 # z (Euler) or the step's midpoint (midpoint rule)
     dzdt_n, _, _, _, _, deg = model.rates(at, batch.f, batch.edge_index, batch.node_type, batch.pos, True)
@@ -370,7 +371,19 @@ def train(cfg) -> Path:
     ``<out>/metrics.csv``; resume from ``model.last.ckpt`` when present and compatible. It is also
     written every ``train.checkpoint_minutes`` within an epoch (the epoch's sample order, the batch
     reached, the running sums, and the weights the epoch's drifted states came from), and an
-    interrupted epoch goes on at its next batch (under torchrun, resumed by as many processes)."""
+    interrupted epoch goes on at its next batch (under torchrun, resumed by as many processes).
+    It runs on ``train.device`` (the CPU, or a CUDA GPU: ``thermognn.train.device``)."""
+    device = training_device(_sel(cfg.train, "device", "cpu"))
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+        print(f"train.device: {device} ({torch.cuda.get_device_name(device)})")
+        with torch.device(device):           # every tensor the run makes is made there
+            return _train_here(cfg)
+    return _train_here(cfg)                  # (the CPU: no device mode intercepting each call)
+
+
+def _train_here(cfg) -> Path:
+    """``train`` on the default device."""
     tc = cfg.train
     torch.set_num_threads(int(_sel(tc, "threads", 2)))
     dist = _Dist()
@@ -414,7 +427,7 @@ def train(cfg) -> Path:
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     gamma = float(_sel(tc, "lr_decay", 1.0)) ** (1.0 / epochs)
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=gamma)
-    gen = torch.Generator().manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)            # on the CPU, whatever train.device
     start_epoch, history, best_val, stale = 0, [], math.inf, 0
     resumed_direction = None
     mid = None                                   # an interrupted epoch's place (checkpoint "mid_epoch")
@@ -474,7 +487,9 @@ def train(cfg) -> Path:
     n_dirs = len(probe_sizes)
     if lam_s > 0 and (direction is None or direction.shape[0] != n_dirs):
         direction = torch.randn((n_dirs, *rest.z.shape[1:]), generator=torch.Generator().manual_seed(seed),
-                                dtype=rest.z.dtype)
+                                dtype=rest.z.dtype, device="cpu")
+    if direction is not None:                        # (a checkpoint's is on the CPU)
+        direction = direction.to(rest.z.device)
     rollout_from = int(_sel(tc, "rollout_pairs", 0))
     rolled: list[torch.Tensor] | None = None
     batch_size = max(1, int(tc.batch_size))
@@ -526,7 +541,7 @@ def train(cfg) -> Path:
                 perm, n_batches, (tot, dat, dgn, grown) = saves.resume(mid, last, epoch + 1)
                 n_probes = int(mid["probes"])
             else:
-                perm = torch.randperm(len(items), generator=gen).tolist()
+                perm = torch.randperm(len(items), generator=gen, device="cpu").tolist()
                 tot = dat = dgn = grown = 0.0
                 n_batches = n_probes = 0
             mid = None

@@ -536,7 +536,12 @@ def load_grown(model: nn.Module, state: Dict[str, Tensor], src_blocks: int) -> N
 
 
 def build_model(hparams: dict, dtype: torch.dtype = torch.float32) -> TIGNN:
-    return TIGNN(**hparams).to(dtype)
+    """A fresh TIGNN on the default device (``train.device`` inside ``train``), its weights drawn
+    on the CPU from torch's CPU generator: the same initial model on every device."""
+    device = torch.get_default_device()
+    with torch.device("cpu"):
+        model = TIGNN(**hparams).to(dtype)
+    return model.to(device)
 
 
 def parameter_count(model: nn.Module) -> int:

@@ -280,7 +280,10 @@ class NewmarkPrior(nn.Module):
 def solve_each(A: Tensor, b: Tensor) -> Tensor:
     """x [B, n] with A[i] x[i] = b[i] (A [B, n, n], b [B, n]), one LU per sample: torch 2.13's
     CPU build fails batched LU factorisations with more than one thread (MKL's DLASWP rejects the
-    pivots: "Pivots given to lu_solve must all be greater or equal to 1"), single ones do not."""
+    pivots: "Pivots given to lu_solve must all be greater or equal to 1"), single ones do not. A
+    GPU (``train.device=cuda``) solves them batched."""
+    if A.device.type != "cpu":
+        return torch.linalg.solve(A, b.unsqueeze(-1)).squeeze(-1)
     xs: List[Tensor] = []
     for i in range(A.shape[0]):
         xs.append(torch.linalg.solve(A[i], b[i]))

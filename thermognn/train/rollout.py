@@ -43,7 +43,7 @@ def rrmse_per_step(pred: Tensor, truth: Tensor, layout: StateLayout) -> dict[str
         num = (pred[:, :, sl] - truth[:, :, sl]).double().flatten(1).norm(dim=1)
         den = truth[:, :, sl].double().flatten(1).norm(dim=1)
         r = torch.where(den > 1e-300, num / den.clamp(min=1e-300), torch.full_like(num, math.nan))
-        out[name] = r.numpy()
+        out[name] = r.cpu().numpy()
     return out
 
 
@@ -167,8 +167,8 @@ def one_step_errors(model, graph: Graph, trajs: list[TrajectoryTensors], layout:
                 change = (t.z[s0 + 1: s0 + k + 1] - z).double()
                 for g in layout.names:
                     sl = layout.slice(g)
-                    num[g][s0: s0 + k] += miss[:, :, sl].pow(2).flatten(1).sum(1).numpy()
-                    den[g][s0: s0 + k] += change[:, :, sl].pow(2).flatten(1).sum(1).numpy()
+                    num[g][s0: s0 + k] += miss[:, :, sl].pow(2).flatten(1).sum(1).cpu().numpy()
+                    den[g][s0: s0 + k] += change[:, :, sl].pow(2).flatten(1).sum(1).cpu().numpy()
 
     def ratio(a, b):
         return np.where(b > 0, np.sqrt(a / np.where(b > 0, b, 1.0)), np.nan)
