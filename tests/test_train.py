@@ -918,7 +918,9 @@ def test_checkpoints_hold_cpu_tensors(tmp_path):
     where = "cuda" if torch.cuda.is_available() else "cpu"
     ckpt = {"state_dict": OrderedDict(w=torch.arange(3.0, device=where)), "history": [{"loss": 1.5}],
             "rng": (torch.ones(2, device=where), 7), "name": "x"}
+    ckpt["state_dict"]._metadata = {"": {"version": 1}}
     out = on_cpu(ckpt)
+    assert out["state_dict"]._metadata == {"": {"version": 1}}   # load_state_dict reads it
     assert type(out["state_dict"]) is OrderedDict and isinstance(out["rng"], tuple)
     assert out["state_dict"]["w"].device.type == "cpu" and out["rng"][0].device.type == "cpu"
     assert out["state_dict"]["w"].tolist() == [0.0, 1.0, 2.0] and out["rng"][1] == 7

@@ -42,7 +42,12 @@ def on_cpu(obj):
     if isinstance(obj, torch.Tensor):
         return obj.detach().cpu() if obj.device.type != "cpu" else obj
     if isinstance(obj, dict):
-        return type(obj)((k, on_cpu(v)) for k, v in obj.items())
+        out = type(obj)((k, on_cpu(v)) for k, v in obj.items())
+        if hasattr(obj, "_metadata"):            # a module state_dict's versions
+            out._metadata = obj._metadata
+        return out
+    if isinstance(obj, tuple) and hasattr(obj, "_fields"):
+        return type(obj)(*(on_cpu(v) for v in obj))
     if isinstance(obj, (list, tuple)):
         return type(obj)(on_cpu(v) for v in obj)
     return obj
