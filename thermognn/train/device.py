@@ -15,8 +15,15 @@ from __future__ import annotations
 import os
 
 import torch
+from torch import Tensor
 
 from thermognn.core.errors import ConfigError
+
+
+def cpu_randn(shape, generator: torch.Generator, like: Tensor) -> Tensor:
+    """Standard normal draws of ``shape`` from the CPU ``generator``, on ``like``'s device and in
+    its dtype: the same numbers whatever ``train.device``."""
+    return torch.randn(shape, generator=generator, dtype=like.dtype, device="cpu").to(like.device)
 
 
 def training_device(setting) -> torch.device:
@@ -45,4 +52,3 @@ def training_device(setting) -> torch.device:
         if device.index is None:
             device = torch.device("cuda", torch.cuda.current_device())
     return device
-

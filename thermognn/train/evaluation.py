@@ -39,6 +39,7 @@ from .checkpoint import load_checkpoint, model_from_checkpoint, model_step, torc
 from .data import (Graph, LoadedData, TrajectoryTensors, check_fingerprint, load_data, rest_trajectory,
                    velocity_columns)
 from .loop import print_rrmse_table, rest_growth
+from .device import cpu_randn
 from .hybrid import LinearPriorModel
 from .prior import CorotatedNewmarkPrior
 from .model import parameter_count
@@ -113,14 +114,14 @@ def write_vtu(path: Path, ds: Dataset, traj: TrajectoryTensors, pred: torch.Tens
     layout = ds.layout
     X = ds.mesh.nodes
     point_data = {"node_type": np.asarray(ds.mesh.node_type, np.int32)}
-    for label, z in (("pred", pred[step].double().cpu().numpy()), ("true", traj.z[step].double().cpu().numpy())):
+    z_pred, z_true = pred[step].double().cpu().numpy(), traj.z[step].double().cpu().numpy()   # [N, D]
+    for label, z in (("pred", z_pred), ("true", z_true)):
         point_data[f"u_{label}"] = z[:, 0:3] - X
         for name in layout.names[1:]:
             point_data[f"{name}_{label}"] = z[:, layout.slice(name)]
     for name in layout.names:
         sl = layout.slice(name)
-        point_data[f"{name}_error"] = np.linalg.norm(pred[step].double().cpu().numpy()[:, sl] - traj.z[step].double().cpu().numpy()[:, sl],
-                                                     axis=1)
+        point_data[f"{name}_error"] = np.linalg.norm(z_pred[:, sl] - z_true[:, sl], axis=1)
     mesh = meshio.Mesh(X, [("tetra", np.asarray(ds.mesh.tets, np.int64))], point_data=point_data)
     with atomic_path(path) as tmp:
         meshio.write(tmp, mesh, file_format="vtu")
@@ -158,8 +159,7 @@ def rest_growth_factors(model, graph: Graph, rest: TrajectoryTensors, dt: float,
     ``train.rest_stability`` trains against, all sizes in one pass per iteration, each started
     from the same seeded direction. Above 1 the rest state is unstable at that size: the drift
     grows geometrically from any rate bias; at or below 1 it stays bounded."""
-    start = torch.randn((1, *rest.z.shape[1:]), generator=torch.Generator().manual_seed(0), dtype=rest.z.dtype,
-                        device="cpu").to(rest.z.device)
+    start = cpu_randn((1, *rest.z.shape[1:]), torch.Generator().manual_seed(0), rest.z)
     direction = start.repeat(len(sizes), 1, 1)                          # [K, N, D]
     growth = torch.full((len(sizes),), math.nan)
     for _ in range(iterations):

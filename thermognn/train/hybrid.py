@@ -56,6 +56,7 @@ from torch import Tensor, nn
 
 from thermognn.core.errors import ConfigError, DataError
 
+from .device import cpu_randn
 from .model import TIGNN, grown_blocks, load_grown
 from .prior import CorotatedNewmarkPrior, NewmarkPrior
 
@@ -509,7 +510,7 @@ class _FitPhase:
         f = torch.stack([self.trajs[i].force[s] for i, s in chosen])                      # [k, N, 3]
         y = torch.stack([self.targets[i][s] for i, s in chosen])
         if self.noisy:                       # (no draw without noise: the generator also orders the epochs)
-            z = z + torch.randn(z.shape, generator=gen, dtype=z.dtype, device="cpu").to(z.device) * self.noise
+            z = z + cpu_randn(z.shape, gen, z) * self.noise
         r, deg = self.model.network_remainders(z, f, g.edge_index, g.node_type, g.ref_pos, True)   # [k, N, D]
         data_loss = ((r - y).pow(2) * self.weight).sum() / (self.weight.sum() * k)
         return self.lambda_data * data_loss + self.lambda_degeneracy * deg, float(data_loss.detach()), float(deg.detach())

@@ -23,7 +23,7 @@ from .checkpoint import (FORMAT, last_path, load_checkpoint, model_from_checkpoi
 from .data import (LoadedData, check_fingerprint, compute_stats, fingerprint, load_data, make_batch,
                    rest_rollout_steps, rest_samples, rest_trajectory, samples,
                    velocity_columns)
-from .device import training_device
+from .device import cpu_randn, training_device
 from .hybrid import prior_kind, train_linear_prior, training_phases
 from .model import TIGNN, build_model, grown_blocks, hyperparameters, load_grown, parameter_count
 from .rollout import rollout, rollout_errors, validation_error
@@ -169,7 +169,7 @@ def step_loss(model: TIGNN, batch, dt: float, noise: float, generator: torch.Gen
     z, z_next = batch.z, batch.z_next                                   # [B*N, D]
     free = model.free_entries(batch.node_type, z)                      # [B*N, D]
     if noise > 0:
-        eps = torch.randn(z.shape, generator=generator, dtype=z.dtype, device="cpu").to(z.device) * (noise * dt) * model.dzdt_std
+        eps = cpu_randn(z.shape, generator, z) * (noise * dt) * model.dzdt_std
         z = z + eps * free
     at = model.rate_state(z, z_next)                 # z (Euler) or the step's midpoint (midpoint rule)
     dzdt_n, _, _, _, _, deg = model.rates(at, batch.f, batch.edge_index, batch.node_type, batch.pos, True)
@@ -486,8 +486,7 @@ def _train_here(cfg) -> Path:
         direction = direction.unsqueeze(0)
     n_dirs = len(probe_sizes)
     if lam_s > 0 and (direction is None or direction.shape[0] != n_dirs):
-        direction = torch.randn((n_dirs, *rest.z.shape[1:]), generator=torch.Generator().manual_seed(seed),
-                                dtype=rest.z.dtype, device="cpu")
+        direction = cpu_randn((n_dirs, *rest.z.shape[1:]), torch.Generator().manual_seed(seed), rest.z)
     if direction is not None:                        # (a checkpoint's is on the CPU)
         direction = direction.to(rest.z.device)
     rollout_from = int(_sel(tc, "rollout_pairs", 0))
