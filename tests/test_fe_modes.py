@@ -524,6 +524,10 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
         errors = trajectory_error(displacement(pred), displacement(z), layout)
         assert float(own_scale.loss([(1, 0)], graph.copies(1))[0]) == pytest.approx(
             (S + 1) / S * sum(e ** 2 for e in errors.values()), rel=1e-9)
+        # train.rollout_weights: each group's term times its weight (here q, v, sigma: 0, 1, 3)
+        weighted = _RolloutPhase(model, [louder, fe], scale="trajectory", weights=(0.0, 1.0, 3.0))
+        assert float(weighted.loss([(1, 0)], graph.copies(1))[0]) == pytest.approx(
+            (S + 1) / S * (errors["v"] ** 2 + 3 * errors["sigma"] ** 2), rel=1e-9)
 
     net.load_state_dict(saved)                                 # a network that corrects something
     with torch.enable_grad():

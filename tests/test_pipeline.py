@@ -335,11 +335,17 @@ def test_linear_prior_ends_on_whole_trajectories(tmp_path, tiny_block):
     assert res.returncode != 0 and res.stderr.strip() == "error: train.whole_epochs = -1, expected >= 0", res.stderr
     from omegaconf import OmegaConf
 
+    from thermognn.core.errors import ConfigError
     from thermognn.train.hybrid import Phases, training_phases
 
     # a fine-tune (train.init) may go straight to the whole trajectories
     assert training_phases(OmegaConf.create({"epochs": 0, "rollout_epochs": 0, "whole_epochs": 2})) == \
         Phases(fit=0, rollout=0, whole=2, window=0, scale="data")
+    # train.rollout_weights: q, v, sigma in the rollout loss (default 1, 1, 1); refused in one line
+    assert training_phases(OmegaConf.create({"epochs": 1, "rollout_weights": [1, 1, 3]})).weights == (1.0, 1.0, 3.0)
+    for bad in ([1, 1], [1, -1, 1], [0, 0, 0], "sigma", [1, "x", 2]):
+        with pytest.raises(ConfigError, match=r"^train.rollout_weights = .*, expected three numbers >= 0"):
+            training_phases(OmegaConf.create({"epochs": 1, "rollout_weights": bad}))
 
 
 def test_linear_prior_of_first_order_trains_evaluates_and_exports(tmp_path, tiny_block):

@@ -529,8 +529,8 @@ class _RolloutPhase:
     Samples are (trajectory, first state)."""
 
     def __init__(self, model: LinearPriorModel, trajs, window: int = 0, scale: str = "data",
-                 recompute: bool = False) -> None:
-        self.model, self.trajs, self.recompute = model, trajs, recompute
+                 recompute: bool = False, weights: Tuple[float, float, float] = (1.0, 1.0, 1.0)) -> None:
+        self.model, self.trajs, self.recompute, self.weights = model, trajs, recompute, tuple(weights)
         Z = [t.z.double() for t in trajs]
         X = model.reference_positions
         self.Z = Z
@@ -569,8 +569,8 @@ class _RolloutPhase:
                 H = H - self.model.prior.stress_relaxation(u, h)     # begin's H is σ − Σ u (unpack of a start)
         pred = self.model.roll(u, v, a, G, H, h, forces, *mesh, W, True, r0, self.recompute)
         rows = torch.tensor([i for i, _ in chosen])
-        loss = sum(((pred[:, 1:, :, sl] - truth[:, 1:, :, sl]) / sc[rows].view(-1, 1, 1, 1)).pow(2).mean()
-                   for sl, sc in self.scales)
+        loss = sum(w * ((pred[:, 1:, :, sl] - truth[:, 1:, :, sl]) / sc[rows].view(-1, 1, 1, 1)).pow(2).mean()
+                   for w, (sl, sc) in zip(self.weights, self.scales))
         return loss, float(loss.detach()), 0.0
 
 
@@ -599,6 +599,7 @@ class Phases(NamedTuple):
     whole: int      #: train.whole_epochs: epochs on whole trajectories at a restarted rate
     window: int     #: train.rollout_window: steps per rollout window (0: whole rollouts)
     scale: str      #: train.rollout_scale: one of ROLLOUT_SCALES
+    weights: Tuple[float, float, float] = (1.0, 1.0, 1.0)   #: train.rollout_weights: q, v, σ in the rollout loss
 
 
 def training_phases(tc) -> Phases:
@@ -623,7 +624,26 @@ def training_phases(tc) -> Phases:
     scale = str(OmegaConf.select(tc, "rollout_scale", default="data"))
     if scale not in ROLLOUT_SCALES:
         raise ConfigError(f"train.rollout_scale = '{scale}', expected one of: {' | '.join(ROLLOUT_SCALES)}")
-    return Phases(fit, roll, whole, window, scale)
+    weights = rollout_weights(tc)
+    return Phases(fit, roll, whole, window, scale, weights)
+
+
+def rollout_weights(tc) -> Tuple[float, float, float]:
+    """``train.rollout_weights``: the weights of q, v and σ's terms in the rollout loss (each
+    group's mean squared error relative to its scale, ``train.rollout_scale``), three finite
+    numbers >= 0, not all 0, else a one-line ``ConfigError``. Default 1, 1, 1."""
+    raw = OmegaConf.select(tc, "rollout_weights", default=None)
+    if raw is None:
+        return (1.0, 1.0, 1.0)
+    shown = OmegaConf.to_container(raw) if OmegaConf.is_config(raw) else raw
+    try:
+        w = tuple(float(x) for x in shown)
+    except (TypeError, ValueError):
+        w = ()
+    if len(w) != 3 or not all(math.isfinite(x) and x >= 0 for x in w) or sum(w) == 0:
+        raise ConfigError(f"train.rollout_weights = {shown}, expected three numbers >= 0 for q, v, sigma "
+                          "(not all 0), e.g. [1, 1, 2]")
+    return w
 
 
 def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str, ckpt_path: Path,
@@ -659,7 +679,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     tc, ds = cfg.train, data.dataset
     dtype = torch_dtype(dtype_name)
     seed = int(_sel(cfg, "seed", 0))
-    fit_epochs, roll_epochs, whole_epochs, window, scale = phases
+    fit_epochs, roll_epochs, whole_epochs, window, scale, weights = phases
     roll_end = fit_epochs + roll_epochs
     epochs = roll_end + whole_epochs
     settings = prior_settings(cfg.model)
@@ -694,16 +714,17 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                 "rollout_lr_decay": float(_sel(tc, "rollout_lr_decay", 0.01)),
                 **({"rollout_window": window} if window else {}),
                 **({"rollout_scale": scale} if scale != "data" else {}),     # older runs resume
+                **({"rollout_weights": list(weights)} if weights != (1.0, 1.0, 1.0) else {}),
                 **({"whole_lr": float(_sel(tc, "whole_lr", 1e-4)), "whole_lr_decay": float(_sel(tc, "whole_lr_decay", 0.1))}
                    if whole_epochs else {})}
 
     fit = _FitPhase(model, train_trajs, G_true, H_true, float(_sel(tc, "noise", 0.1)),
                     float(_sel(tc, "lambda_data", 100.0)), float(_sel(tc, "lambda_degeneracy", 1.0)))
     recompute = bool(_sel(tc, "rollout_recompute", False))
-    rollouts = _RolloutPhase(model, train_trajs, window, scale, recompute)
+    rollouts = _RolloutPhase(model, train_trajs, window, scale, recompute, weights)
     # phase 3: whole trajectories; the rollout phase's own where its samples already are (no windows)
     whole = (rollouts if not whole_epochs or all(s == 0 for _, s in rollouts.samples)
-             else _RolloutPhase(model, train_trajs, 0, scale, recompute))
+             else _RolloutPhase(model, train_trajs, 0, scale, recompute, weights))
     batch_size = max(1, int(tc.batch_size))
     copies: Dict[int, object] = {}
 
