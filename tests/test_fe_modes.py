@@ -528,6 +528,17 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
         weighted = _RolloutPhase(model, [louder, fe], scale="trajectory", weights=(0.0, 1.0, 3.0))
         assert float(weighted.loss([(1, 0)], graph.copies(1))[0]) == pytest.approx(
             (S + 1) / S * (errors["v"] ** 2 + 3 * errors["sigma"] ** 2), rel=1e-9)
+        # train.stress_remainder_weight: plus that weight times the network's stress remainder H
+        # at the true states 1, 4, 7, ... (here zero) against the exact one, sigma - the prior's
+        # stress of the true displacement, relative to the trajectory's sigma scale
+        fitted = _RolloutPhase(model, [louder, fe], scale="trajectory", stress_weight=2.0, graph=graph)
+        total, rollout_part, _ = fitted.loss([(1, 0)], graph.copies(1))
+        assert rollout_part == pytest.approx(float(own_scale.loss([(1, 0)], graph.copies(1))[0]), rel=1e-12)
+        states = z[1::3].double()
+        exact = states[..., 6:12] - model.prior.stress(states[..., :3] - Xt)
+        assert float(exact.abs().max()) > 0
+        assert float(total) == pytest.approx(
+            rollout_part + 2.0 * float((exact / own_scale.scales[2][1][1]).pow(2).mean()), rel=1e-9)
 
     net.load_state_dict(saved)                                 # a network that corrects something
     with torch.enable_grad():

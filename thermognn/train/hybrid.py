@@ -519,6 +519,10 @@ class _FitPhase:
 #: train.rollout_scale values: what a rollout's error in each group is relative to
 ROLLOUT_SCALES = ("data", "trajectory")
 
+#: train.stress_remainder_weight's term takes every this-many-th true state of a window (steps 1,
+#: 4, 7, 10 of a 10-step window): one batched network call on that many mesh copies a batch
+STRESS_STRIDE = 3
+
 
 class _RolloutPhase:
     """Phase 2: rollouts from true states, back-propagated through the linear solves (whole
@@ -529,8 +533,12 @@ class _RolloutPhase:
     Samples are (trajectory, first state)."""
 
     def __init__(self, model: LinearPriorModel, trajs, window: int = 0, scale: str = "data",
-                 recompute: bool = False, weights: Tuple[float, float, float] = (1.0, 1.0, 1.0)) -> None:
+                 recompute: bool = False, weights: Tuple[float, float, float] = (1.0, 1.0, 1.0),
+                 stress_weight: float = 0.0, graph=None) -> None:
         self.model, self.trajs, self.recompute, self.weights = model, trajs, recompute, tuple(weights)
+        self.stress_weight, self.graph, self.copies = float(stress_weight), graph, {}
+        if self.stress_weight > 0 and graph is None:
+            raise ValueError("_RolloutPhase: stress_weight > 0 needs the mesh graph")
         Z = [t.z.double() for t in trajs]
         X = model.reference_positions
         self.Z = Z
@@ -549,7 +557,7 @@ class _RolloutPhase:
         mid_way = self.window < longest
         self.accelerations = [model.accelerations(z, t.force) for z, t in zip(Z, trajs)] if mid_way else []
         self.internal = ([model.trajectory_internal_variables(z) for z in Z]
-                         if mid_way and model.prior.n_terms else [])
+                         if (mid_way or self.stress_weight > 0) and model.prior.n_terms else [])
 
     def loss(self, chosen, g) -> Tuple[Tensor, float, float]:
         """Rollouts of ``window`` steps (fewer where a trajectory ends: a batch runs to its
@@ -571,7 +579,35 @@ class _RolloutPhase:
         rows = torch.tensor([i for i, _ in chosen])
         loss = sum(w * ((pred[:, 1:, :, sl] - truth[:, 1:, :, sl]) / sc[rows].view(-1, 1, 1, 1)).pow(2).mean()
                    for w, (sl, sc) in zip(self.weights, self.scales))
-        return loss, float(loss.detach()), 0.0
+        rollout_loss = float(loss.detach())
+        if self.stress_weight > 0:
+            loss = loss + self.stress_weight * self.stress_remainder_loss(chosen, truth, forces, rows, r0)
+        return loss, rollout_loss, 0.0
+
+    def stress_remainder_loss(self, chosen, truth: Tensor, forces: Tensor, rows: Tensor,
+                              rest_rates: Optional[Tensor]) -> Tensor:
+        """``train.stress_remainder_weight``'s term: the network's stress remainder H at true states
+        of the windows (every ``STRESS_STRIDE``-th from the first step) against the exact one,
+        H = σ − the prior's stress of the true displacement (``unpack``; relaxing: of its history
+        too), each relative to the trajectory's σ scale as the rollout's σ term. In the rollout
+        loss alone H is learned only through σ's error along the predicted path, where a change
+        of the displacement field can stand in for it (shell, session 45: the learned H was 3.5 %
+        of the exact one's size, the predicted displacements' strains 9 % off the data's); this
+        term gives H its own target. truth [k, W + 1, N, D], forces [k, W + 1, N, 3]."""
+        k, N, D = truth.shape[0], truth.shape[2], truth.shape[3]
+        states = truth[:, 1::STRESS_STRIDE]                                          # [k, s, N, D]
+        s = states.shape[1]
+        flat = states.reshape(k * s, N, D)                                           # [k s, N, D]
+        if k * s not in self.copies:
+            self.copies[k * s] = self.graph.copies(k * s)
+        g = self.copies[k * s]
+        _, H = self.model.remainders(flat, forces[:, 1::STRESS_STRIDE].reshape(k * s, N, 3), g.edge_index,
+                                     g.node_type, g.ref_pos, True, rest_rates)        # [k s, N, 6] Pa
+        h = (torch.stack([self.internal[i][first + 1::STRESS_STRIDE][:s] for i, first in chosen]).flatten(0, 1)
+             if self.internal else None)                                             # [k s, T, n + 6N]
+        exact = self.model.unpack(flat.to(torch.float64), h)[2]                      # [k s, N, 6] Pa
+        scale = self.scales[2][1][rows].repeat_interleave(s).view(-1, 1, 1)          # [k s, 1, 1] Pa
+        return ((H - exact) / scale).pow(2).mean()
 
 
 def _checkpointed_advance(model: LinearPriorModel, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
@@ -600,6 +636,7 @@ class Phases(NamedTuple):
     window: int     #: train.rollout_window: steps per rollout window (0: whole rollouts)
     scale: str      #: train.rollout_scale: one of ROLLOUT_SCALES
     weights: Tuple[float, float, float] = (1.0, 1.0, 1.0)   #: train.rollout_weights: q, v, σ in the rollout loss
+    stress_weight: float = 0.0   #: train.stress_remainder_weight: H against the exact one at true states
 
 
 def training_phases(tc) -> Phases:
@@ -625,7 +662,10 @@ def training_phases(tc) -> Phases:
     if scale not in ROLLOUT_SCALES:
         raise ConfigError(f"train.rollout_scale = '{scale}', expected one of: {' | '.join(ROLLOUT_SCALES)}")
     weights = rollout_weights(tc)
-    return Phases(fit, roll, whole, window, scale, weights)
+    stress_weight = float(OmegaConf.select(tc, "stress_remainder_weight", default=0.0) or 0.0)
+    if not (math.isfinite(stress_weight) and stress_weight >= 0):
+        raise ConfigError(f"train.stress_remainder_weight = {stress_weight}, expected a number >= 0 (0: off)")
+    return Phases(fit, roll, whole, window, scale, weights, stress_weight)
 
 
 def rollout_weights(tc) -> Tuple[float, float, float]:
@@ -679,7 +719,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     tc, ds = cfg.train, data.dataset
     dtype = torch_dtype(dtype_name)
     seed = int(_sel(cfg, "seed", 0))
-    fit_epochs, roll_epochs, whole_epochs, window, scale, weights = phases
+    fit_epochs, roll_epochs, whole_epochs, window, scale, weights, stress_weight = phases
     roll_end = fit_epochs + roll_epochs
     epochs = roll_end + whole_epochs
     settings = prior_settings(cfg.model)
@@ -715,16 +755,17 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                 **({"rollout_window": window} if window else {}),
                 **({"rollout_scale": scale} if scale != "data" else {}),     # older runs resume
                 **({"rollout_weights": list(weights)} if weights != (1.0, 1.0, 1.0) else {}),
+                **({"stress_remainder_weight": stress_weight} if stress_weight else {}),
                 **({"whole_lr": float(_sel(tc, "whole_lr", 1e-4)), "whole_lr_decay": float(_sel(tc, "whole_lr_decay", 0.1))}
                    if whole_epochs else {})}
 
     fit = _FitPhase(model, train_trajs, G_true, H_true, float(_sel(tc, "noise", 0.1)),
                     float(_sel(tc, "lambda_data", 100.0)), float(_sel(tc, "lambda_degeneracy", 1.0)))
     recompute = bool(_sel(tc, "rollout_recompute", False))
-    rollouts = _RolloutPhase(model, train_trajs, window, scale, recompute, weights)
+    rollouts = _RolloutPhase(model, train_trajs, window, scale, recompute, weights, stress_weight, graph)
     # phase 3: whole trajectories; the rollout phase's own where its samples already are (no windows)
     whole = (rollouts if not whole_epochs or all(s == 0 for _, s in rollouts.samples)
-             else _RolloutPhase(model, train_trajs, 0, scale, recompute, weights))
+             else _RolloutPhase(model, train_trajs, 0, scale, recompute, weights, stress_weight, graph))
     batch_size = max(1, int(tc.batch_size))
     copies: Dict[int, object] = {}
 
