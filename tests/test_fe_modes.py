@@ -539,6 +539,14 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
         assert float(exact.abs().max()) > 0
         assert float(total) == pytest.approx(
             rollout_part + 2.0 * float((exact / own_scale.scales[2][1][1]).pow(2).mean()), rel=1e-9)
+        # evaluate's stress split: the linearised model's rollout has no H (its sigma is the prior's
+        # stress of its displacement); the data against itself has the exact H and no gap
+        from thermognn.train.evaluation import stress_split
+        alone = stress_split(model, [lin], [fe])
+        assert alone["learned_H"] < 1e-9 and alone["exact_H"] > 0 and alone["prior_stress_gap"] > 0
+        itself = stress_split(model, [z], [fe])
+        assert itself["learned_H"] == pytest.approx(1.0, rel=1e-12) and itself["prior_stress_gap"] < 1e-12
+        assert itself["exact_H"] == pytest.approx(alone["exact_H"], rel=1e-12)
 
     net.load_state_dict(saved)                                 # a network that corrects something
     with torch.enable_grad():

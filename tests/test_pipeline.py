@@ -389,8 +389,14 @@ def test_corotated_prior_through_train_evaluate_and_export(tmp_path, tiny_block)
     from thermognn.train.checkpoint import load_checkpoint
 
     res = _train_prior(tmp_path, tiny_block, "model.prior_corotated=true", "model.prior_rotation_sweeps=2",
-                       "train.epochs=0", "train.rollout_epochs=1", "train.rollout_window=3")
+                       "train.epochs=0", "train.rollout_epochs=1", "train.rollout_window=3",
+                       "train.stress_remainder_weight=1")
     assert "the corotated FE model's" in res.stdout and "the linearised FE model's validation error" in res.stdout
+    import csv
+
+    with open(tmp_path / "metrics.csv") as fh:        # the loss holds the stress remainder's term beside the rollout's
+        row = list(csv.DictReader(fh))[-1]
+    assert float(row["loss"]) > float(row["data_loss"]) > 0, row
     assert load_checkpoint(tmp_path / "model.ckpt")["prior"]["corotated"] == 2
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "evaluate", f"out={tmp_path}",
                           f"paths.dataset={tiny_block}", "train.eval_max_train=1"],
@@ -400,7 +406,12 @@ def test_corotated_prior_through_train_evaluate_and_export(tmp_path, tiny_block)
     for g in ("q", "v", "sigma"):
         assert 0 < errors[f"corotated_fe_whole_{g}"] < 1 and math.isfinite(errors[f"whole_{g}"]), g
     assert errors["corotated_fe_sweeps"] >= 1 and errors["corotated_fe_ms_per_step"] > 0
+    # where sigma comes from: the learned remainder's size against the exact one's, and the prior's
+    # stress of the predicted displacement against that of the true one
+    assert errors["stress_learned_H"] > 0 and 0 < errors["stress_exact_H"] < 1 and errors["stress_prior_stress_gap"] > 0
+    assert "sigma's learned remainder H is" in res.stdout
     summary = (tmp_path / "eval" / "summary.md").read_text()
+    assert "Where σ comes from" in summary
     assert "| corotated FE, test |" in summary and "corotated solid (2 rotation sweeps)" in summary
     assert "; the corotated FE model's: q " in res.stdout                     # its prior's own one step
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={tmp_path}",

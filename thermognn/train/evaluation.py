@@ -192,6 +192,30 @@ def _mean_groups(per_traj: list[dict[str, float]], groups: list[str]) -> dict[st
     return out
 
 
+def stress_split(model: LinearPriorModel, preds: list[torch.Tensor], trajs: list[TrajectoryTensors]) -> dict[str, float]:
+    """Where a ``model.prior=linear`` model's σ comes from, pooled over the rollouts ``preds``
+    [S, N, D] of ``trajs``: σ = the prior's stress of the displacement (and, relaxing, of its
+    history) + the learned remainder H. {"learned_H": ||H_pred|| / ||H_exact|| (the learned
+    remainder's size along the predicted path relative to the exact one's along the data;
+    near 0: H is not learned), "exact_H": ||H_exact|| / ||σ|| (what the prior alone leaves of σ
+    at the true displacement), "prior_stress_gap": ||σ_prior(u_pred) − σ_prior(u_true)|| / ||σ||
+    (what the displacement's error costs σ through the prior; above the model's σ error, the
+    predicted displacement stands in for part of H)}, over the steps s >= 1."""
+    sums = torch.zeros(4, dtype=torch.float64)         # ||H_pred||², ||H_exact||², gap², ||σ||²
+    for pred, t in zip(preds, trajs):
+        parts = []
+        for z in (pred.double(), t.z.double()):
+            h = model.trajectory_internal_variables(z) if model.prior.n_terms else None
+            H = model.unpack(z, h)[2]                                               # [S, N, 6] Pa
+            parts.append((H[1:], z[1:, :, 6:12] - H[1:]))                           # H, the prior's σ
+        (Hp, prior_p), (Ht, prior_t) = parts
+        sums += torch.stack([Hp.pow(2).sum(), Ht.pow(2).sum(), (prior_p - prior_t).pow(2).sum(),
+                             t.z[1:, :, 6:12].double().pow(2).sum()])
+    learned, exact, gap, sigma = sums.sqrt().tolist()
+    ratio = lambda a, b: a / b if b > 0 else math.nan  # noqa: E731
+    return {"learned_H": ratio(learned, exact), "exact_H": ratio(exact, sigma), "prior_stress_gap": ratio(gap, sigma)}
+
+
 #: evaluate tabulates the test errors by peak load when the test trajectories have from 2 to this
 #: many distinct ones (a dataset generated with a list of magnitudes); random loads are not grouped
 MAX_LOAD_GROUPS = 8
@@ -442,6 +466,7 @@ def evaluate(cfg) -> dict:
     linear = linear_baseline(data, test)
     linear_train = linear_baseline(data, train_trajs) if "snapshot" in linear else {}
     corotated = linear_baseline(data, test, corotated=True)
+    split = stress_split(model, preds, test) if prior and "sigma" in groups else {}
     left = {}                      # the share of the linear model's error the model leaves, test and train
     if "snapshot" in linear and "snapshot" in linear_train:
         left = {"test": error_left(whole_traj, linear["whole_per_trajectory"], groups),
@@ -607,6 +632,7 @@ def evaluate(cfg) -> dict:
         mean_test["corotated_fe_ms_per_step"] = corotated["ms_per_step"]
         mean_test["corotated_fe_sweeps"] = corotated["sweeps"]
         rows["corotated FE, test"] = corotated["snapshot"]
+    mean_test.update({f"stress_{k}": v for k, v in split.items()})
     if left:
         mean_test.update({f"linear_fe_left_{g}": left["test"][g] for g in groups})
         mean_test.update({f"linear_fe_left_train_{g}": left["train"][g] for g in groups})
@@ -624,6 +650,10 @@ def evaluate(cfg) -> dict:
         print("evaluate: of the linearised FE model's whole-rollout error the model leaves (mean ratio per "
               "trajectory) " + "; ".join(f"{part} " + ", ".join(f"{g} {_fmt(left[part][g])}" for g in groups)
                                          for part in ("train", "test")))
+    if split:
+        print(f"evaluate: sigma's learned remainder H is {_fmt(split['learned_H'])} of the exact one's size "
+              f"(which is {_fmt(split['exact_H'])} of sigma); the prior's stress of the predicted displacement "
+              f"is {_fmt(split['prior_stress_gap'])} of sigma off its stress of the true one (test)")
     for label, base in (("linearised", linear), ("corotated", corotated)):
         if "whole" in base:
             print(f"evaluate: the {label} FE model's whole-rollout test error "
@@ -704,6 +734,15 @@ def evaluate(cfg) -> dict:
                 f"| train ({len(train_trajs)}) | " + " | ".join(_fmt(left["train"][g]) for g in groups) + " |",
                 f"| test ({len(test)}) | " + " | ".join(_fmt(left["test"][g]) for g in groups) + " |", ""]
                if left else []),
+             *([f"Where σ comes from (test rollouts, all steps and nodes pooled; `stress_*` in `rrmse.json`): "
+                f"σ = the {prior_name} prior's stress of the displacement + the learned remainder H. The learned "
+                f"H along the predicted path is {_fmt(split['learned_H'])} of the size of the exact H along the "
+                f"data (which is {_fmt(split['exact_H'])} of σ: what the prior alone misses at the true "
+                f"displacement); the prior's stress of the predicted displacement is "
+                f"{_fmt(split['prior_stress_gap'])} of σ off its stress of the true one. A learned H far below "
+                "the exact one with a gap above the model's whole σ error means the displacement stands in "
+                "for H (its strains bent to fit σ): `train.stress_remainder_weight` gives H its own target.", ""]
+               if split else []),
              "One step from every true state z[s] (the model's own step), error of its change "
              "||dz_pred - dz_gt|| / ||dz_gt|| over all steps and nodes, dz = z[s+1] - z[s]: what "
              "the network has learned, apart from any drift of its rollouts (near 1: the step is "
