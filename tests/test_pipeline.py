@@ -347,8 +347,9 @@ def test_linear_prior_ends_on_whole_trajectories(tmp_path, tiny_block):
         with pytest.raises(ConfigError, match=r"^train.rollout_weights = .*, expected three numbers >= 0"):
             training_phases(OmegaConf.create({"epochs": 1, "rollout_weights": bad}))
     assert training_phases(OmegaConf.create({"epochs": 1, "stress_remainder_weight": 0.5})).stress_weight == 0.5
-    with pytest.raises(ConfigError, match=r"^train.stress_remainder_weight = -1.0, expected a number >= 0"):
-        training_phases(OmegaConf.create({"epochs": 1, "stress_remainder_weight": -1}))
+    for bad in (-1, "much"):
+        with pytest.raises(ConfigError, match=rf"^train.stress_remainder_weight = {bad}, expected a number >= 0"):
+            training_phases(OmegaConf.create({"epochs": 1, "stress_remainder_weight": bad}))
 
 
 def test_linear_prior_of_first_order_trains_evaluates_and_exports(tmp_path, tiny_block):

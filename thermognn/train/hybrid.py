@@ -591,7 +591,7 @@ class _RolloutPhase:
         H = σ − the prior's stress of the true displacement (``unpack``; relaxing: of its history
         too), each relative to the trajectory's σ scale as the rollout's σ term. In the rollout
         loss alone H is learned only through σ's error along the predicted path, where a change
-        of the displacement field can stand in for it (shell, session 45: the learned H was 3.5 %
+        of the displacement field can stand in for it (shell, session 45: the learned H was 3.4 %
         of the exact one's size, the predicted displacements' strains 9 % off the data's); this
         term gives H its own target. truth [k, W + 1, N, D], forces [k, W + 1, N, 3]."""
         k, N, D = truth.shape[0], truth.shape[2], truth.shape[3]
@@ -662,9 +662,13 @@ def training_phases(tc) -> Phases:
     if scale not in ROLLOUT_SCALES:
         raise ConfigError(f"train.rollout_scale = '{scale}', expected one of: {' | '.join(ROLLOUT_SCALES)}")
     weights = rollout_weights(tc)
-    stress_weight = float(OmegaConf.select(tc, "stress_remainder_weight", default=0.0) or 0.0)
+    raw = OmegaConf.select(tc, "stress_remainder_weight", default=0.0)
+    try:
+        stress_weight = float(raw or 0.0)
+    except (TypeError, ValueError):
+        stress_weight = math.nan
     if not (math.isfinite(stress_weight) and stress_weight >= 0):
-        raise ConfigError(f"train.stress_remainder_weight = {stress_weight}, expected a number >= 0 (0: off)")
+        raise ConfigError(f"train.stress_remainder_weight = {raw}, expected a number >= 0 (0: off)")
     return Phases(fit, roll, whole, window, scale, weights, stress_weight)
 
 
