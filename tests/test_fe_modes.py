@@ -531,7 +531,7 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
         # train.stress_remainder_weight: plus that weight times the network's stress remainder H
         # at the true states 1, 4, 7, ... (here zero) against the exact one, sigma - the prior's
         # stress of the true displacement, relative to the trajectory's sigma scale
-        fitted = _RolloutPhase(model, [louder, fe], scale="trajectory", stress_weight=2.0, graph=graph)
+        fitted = _RolloutPhase(model, [louder, fe], scale="trajectory", stress_weight=2.0, mesh=graph.copies)
         total, rollout_part, _ = fitted.loss([(1, 0)], graph.copies(1))
         assert rollout_part == pytest.approx(float(own_scale.loss([(1, 0)], graph.copies(1))[0]), rel=1e-12)
         states = z[1::3].double()

@@ -534,11 +534,11 @@ class _RolloutPhase:
 
     def __init__(self, model: LinearPriorModel, trajs, window: int = 0, scale: str = "data",
                  recompute: bool = False, weights: Tuple[float, float, float] = (1.0, 1.0, 1.0),
-                 stress_weight: float = 0.0, graph=None) -> None:
+                 stress_weight: float = 0.0, mesh=None) -> None:
         self.model, self.trajs, self.recompute, self.weights = model, trajs, recompute, tuple(weights)
-        self.stress_weight, self.graph, self.copies = float(stress_weight), graph, {}
-        if self.stress_weight > 0 and graph is None:
-            raise ValueError("_RolloutPhase: stress_weight > 0 needs the mesh graph")
+        self.stress_weight, self.mesh = float(stress_weight), mesh     # mesh(k): k copies of the mesh graph
+        if self.stress_weight > 0 and mesh is None:
+            raise ValueError("_RolloutPhase: stress_weight > 0 needs the mesh copies (mesh)")
         Z = [t.z.double() for t in trajs]
         X = model.reference_positions
         self.Z = Z
@@ -598,9 +598,7 @@ class _RolloutPhase:
         states = truth[:, 1::STRESS_STRIDE]                                          # [k, s, N, D]
         s = states.shape[1]
         flat = states.reshape(k * s, N, D)                                           # [k s, N, D]
-        if k * s not in self.copies:
-            self.copies[k * s] = self.graph.copies(k * s)
-        g = self.copies[k * s]
+        g = self.mesh(k * s)
         _, H = self.model.remainders(flat, forces[:, 1::STRESS_STRIDE].reshape(k * s, N, 3), g.edge_index,
                                      g.node_type, g.ref_pos, True, rest_rates)        # [k s, N, 6] Pa
         h = (torch.stack([self.internal[i][first + 1::STRESS_STRIDE][:s] for i, first in chosen]).flatten(0, 1)
@@ -765,12 +763,6 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
 
     fit = _FitPhase(model, train_trajs, G_true, H_true, float(_sel(tc, "noise", 0.1)),
                     float(_sel(tc, "lambda_data", 100.0)), float(_sel(tc, "lambda_degeneracy", 1.0)))
-    recompute = bool(_sel(tc, "rollout_recompute", False))
-    rollouts = _RolloutPhase(model, train_trajs, window, scale, recompute, weights, stress_weight, graph)
-    # phase 3: whole trajectories; the rollout phase's own where its samples already are (no windows)
-    whole = (rollouts if not whole_epochs or all(s == 0 for _, s in rollouts.samples)
-             else _RolloutPhase(model, train_trajs, 0, scale, recompute, weights, stress_weight, graph))
-    batch_size = max(1, int(tc.batch_size))
     copies: Dict[int, object] = {}
 
     def mesh(k: int):
@@ -778,6 +770,13 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
         if k not in copies:
             copies[k] = graph.copies(k)
         return copies[k]
+
+    recompute = bool(_sel(tc, "rollout_recompute", False))
+    rollouts = _RolloutPhase(model, train_trajs, window, scale, recompute, weights, stress_weight, mesh)
+    # phase 3: whole trajectories; the rollout phase's own where its samples already are (no windows)
+    whole = (rollouts if not whole_epochs or all(s == 0 for _, s in rollouts.samples)
+             else _RolloutPhase(model, train_trajs, 0, scale, recompute, weights, stress_weight, mesh))
+    batch_size = max(1, int(tc.batch_size))
 
     def optimizer(epoch: int) -> torch.optim.Adam:
         lr = (float(tc.lr) if epoch < fit_epochs else identity["rollout_lr"] if epoch < roll_end
