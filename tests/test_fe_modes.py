@@ -835,3 +835,42 @@ def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders
         loss = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, 3, True)[0, -1, :, 3:6].square().sum()
         loss.backward()
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in net.parameters() if p.requires_grad)
+
+
+def test_material_stress_prior_is_the_neo_hookean_law_and_the_fe_stress_exactly():
+    """``model.prior_stress=material``: :func:`neo_hookean_cauchy` against closed forms (rest,
+    uniform dilation, simple shear) and smooth at F = I; a corotated prior taking its stress from
+    the bent block's own neo-Hookean law leaves no stress remainder of the FE data (H to round-off,
+    where the corotated linear stress leaves some), and with the force remainder G alone its
+    rollout is the FE trajectory, σ included."""
+    torch = pytest.importorskip("torch")
+    from thermognn.train.prior import CorotatedNewmarkPrior, neo_hookean_cauchy
+
+    c10, d1 = 1.0e4, 1.0e-5                                            # _bent_block's material
+    eye = torch.eye(3, dtype=torch.float64)
+    assert float(neo_hookean_cauchy(eye, c10, d1).abs().max()) == 0.0
+    s = 1.01                                                           # dilation: pressure 2 (J - 1) / D1
+    assert torch.allclose(neo_hookean_cauchy(s * eye, c10, d1), 2.0 / d1 * (s**3 - 1.0) * eye, rtol=1e-12)
+    g = 0.3                                                            # simple shear x += g y: J = 1, σ = 2 C10 dev(B)
+    F = eye.clone()
+    F[0, 1] = g
+    expected = 2.0 * c10 * torch.tensor([[2 * g**2 / 3, g, 0.0], [g, -g**2 / 3, 0.0], [0.0, 0.0, -g**2 / 3]],
+                                        dtype=torch.float64)
+    assert torch.allclose(neo_hookean_cauchy(F, c10, d1), expected, rtol=1e-12, atol=1e-9)
+    rest = eye.unsqueeze(0).clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda A: neo_hookean_cauchy(A, c10, d1), (rest,))
+
+    layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph()
+    mu, kappa = linear.shear_modulus, linear.bulk_modulus
+    tets = _bent_block(1.0, "newmark")[0].cells[:, :4]
+    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
+    u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
+    linear_stress = CorotatedNewmarkPrior(linear, len(X), dt, X, tets, kappa - 2 * mu / 3, mu, sweeps=8)
+    law = CorotatedNewmarkPrior(linear, len(X), dt, X, tets, kappa - 2 * mu / 3, mu, sweeps=8,
+                                neo_hookean=(c10, d1))
+    G, H = law.remainders(u, v, sigma, f)
+    G_lin, H_lin = linear_stress.remainders(u, v, sigma, f)
+    assert rel(G, G_lin) == 0.0                                        # the force is the corotated one still
+    assert float(H.norm()) < 1e-10 * float(sigma.norm()) < float(H_lin.norm())
+    U, V, Sig = _prior_rollout(law, u, v, f, G, None)                 # no H: σ from the law of U
+    assert rel(U, u) < 1e-8 and rel(V, v) < 1e-7 and rel(Sig, sigma) < 1e-8

@@ -123,6 +123,11 @@ def test_demo_with_the_relaxing_linear_prior(tmp_path):
                                                                 "prony_stress_1"]
     summary = json.loads((tmp_path / "serve_summary.json").read_text())
     assert summary["max_force_N"] > 0.0 and summary["final_force_N"] == 0.0
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'm'}",
+                          f"paths.dataset={tmp_path / 'dataset.h5'}", "model=linear_prior", "model.prior_corotated=true",
+                          "model.prior_stress=material"], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 2 and "material is viscous (Prony terms)" in res.stderr.strip().splitlines()[-1], \
+        res.stderr[-2000:]
 
 
 @pytest.fixture(scope="module")
@@ -423,3 +428,25 @@ def test_corotated_prior_through_train_evaluate_and_export(tmp_path, tiny_block)
                           f"paths.dataset={tiny_block}", "model=linear_prior", "model.prior_corotated=true",
                           "model.prior_relax=true"], capture_output=True, text=True, timeout=600)
     assert res.returncode == 2 and "does not relax yet" in res.stderr.strip().splitlines()[-1], res.stderr[-2000:]
+
+    # model.prior_stress=material: warm-started from the model above (the law holds no weights), its
+    # prior's stress is the block's neo-Hookean law, which leaves no stress remainder of the data
+    _train_prior(tmp_path / "m", tiny_block, "model.prior_corotated=true", "model.prior_rotation_sweeps=2",
+                 "model.prior_stress=material", f"train.init={tmp_path / 'model.ckpt'}", "train.epochs=0",
+                 "train.rollout_epochs=1", "train.rollout_window=3")
+    assert load_checkpoint(tmp_path / "m" / "model.ckpt")["prior"]["stress"] == "material"
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "evaluate", f"out={tmp_path / 'm'}",
+                          f"paths.dataset={tiny_block}", "train.eval_max_train=1"],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    errors = json.loads((tmp_path / "m" / "eval" / "rrmse.json").read_text())
+    assert errors["stress_exact_H"] < 1e-9 and math.isnan(errors["stress_learned_H"])
+    assert errors["stress_learned_H_of_sigma"] > 0 and math.isfinite(errors["whole_sigma"])
+    assert "the prior's stress is the data's own law" in res.stdout
+    assert "the material law's stress" in (tmp_path / "m" / "eval" / "summary.md").read_text()
+    for bad, said in (("model.prior_stress=cauchy", "model.prior_stress = 'cauchy', expected linear | material"),
+                      ("model.prior_stress=material", "model.prior_stress = material needs model.prior_corotated")):
+        res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'r'}",
+                              f"paths.dataset={tiny_block}", "model=linear_prior", bad],
+                             capture_output=True, text=True, timeout=600)
+        assert res.returncode == 2 and said in res.stderr.strip().splitlines()[-1], res.stderr[-2000:]

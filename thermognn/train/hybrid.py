@@ -386,6 +386,13 @@ def prior_settings(cfg_model) -> dict:
     if corotated and relax:
         raise ConfigError("model.prior_corotated = true with model.prior_relax = true: the corotated prior does "
                           "not relax yet (set model.prior_relax=false: the remainders take the relaxation)")
+    stress = str(OmegaConf.select(cfg_model, "prior_stress", default="linear"))
+    if stress not in ("linear", "material"):
+        raise ConfigError(f"model.prior_stress = '{stress}', expected linear | material (the prior's stress: the "
+                          f"linear one, or the dataset's material law of each cell's deformation)")
+    if stress == "material" and not corotated:
+        raise ConfigError("model.prior_stress = material needs model.prior_corotated = true (the law is applied "
+                          "per P1 cell, as the corotated prior measures its cells)")
     settings = {"kind": "linear", "sweeps": sweeps, "positions_only": inputs == "positions"}
     if order != 1:
         settings["order"] = int(order)
@@ -393,13 +400,34 @@ def prior_settings(cfg_model) -> dict:
         settings["relax"] = True
     if corotated:                                 # the corotated step's fixed-point sweeps
         settings["corotated"] = int(rotation_sweeps)
+    if stress == "material":
+        settings["stress"] = "material"
     return settings
 
 
-def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0) -> NewmarkPrior:
+def neo_hookean_of(ds) -> Tuple[float, float]:
+    """(C10 [Pa], D1 [1/Pa]) of the dataset's material (``scene.material`` of the config it was
+    generated with) for ``model.prior_stress = material``; one-line errors where the law is another
+    or the solid is viscous (its stress then has a history the law alone does not give)."""
+    try:
+        mat = OmegaConf.create(ds.config_yaml).scene.material
+        law = str(mat.law)
+    except Exception:
+        raise DataError(f"{ds.path}: no scene.material in the dataset's config (model.prior_stress = material)") from None
+    if law != "neo_hookean":
+        raise ConfigError(f"model.prior_stress = material: {ds.path} is of material law '{law}', expected "
+                          f"neo_hookean (the one law the prior applies yet)")
+    if list(OmegaConf.select(mat, "prony", default=None) or []):
+        raise ConfigError(f"model.prior_stress = material: {ds.path}'s material is viscous (Prony terms), expected "
+                          f"an elastic one (its stress has a history the law alone does not give)")
+    return float(mat.C10), float(mat.D1)
+
+
+def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material: bool = False) -> NewmarkPrior:
     """The dataset's ``/linear`` as a NewmarkPrior (float64), relaxing as its viscous solid does
     with ``relax``, or corotated per cell with ``corotated`` > 0 fixed-point sweeps a step
-    (:class:`CorotatedNewmarkPrior`); one-line errors where it cannot be."""
+    (:class:`CorotatedNewmarkPrior`), its stress the material's law with ``material``; one-line
+    errors where it cannot be."""
     names = list(ds.layout.names)
     if names != LAYOUT:
         raise ConfigError(f"model.prior = linear: {ds.path} has state variables {names}, expected {LAYOUT} "
@@ -420,7 +448,7 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0) -> Newma
             if tets.ndim != 2 or tets.shape[1] != 4 or len(tets) == 0:
                 raise ValueError("the corotated prior needs P1 tets in /mesh/tets")
             return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
-                                         sweeps=int(corotated))
+                                         sweeps=int(corotated), neo_hookean=neo_hookean_of(ds) if material else None)
         return NewmarkPrior(linear, len(ds.mesh.nodes), float(dt), relax=relax)
     except ValueError as exc:
         raise ConfigError(f"model.prior = linear: {ds.path}: {exc}") from None
@@ -430,7 +458,8 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
     """The LinearPriorModel of a network, the checkpoint's ``prior`` settings and the dataset."""
     X = torch.as_tensor(ds.mesh.nodes, dtype=torch.float64)
     return LinearPriorModel(net, build_prior(ds, dt, bool(settings.get("relax", False)),
-                                             int(settings.get("corotated", 0))), X,
+                                             int(settings.get("corotated", 0)),
+                                             settings.get("stress", "linear") == "material"), X,
                             bool(settings.get("positions_only", True)),
                             int(settings.get("sweeps", 1)), int(settings.get("order", 1)))
 
@@ -738,10 +767,12 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
         for p in [*net.decoder.net[-1].parameters(), *net.port.parameters(),
                   *(p for dec in net.edge_decoders for p in dec.net[-1].parameters())]:
             p.mul_(START_SCALE)
-    if _sel(tc, "init", None):                   # warm start from a checkpoint of the same model
+    if _sel(tc, "init", None):                   # warm start from a checkpoint of the same model (its prior's
+        #                                              stress law may differ: it holds no weights)
         src = load_checkpoint(project_path(str(tc.init)))
         grown = grown_blocks(src.get("hparams") or {}, hparams)   # or this model with more processor blocks
-        if src.get("prior") != settings or (src.get("hparams") or {}) | (
+        weights_of = lambda prior: {k: v for k, v in (prior or {}).items() if k != "stress"}  # noqa: E731
+        if weights_of(src.get("prior")) != weights_of(settings) or (src.get("hparams") or {}) | (
                 {"message_passing": hparams["message_passing"]} if grown else {}) != hparams:
             raise ConfigError(f"train.init = '{tc.init}': not a model.prior=linear checkpoint of this model "
                               "(or of it with fewer processor blocks)")

@@ -316,10 +316,16 @@ class CorotatedNewmarkPrior(NewmarkPrior):
     (no Prony relaxation: a viscous solid's is left to the remainders).
 
     X [N, 3] m, tets [T, 4], Lamé λ, μ [Pa] at rest; the operators of ``linear`` as
-    :class:`NewmarkPrior` takes them (its K is the assembled K_e; its Σ is not used)."""
+    :class:`NewmarkPrior` takes them (its K is the assembled K_e; its Σ is not used).
+
+    ``neo_hookean`` (C10 [Pa], D1 [1/Pa]; ``model.prior_stress=material``): the stress is the
+    material's own law of each cell's F (:func:`neo_hookean_cauchy`) instead of the corotated
+    linear stress, so that H = σ − σ(u) vanishes for the FE's data (the FE's P1 stress is that
+    law, volume-averaged at the nodes) and the σ of a rollout is wrong only where its strains are."""
 
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
-                 lam: float, mu: float, sweeps: int = 3, dtype: torch.dtype = torch.float64) -> None:
+                 lam: float, mu: float, sweeps: int = 3, dtype: torch.dtype = torch.float64,
+                 neo_hookean: Optional[Tuple[float, float]] = None) -> None:
         super().__init__(linear, n_nodes, dt, dtype, step_matrix=False)      # its step solves anew
         from thermognn.core.corotated import element_stiffness
         from thermognn.core.kinematics import shape_gradients
@@ -350,6 +356,8 @@ class CorotatedNewmarkPrior(NewmarkPrior):
         for name, value in buffers.items():
             self.register_buffer(name, value, persistent=False)
         self.lam, self.mu, self.sweeps = float(lam), float(mu), int(sweeps)
+        self.material_stress = neo_hookean is not None
+        self.c10, self.d1 = (float(neo_hookean[0]), float(neo_hookean[1])) if neo_hookean is not None else (0.0, 0.0)
 
     # --- per cell -------------------------------------------------------------------------------
     def positions(self, u: Tensor) -> Tensor:
@@ -420,20 +428,38 @@ class CorotatedNewmarkPrior(NewmarkPrior):
         return u1, v1, a1, h0
 
     def stress(self, u: Tensor, H: Optional[Tensor] = None) -> Tensor:
-        """Nodal Cauchy stress σ_corot + H [B, N, 6] Pa (Voigt 11 22 33 12 13 23) of the nodal
-        displacements u [B, N, 3] m: per cell R (λ tr ε̃ I + 2 μ ε̃) Rᵀ, ε̃ = sym(Rᵀ F) − I (the
-        stress the corotated force balances), volume-averaged at the nodes as the dataset's."""
+        """Nodal Cauchy stress σ_cell + H [B, N, 6] Pa (Voigt 11 22 33 12 13 23) of the nodal
+        displacements u [B, N, 3] m, volume-averaged at the nodes as the dataset's. σ_cell: the
+        corotated linear stress R (λ tr ε̃ I + 2 μ ε̃) Rᵀ, ε̃ = sym(Rᵀ F) − I (the stress the corotated
+        force balances), or with ``neo_hookean`` the material's law of F."""
         B = u.shape[0]
-        R, F = self.rotations(self.reference.unsqueeze(0) + u)
-        local = R.transpose(-1, -2) @ F
-        eye = torch.eye(3, dtype=u.dtype, device=u.device)
-        eps = 0.5 * (local + local.transpose(-1, -2)) - eye
-        tr = eps.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
-        sig = R @ (self.lam * tr * eye + 2.0 * self.mu * eps) @ R.transpose(-1, -2)        # [B, T, 3, 3]
+        x = self.reference.unsqueeze(0) + u
+        if self.material_stress:
+            F = torch.einsum("btai,taj->btij", x[:, self.cell_nodes], self.shape_grad)       # [B, T, 3, 3]
+            sig = neo_hookean_cauchy(F, self.c10, self.d1)
+        else:
+            R, F = self.rotations(x)
+            local = R.transpose(-1, -2) @ F
+            eye = torch.eye(3, dtype=u.dtype, device=u.device)
+            eps = 0.5 * (local + local.transpose(-1, -2)) - eye
+            tr = eps.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
+            sig = R @ (self.lam * tr * eye + 2.0 * self.mu * eps) @ R.transpose(-1, -2)    # [B, T, 3, 3]
         voigt = torch.stack([sig[..., 0, 0], sig[..., 1, 1], sig[..., 2, 2], sig[..., 0, 1], sig[..., 0, 2],
                              sig[..., 1, 2]], -1) * self.cell_volume.view(1, -1, 1)          # [B, T, 6]
         T = voigt.shape[1]
         nodal = voigt.new_zeros(B, self.n_nodes, 6).index_add(
             1, self.cell_nodes.reshape(-1), voigt.unsqueeze(2).expand(B, T, 4, 6).reshape(B, 4 * T, 6))
-        corot = nodal / self.node_weight.view(1, -1, 1)
-        return corot if H is None else corot + H
+        cell = nodal / self.node_weight.view(1, -1, 1)
+        return cell if H is None else cell + H
+
+
+def neo_hookean_cauchy(F: Tensor, c10: float, d1: float) -> Tensor:
+    """Cauchy stress σ [..., 3, 3] Pa of the neo-Hookean law Ψ = C10 (Ī1 − 3) + (J − 1)² / D1
+    (``thermognn/generate/materials.py``; C10 [Pa], D1 [1/Pa]) at deformation gradients F [..., 3, 3]:
+    σ = 2 C10 / J dev(B̄) + 2 / D1 (J − 1) I, B̄ = J^(−2/3) F Fᵀ. Smooth at F = I (autograd of
+    any order); J ≤ 0 (an inverted cell) gives NaN, which the step refuses."""
+    J = torch.linalg.det(F)[..., None, None]                                           # [..., 1, 1]
+    Bbar = J.pow(-2.0 / 3.0) * (F @ F.transpose(-1, -2))
+    eye = torch.eye(3, dtype=F.dtype, device=F.device)
+    dev = Bbar - Bbar.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None] / 3.0 * eye
+    return 2.0 * c10 / J * dev + 2.0 / d1 * (J - 1.0) * eye
