@@ -444,6 +444,10 @@ def test_corotated_prior_through_train_evaluate_and_export(tmp_path, tiny_block)
     assert errors["stress_learned_H_of_sigma"] > 0 and math.isfinite(errors["whole_sigma"])
     assert "the prior's stress is the data's own law" in res.stdout
     assert "the material law's stress" in (tmp_path / "m" / "eval" / "summary.md").read_text()
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={tmp_path / 'm'}",
+                          f"paths.dataset={tiny_block}"], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    assert "its stress the material's law" in describe_step(verify(tmp_path / "m" / "model.pt")["step"])
     for bad, said in (("model.prior_stress=cauchy", "model.prior_stress = 'cauchy', expected linear | material"),
                       ("model.prior_stress=material", "model.prior_stress = material needs model.prior_corotated")):
         res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'r'}",

@@ -97,7 +97,7 @@ def describe_step(step) -> str:
         calls = int(step.get("sweeps", 1))
         second = int(step.get("order", 1)) == 2
         solid = (f"corotated solid ({int(step['corotated'])} rotation sweeps)" if step.get("corotated")
-                 else "linearised solid")
+                 else "linearised solid") + (", its stress the material's law" if step.get("stress") == "material" else "")
         return (f"the data's Newmark step of the {solid} with learned remainders"
                 + (" of second order" if second else "")
                 + f" ({calls} network call{'s' if calls > 1 else ''} a step"

@@ -13,7 +13,8 @@ A checkpoint is a ``torch.save``d dict of plain types and tensors (loadable with
     epoch, val_error   (validation rollout error, ``rollout.validation_error``)
     prior         (only with ``model.prior=linear``) {"kind", "sweeps", "positions_only"} and
                   "order" when 2 (``model.prior_order``), "relax" when true
-                  (``model.prior_relax``): the weights are a
+                  (``model.prior_relax``), "corotated" (rotation sweeps, ``model.prior_corotated``),
+                  "stress": "material" (``model.prior_stress``): the weights are a
                   ``hybrid.LinearPriorModel``'s; its operators come from the dataset
     (the ``last`` checkpoint adds optimizer, scheduler, rng, history, best_val, stale_rounds)
 """
@@ -154,7 +155,8 @@ def model_step(ckpt: dict) -> dict:
     """How the checkpoint's model steps (``step`` metadata of exported files, ``describe_step``):
     the TIGNN's ``step_settings``, or for a linear-prior model {"integrator": "newmark",
     "prior": "linear", "sweeps": network calls per step, "kinematics": "exact"} (and "order": 2
-    for second-order remainders, "corotated": the rotation sweeps of a corotated prior)."""
+    for second-order remainders, "corotated": the rotation sweeps of a corotated prior, "stress":
+    "material" where its stress is the material's law)."""
     from .model import step_settings
 
     prior = ckpt.get("prior")
@@ -162,5 +164,6 @@ def model_step(ckpt: dict) -> dict:
         return {"integrator": "newmark", "prior": str(prior.get("kind", "linear")),
                 "sweeps": int(prior.get("sweeps", 1)), "kinematics": "exact",
                 **({"order": 2} if int(prior.get("order", 1)) == 2 else {}),
-                **({"corotated": int(prior["corotated"])} if prior.get("corotated") else {})}
+                **({"corotated": int(prior["corotated"])} if prior.get("corotated") else {}),
+                **({"stress": "material"} if prior.get("stress") == "material" else {})}
     return step_settings(ckpt.get("hparams", {}))
