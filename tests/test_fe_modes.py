@@ -761,6 +761,25 @@ def test_corotated_solid_is_the_linearised_one_frozen_and_nearer_the_fe_where_ce
         assert errors[1e-3, "corotated"][g] < 1e-2 * errors[1.0, "corotated"][g] + 1e-3, (g, errors)
 
 
+def _corotated_bend():
+    """The damped 12 mm bend (``_bent_block_graph``) as a corotated prior takes it: (``make``,
+    which builds its CorotatedNewmarkPrior from the bend's moduli and cells with the prior's
+    keyword options, the graph tuple, its cells [T, 4], u, v [S, N, 3], σ [S, N, 6], the relative
+    error ``rel``)."""
+    import torch
+
+    from thermognn.train.prior import CorotatedNewmarkPrior
+
+    graph = _bent_block_graph()
+    layout, traj, dt, X, linear, node_type, edges, z, f = graph
+    mu, kappa = linear.shear_modulus, linear.bulk_modulus
+    tets = _bent_block(1.0, "newmark")[0].cells[:, :4]
+    make = lambda **options: CorotatedNewmarkPrior(linear, len(X), dt, X, tets, kappa - 2 * mu / 3, mu,  # noqa: E731
+                                                   **options)
+    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
+    return make, graph, tets, z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12], rel
+
+
 def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders_the_fe_step():
     """``CorotatedNewmarkPrior`` (``model.prior_corotated``) on the damped 12 mm bend: its polar
     rotations match the SVD's and are differentiable at rest (F = I); with G = H = 0 it steps as
@@ -774,7 +793,7 @@ def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders
     from thermognn.core.kinematics import polar_rotations
     from thermognn.train.hybrid import LinearPriorModel
     from thermognn.train.model import TIGNN
-    from thermognn.train.prior import CorotatedNewmarkPrior, NewmarkPrior, polar_rotation
+    from thermognn.train.prior import NewmarkPrior, polar_rotation
 
     gen = torch.Generator().manual_seed(0)
     F = torch.eye(3, dtype=torch.float64) + 0.2 * torch.randn(64, 3, 3, generator=gen, dtype=torch.float64)
@@ -783,19 +802,15 @@ def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders
     rest = torch.eye(3, dtype=torch.float64).unsqueeze(0).requires_grad_(True)
     assert torch.autograd.gradcheck(lambda A: polar_rotation(A), (rest,))
 
-    layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph()
-    mu, kappa = linear.shear_modulus, linear.bulk_modulus
-    s_tets = _bent_block(1.0, "newmark")[0].cells[:, :4]
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
-    u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
-
-    prior = CorotatedNewmarkPrior(linear, len(X), dt, X, s_tets, kappa - 2 * mu / 3, mu, sweeps=8)
+    make, graph, s_tets, u, v, sigma, rel = _corotated_bend()
+    layout, traj, dt, X, linear, node_type, edges, z, f = graph
+    prior = make(sweeps=8)
     G, H = prior.remainders(u, v, sigma, f)
     U, V, Sig = _prior_rollout(prior, u, v, f, G, H)
     assert rel(U, u) < 1e-8 and rel(V, v) < 1e-7 and rel(Sig, sigma) < 1e-8
     G_lin, H_lin = NewmarkPrior(linear, len(X), dt).remainders(u, v, sigma, f)
     assert float(G.norm()) < 0.5 * float(G_lin.norm()) and float(H.norm()) < 0.5 * float(H_lin.norm())
-    prior = CorotatedNewmarkPrior(linear, len(X), dt, X, s_tets, kappa - 2 * mu / 3, mu, sweeps=3)
+    prior = make(sweeps=3)
     U, V, Sig = _prior_rollout(prior, u, v, f, torch.zeros_like(G), None)
     fe = torch.as_tensor(CorotatedSolid.of(linear, X, s_tets, max_sweeps=3, tol=0.0)
                          .rollout_states(traj.z, traj.force, X, layout, dt))
@@ -844,7 +859,7 @@ def test_material_stress_prior_is_the_neo_hookean_law_and_the_fe_stress_exactly(
     where the corotated linear stress leaves some), and with the force remainder G alone its
     rollout is the FE trajectory, σ included."""
     torch = pytest.importorskip("torch")
-    from thermognn.train.prior import CorotatedNewmarkPrior, neo_hookean_cauchy
+    from thermognn.train.prior import neo_hookean_cauchy
 
     c10, d1 = 1.0e4, 1.0e-5                                            # _bent_block's material
     eye = torch.eye(3, dtype=torch.float64)
@@ -860,14 +875,9 @@ def test_material_stress_prior_is_the_neo_hookean_law_and_the_fe_stress_exactly(
     rest = eye.unsqueeze(0).clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda A: neo_hookean_cauchy(A, c10, d1), (rest,))
 
-    layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph()
-    mu, kappa = linear.shear_modulus, linear.bulk_modulus
-    tets = _bent_block(1.0, "newmark")[0].cells[:, :4]
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
-    u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
-    linear_stress = CorotatedNewmarkPrior(linear, len(X), dt, X, tets, kappa - 2 * mu / 3, mu, sweeps=8)
-    law = CorotatedNewmarkPrior(linear, len(X), dt, X, tets, kappa - 2 * mu / 3, mu, sweeps=8,
-                                neo_hookean=(c10, d1))
+    make, graph, _, u, v, sigma, rel = _corotated_bend()
+    f = graph[-1]
+    linear_stress, law = make(sweeps=8), make(sweeps=8, neo_hookean=(c10, d1))
     G, H = law.remainders(u, v, sigma, f)
     G_lin, H_lin = linear_stress.remainders(u, v, sigma, f)
     assert rel(G, G_lin) == 0.0                                        # the force is the corotated one still
