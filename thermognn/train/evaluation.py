@@ -192,6 +192,11 @@ def _mean_groups(per_traj: list[dict[str, float]], groups: list[str]) -> dict[st
     return out
 
 
+#: an exact stress remainder below this share of σ: the prior's stress is the data's law
+#: (``model.prior_stress=material``), and the learned H is measured against σ alone
+EXACT_LAW = 1e-9
+
+
 def stress_split(model: LinearPriorModel, preds: list[torch.Tensor], trajs: list[TrajectoryTensors]) -> dict[str, float]:
     """Where a ``model.prior=linear`` model's σ comes from, pooled over the rollouts ``preds``
     [S, N, D] of ``trajs``: σ = the prior's stress of the displacement (and, relaxing, of its
@@ -216,11 +221,6 @@ def stress_split(model: LinearPriorModel, preds: list[torch.Tensor], trajs: list
     return {"learned_H": ratio(learned, exact) if exact > EXACT_LAW * sigma else math.nan,
             "learned_H_of_sigma": ratio(learned, sigma), "exact_H": ratio(exact, sigma),
             "prior_stress_gap": ratio(gap, sigma)}
-
-
-#: an exact stress remainder below this share of σ: the prior's stress is the data's law
-#: (``model.prior_stress=material``), and the learned H is measured against σ alone
-EXACT_LAW = 1e-9
 
 
 def stress_split_sentence(split: dict[str, float], sigma: str = "sigma") -> str:

@@ -364,10 +364,13 @@ class CorotatedNewmarkPrior(NewmarkPrior):
         """Nodal positions x [B, N, 3] m of free-DOF displacements u [B, n]."""
         return self.reference.unsqueeze(0) + self.scatter(u)
 
+    def deformation_gradients(self, x: Tensor) -> Tensor:
+        """F [B, T, 3, 3] of the cells at positions x [B, N, 3] m (constant over a P1 cell)."""
+        return torch.einsum("btai,taj->btij", x[:, self.cell_nodes], self.shape_grad)   # x_e [B, T, 4, 3]
+
     def rotations(self, x: Tensor) -> Tuple[Tensor, Tensor]:
         """(R [B, T, 3, 3], F [B, T, 3, 3]) of the cells at positions x [B, N, 3]."""
-        xe = x[:, self.cell_nodes]                                                    # [B, T, 4, 3]
-        F = torch.einsum("btai,taj->btij", xe, self.shape_grad)
+        F = self.deformation_gradients(x)
         return polar_rotation(F), F
 
     def local(self, R: Tensor, x: Tensor) -> Tensor:
@@ -435,8 +438,7 @@ class CorotatedNewmarkPrior(NewmarkPrior):
         B = u.shape[0]
         x = self.reference.unsqueeze(0) + u
         if self.material_stress:
-            F = torch.einsum("btai,taj->btij", x[:, self.cell_nodes], self.shape_grad)       # [B, T, 3, 3]
-            sig = neo_hookean_cauchy(F, self.c10, self.d1)
+            sig = neo_hookean_cauchy(self.deformation_gradients(x), self.c10, self.d1)     # [B, T, 3, 3]
         else:
             R, F = self.rotations(x)
             local = R.transpose(-1, -2) @ F
@@ -457,7 +459,7 @@ def neo_hookean_cauchy(F: Tensor, c10: float, d1: float) -> Tensor:
     """Cauchy stress σ [..., 3, 3] Pa of the neo-Hookean law Ψ = C10 (Ī1 − 3) + (J − 1)² / D1
     (``thermognn/generate/materials.py``; C10 [Pa], D1 [1/Pa]) at deformation gradients F [..., 3, 3]:
     σ = 2 C10 / J dev(B̄) + 2 / D1 (J − 1) I, B̄ = J^(−2/3) F Fᵀ. Smooth at F = I (autograd of
-    any order); J ≤ 0 (an inverted cell) gives NaN, which the step refuses."""
+    any order); J ≤ 0 (an inverted cell) gives NaN."""
     J = torch.linalg.det(F)[..., None, None]                                           # [..., 1, 1]
     Bbar = J.pow(-2.0 / 3.0) * (F @ F.transpose(-1, -2))
     eye = torch.eye(3, dtype=F.dtype, device=F.device)
