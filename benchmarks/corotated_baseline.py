@@ -70,7 +70,8 @@ def main() -> None:
     sq, ss = L.slice("v"), L.slice("sigma")
     rep = rotation_report(X, tets, (ds.read(n) for n in names), L, lam, mu, lin.prony, dt)
     print(f"rotations ({len(names)} {args.split} trajectories): cells turn up to {rep['rotation_max_deg']:.0f}° "
-          f"(RMS {rep['rotation_rms_deg']:.1f}° at the last step); the linear stress of the data's own displacements "
+          f"(RMS {rep['rotation_rms_deg']:.1f}° at the last step) and strain up to {100 * rep['strain_max']:.0f} % "
+          f"(volume RMS {100 * rep['strain_rms']:.1f} % where it peaks); the linear stress of the data's own displacements "
           f"is off by {100 * rep['stress_plain']:.0f} % of its stress, corotated {100 * rep['stress_corotated']:.0f} %")
     corotated = CorotatedSolid(lin, X, tets, lam, mu, max_sweeps=args.sweeps)   # the element matrices, once
     rows = []

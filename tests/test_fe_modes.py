@@ -263,6 +263,7 @@ def test_generate_stores_time_resolution(tmp_path, monkeypatch):
     rot = report["rotations"]
     assert rot["trajectories"] == 2 and 0 < rot["rotation_max_deg"] < 20
     assert 0 < rot["stress_plain"] < 0.2 and 0 < rot["stress_corotated"] < 0.25 * rot["stress_plain"]
+    assert 0 < rot["strain_rms"] < rot["strain_max"] < 1          # the cells under the load strain most
     # the plain cell formula is generate's stress operator: Σ u of the stored /linear
     from thermognn.core.kinematics import linear_cell_stress, node_average, shape_gradients
 

@@ -92,4 +92,34 @@ def test_node_average_and_the_report_on_a_turning_body():
     report = rotation_report(X, tets, [SimpleNamespace(z=z)], layout, LAM, MU)
     assert report["rotation_max_deg"] == pytest.approx(60.0, abs=1e-6) and report["trajectories"] == 1
     assert report["stress_corotated"] < 1e-9 and report["stress_plain"] > 1.0
+    # the stretch 1.01 along x in every cell: 1 % principal strain, everywhere (the turn is not strain)
+    assert report["strain_max"] == pytest.approx(0.01, rel=1e-9) and report["strain_rms"] == pytest.approx(0.01, rel=1e-9)
     assert rotation_report(X, tets, [], layout, LAM, MU) is None
+
+
+def test_the_report_tells_local_strains_from_uniform_ones():
+    """strain_max is the largest principal strain |λ − 1| of any cell (compression counts),
+    strain_rms the volume RMS of each cell's largest one where it peaks: of two equal tets, one
+    squeezed (a node moved 30 % of the way to the opposite face) and one at rest, strain_max is
+    the squeezed cell's, strain_rms that over √2; generate's rotations line prints both."""
+    from thermognn.generate.modes import describe
+
+    unit = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=float) * 0.05        # [m]
+    X = np.concatenate([unit, unit + [0.2, 0.0, 0.0]])                                     # two bodies
+    tets = np.array([[0, 1, 2, 3], [4, 5, 6, 7]])
+    grad, volume = shape_gradients(X, tets)
+    layout = StateLayout((("q", 3), ("v", 3), ("sigma", 6)))
+    z = np.zeros((2, len(X), layout.dim))
+    z[..., 0:3] = X
+    centroid = X[:3].mean(0)                                               # of the face opposite node 3
+    z[1, 3, 0:3] = centroid + 0.7 * (X[3] - centroid)
+    F = deformation_gradients(z[1:, :, 0:3], tets, grad)[0]                # [2, 3, 3]
+    assert np.allclose(F[1], np.eye(3))
+    expected = float(np.abs(np.linalg.svd(F[0], compute_uv=False) - 1.0).max())
+    report = rotation_report(X, tets, [SimpleNamespace(z=z)], layout, LAM, MU)
+    assert report["strain_max"] == pytest.approx(expected, rel=1e-9) and expected > 0.2
+    assert report["strain_rms"] == pytest.approx(expected / math.sqrt(2.0), rel=1e-9)
+    lines = describe(dict(modes=1, unresolved=0, dt=1.0, omega_1_dt=1.0, omega_max_dt=1.0, strain_unresolved=0.0,
+                          rotations=dict(report, stress_plain=None)))
+    assert (f"and strain up to {100 * expected:.0f} % (volume RMS {100 * expected / math.sqrt(2.0):.0f} % "
+            f"where it peaks)") in lines[1]

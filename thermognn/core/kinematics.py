@@ -13,8 +13,9 @@ the volume change as J − 1 = det F − 1, and the stress rotated back::
 For small strains and rotations it is the linear stress; for a rigid rotation it is zero; and
 unlike tr ε̃, J − 1 gives no pressure to an isochoric motion (a simple shear) at second order.
 
-``rotation_report`` is ``generate``'s diagnostic of it: how far the cells of the data rotate,
-and how far the linear stress of the data's *own* displacements is from the data's stress,
+``rotation_report`` is ``generate``'s diagnostic of it: how far the cells of the data rotate and
+strain (principal strains of U: large ones in a few cells are the material's own nonlinearity
+under a point load, which corotation does not remove; docs/accuracy.md, session 47), and how far the linear stress of the data's *own* displacements is from the data's stress,
 plain and corotated. Where the plain one is far off and the corotated one is not, the response
 is geometrically nonlinear (large rotations), and a prior linearised at rest has to learn the
 rotations (docs/accuracy.md, session 40: on the liver's test cases 231 % plain, 39 % corotated).
@@ -132,14 +133,18 @@ def rotation_report(X: np.ndarray, tets: np.ndarray, trajectories: Iterable, lay
     plain and corotated, against the data's stress (when the layout has ``sigma``).
 
     Returns {"rotation_max_deg": the largest rotation of any cell at any step, "rotation_rms_deg":
-    the volume-weighted RMS over cells at each trajectory's last step, averaged, "stress_plain",
-    "stress_corotated": the errors averaged over the trajectories (None without σ),
-    "trajectories": count}, or None when there is nothing to measure."""
+    the volume-weighted RMS over cells at each trajectory's last step, averaged, "strain_max": the
+    largest principal strain |λ_k − 1| (stretches λ_k of U = Rᵀ F) of any cell at any step,
+    "strain_rms": the volume-weighted RMS over cells of each cell's largest one, at the step where
+    it peaks, averaged over the trajectories (where "strain_max" is far above it, the large
+    strains are local, as in the cells under a point load), "stress_plain", "stress_corotated":
+    the errors averaged over the trajectories (None without σ), "trajectories": count}, or None
+    when there is nothing to measure."""
     X = np.asarray(X, dtype=float)
     grad, volume = shape_gradients(X, tets)
     w = volume / volume.sum()
     has_sigma = "sigma" in layout.names
-    rot_max, rot_rms, plain, corot, count = 0.0, [], [], [], 0
+    rot_max, rot_rms, strain_max, strain_rms, plain, corot, count = 0.0, [], 0.0, [], [], [], 0
     for traj in trajectories:
         z = np.asarray(traj.z, dtype=float)                           # [S, N, D]
         F = deformation_gradients(z[..., 0:3], tets, grad)          # [S, T, 3, 3]
@@ -147,6 +152,10 @@ def rotation_report(X: np.ndarray, tets: np.ndarray, trajectories: Iterable, lay
         theta = rotation_angles(R)                                    # [S, T]
         rot_max = max(rot_max, float(theta.max()))
         rot_rms.append(float(np.sqrt((w * theta[-1] ** 2).sum())))
+        U = np.swapaxes(R, -1, -2) @ F                                # [S, T, 3, 3]: the stretch (symmetric)
+        strain = np.abs(np.linalg.eigvalsh(0.5 * (U + np.swapaxes(U, -1, -2))) - 1.0).max(-1)   # [S, T]
+        strain_max = max(strain_max, float(strain.max()))
+        strain_rms.append(float(np.sqrt((w * strain ** 2).sum(-1)).max()))
         count += 1
         if has_sigma and z.shape[0] > 1:
             truth = z[1:, :, layout.slice("sigma")]
@@ -158,5 +167,6 @@ def rotation_report(X: np.ndarray, tets: np.ndarray, trajectories: Iterable, lay
     if not count:
         return None
     return {"rotation_max_deg": math.degrees(rot_max), "rotation_rms_deg": math.degrees(float(np.mean(rot_rms))),
+            "strain_max": strain_max, "strain_rms": float(np.mean(strain_rms)),
             "stress_plain": float(np.mean(plain)) if plain else None,
             "stress_corotated": float(np.mean(corot)) if corot else None, "trajectories": count}
