@@ -25,11 +25,12 @@ META_FILE = "thermognn.json"
 DEFAULT_RTOL = {torch.float32: 1e-4, torch.float64: 1e-9}
 
 
-def metadata(ckpt: dict, prony_terms: int = 0) -> str:
-    """The ``thermognn.json`` extra file (keys as in docs/stages.md); ``prony_terms``: the internal
-    variables a relaxing linear prior carries (``carried_layout``)."""
+def metadata(ckpt: dict, internal=()) -> str:
+    """The ``thermognn.json`` extra file (keys as in docs/stages.md); ``internal``: the columns of
+    the internal variables a relaxing linear prior carries (``NewmarkPrior.internal_columns``, for
+    ``carried_layout``)."""
     return json.dumps({"format": FORMAT, "scene": ckpt.get("scene", ""), "effects": list(ckpt.get("effects", [])),
-                       "state_layout": (carried_layout(ckpt["state_layout"], prony_terms) if ckpt.get("prior")
+                       "state_layout": (carried_layout(ckpt["state_layout"], internal) if ckpt.get("prior")
                                         else ckpt["state_layout"]), "dt": float(ckpt["dt"]),
                        "structure": ckpt["structure"], "config": ckpt.get("config", ""),
                        "step": model_step(ckpt),
@@ -114,9 +115,9 @@ def export(cfg) -> Path:
         raise DataError(f"{ckpt_path}: TorchScript export differs from the eager model by {max_rel:.3e} "
                         f"(relative), above train.export_rtol = {rtol:.1e}")
     out = project_path(cfg.paths.exported)
-    prony_terms = eager.core.prior.n_terms if isinstance(eager, ExportedLinearPrior) else 0
+    internal = eager.core.prior.internal_columns() if isinstance(eager, ExportedLinearPrior) else []
     with atomic_path(out) as tmp:
-        torch.jit.save(scripted, str(tmp), _extra_files={META_FILE: metadata(ckpt, prony_terms)})
+        torch.jit.save(scripted, str(tmp), _extra_files={META_FILE: metadata(ckpt, internal)})
         verify(tmp)
     print(f"export: wrote {out} ({ckpt['structure']}, {ckpt['dtype']}, {eager.z0.shape[0]} nodes)")
     return out

@@ -14,7 +14,8 @@ A model trained with ``model.prior=linear`` exports as :class:`ExportedLinearPri
 contract on its *carried* state [N, D + 6 (+ 9 T)], the physical state with Newmark's acceleration a
 [m/s²] and the last internal-force remainder G [N] appended, and with ``model.prior_relax`` the
 prior's Prony internal variables, 9 columns per term T (``thermognn.train.hybrid``; the
-metadata's state_layout lists them as groups ``a``, ``G``, ``prony_force_i``, ``prony_stress_i``), in float64; ``z0`` is already
+metadata's state_layout lists them as groups ``a``, ``G``, ``prony_force_i``, ``prony_stress_i``, or for the
+corotated prior its per-cell variables ``prony_cells_i``), in float64; ``z0`` is already
 carried, and ``begin`` makes a carried state from a physical one.
 
 Never call it under ``torch.no_grad()``: dE/dz and dS/dz come from autograd.

@@ -25,7 +25,9 @@ Besides the physical state z [N, D] (q, v, σ), the step carries Newmark's accel
 last remainder G: the *carried state* is z with a [m/s²] and G [N] appended as nodal columns,
 [N, D + 6] (zero at clamped DOFs). With ``model.prior_relax`` (a viscous scene) the prior relaxes
 as the FE does (``thermognn.train.prior``), and the carried state also holds its Prony internal
-variables, 9 nodal columns per term (``pack_internal``). ``carry`` makes it from a physical state
+variables, 9 nodal columns per term (``pack_internal``; the corotated prior's per-cell variables,
+6 per cell and term, packed row-major into as many nodal columns as they fill, ``prony_cells_i``).
+``carry`` makes it from a physical state
 (a from the balance of forces there, as the FE starts; G from the network; the internal
 variables as if the displacement were applied at once), ``step`` advances it, and the first D
 columns are the physical state. The exported module steps the carried state, so ``serve`` keeps
@@ -47,7 +49,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import Dict, List, NamedTuple, Optional, Tuple
+from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -240,27 +242,13 @@ class LinearPriorModel(nn.Module):
         return self.prior.internal_history(self.prior.gather(U))
 
     def pack_internal(self, h: Tensor) -> Tensor:
-        """Internal variables h [B, T, n + 6N] -> nodal columns [B, N, 9 T] (per term: its force
-        variable as a nodal vector [N], its stress variable [Pa])."""
-        n, B = self.prior.n_free, h.shape[0]
-        cols: List[Tensor] = []
-        for i in range(self.prior.n_terms):
-            cols.append(self.prior.scatter(h[:, i, :n]))
-            cols.append(h[:, i, n:].reshape(B, -1, 6))
-        if len(cols) == 0:
-            return h.new_zeros(B, self.reference_positions.shape[0], 0)
-        return torch.cat(cols, -1)
+        """The prior's internal variables h [B, T, ...] -> nodal columns [B, N, C]
+        (``NewmarkPrior.pack_internal``: 9 per Prony term; the corotated prior's per cell, packed)."""
+        return self.prior.pack_internal(h)
 
     def unpack_internal(self, x: Tensor) -> Tensor:
-        """Nodal columns [B, N, 9 T] -> internal variables h [B, T, n + 6N]: the inverse of ``pack_internal``."""
-        B = x.shape[0]
-        terms: List[Tensor] = []
-        for i in range(self.prior.n_terms):
-            terms.append(torch.cat([self.prior.gather(x[:, :, 9 * i:9 * i + 3]),
-                                    x[:, :, 9 * i + 3:9 * i + 9].reshape(B, -1)], -1))
-        if len(terms) == 0:
-            return x.new_zeros(B, 0, 0)
-        return torch.stack(terms, 1)
+        """Nodal columns [B, N, C] -> the prior's internal variables: the inverse of ``pack_internal``."""
+        return self.prior.unpack_internal(x)
 
     def accelerations(self, z: Tensor, f: Tensor) -> Tensor:
         """The data's own Newmark accelerations a [S, n] m/s² along one trajectory of physical
@@ -383,9 +371,6 @@ def prior_settings(cfg_model) -> dict:
     if not isinstance(rotation_sweeps, int) or isinstance(rotation_sweeps, bool) or rotation_sweeps < 1:
         raise ConfigError(f"model.prior_rotation_sweeps = {rotation_sweeps!r}, expected an integer >= 1 "
                           f"(fixed-point sweeps of the corotated step)")
-    if corotated and relax:
-        raise ConfigError("model.prior_corotated = true with model.prior_relax = true: the corotated prior does "
-                          "not relax yet (set model.prior_relax=false: the remainders take the relaxation)")
     stress = str(OmegaConf.select(cfg_model, "prior_stress", default="linear"))
     if stress not in ("linear", "material"):
         raise ConfigError(f"model.prior_stress = '{stress}', expected linear | material (the prior's stress: the "
@@ -393,6 +378,9 @@ def prior_settings(cfg_model) -> dict:
     if stress == "material" and not corotated:
         raise ConfigError("model.prior_stress = material needs model.prior_corotated = true (the law is applied "
                           "per P1 cell, as the corotated prior measures its cells)")
+    if stress == "material" and relax:
+        raise ConfigError("model.prior_stress = material with model.prior_relax = true: the material law's stress "
+                          "has no Prony history (set model.prior_stress=linear to relax)")
     settings = {"kind": "linear", "sweeps": sweeps, "positions_only": inputs == "positions"}
     if order != 1:
         settings["order"] = int(order)
@@ -448,7 +436,8 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
             if tets.ndim != 2 or tets.shape[1] != 4 or len(tets) == 0:
                 raise ValueError("the corotated prior needs P1 tets in /mesh/tets")
             return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
-                                         sweeps=int(corotated), neo_hookean=neo_hookean_of(ds) if material else None)
+                                         sweeps=int(corotated), neo_hookean=neo_hookean_of(ds) if material else None,
+                                         relax=relax)
         return NewmarkPrior(linear, len(ds.mesh.nodes), float(dt), relax=relax)
     except ValueError as exc:
         raise ConfigError(f"model.prior = linear: {ds.path}: {exc}") from None
@@ -464,14 +453,13 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
                             int(settings.get("sweeps", 1)), int(settings.get("order", 1)))
 
 
-def carried_layout(layout_json: str, prony_terms: int = 0) -> str:
-    """The exported state layout of a prior model: the physical one plus a and G, and per Prony
-    term of a relaxing prior its internal force (3) and stress (6) variables."""
+def carried_layout(layout_json: str, internal: Sequence[Tuple[str, int]] = ()) -> str:
+    """The exported state layout of a prior model: the physical one plus a and G, and the relaxing
+    prior's internal variables as its ``internal_columns`` give them ((name, width) per group: per
+    Prony term its force (3) and stress (6) variables, or the corotated prior's cell variables)."""
     import json
 
-    internal = [[f"prony_{kind}_{i + 1}", width] for i in range(prony_terms)
-                for kind, width in (("force", 3), ("stress", 6))]
-    return json.dumps(json.loads(layout_json) + [list(g) for g in CARRIED] + internal)
+    return json.dumps(json.loads(layout_json) + [list(g) for g in CARRIED] + [[n, int(w)] for n, w in internal])
 
 
 # --- training ---------------------------------------------------------------------------------

@@ -109,12 +109,15 @@ class NewmarkPrior(nn.Module):
         self.c1 = 1.0 / (2.0 * self.beta) - 1.0
         self.mass_factor = 1.0 + self.alpha_m * self.gamma * self.dt
         n = K.shape[0]
-        step_stiffness = _dense(linear.step_stiffness(dt)) if terms else K       # K_Δt
         # u1 = S⁻¹ (M (mass_factor p − αM v0 − αM dt (1 − γ) a0) + c K u0 + f1 + (1 + c) G1 − c G0 − history)
-        step_inverse = (torch.linalg.inv(self.c0 * self.mass_factor * M + self.c * K + step_stiffness)
-                        if step_matrix else torch.zeros(0, 0, dtype=torch.float64))   # (a subclass's own step)
+        if step_matrix:
+            step_stiffness = _dense(linear.step_stiffness(dt)) if terms else K   # K_Δt
+            step_inverse = torch.linalg.inv(self.c0 * self.mass_factor * M + self.c * K + step_stiffness)
+            del step_stiffness
+        else:
+            step_inverse = torch.zeros(0, 0, dtype=torch.float64)                     # (a subclass's own step)
         mass_inv = torch.linalg.inv(M)
-        del K, M, step_stiffness
+        del K, M
         free = np.asarray(linear.free, dtype=bool)                                   # [3N]
         free_index = np.flatnonzero(free)                                            # [n]
         empty = np.zeros((0, n))
@@ -210,6 +213,40 @@ class NewmarkPrior(nn.Module):
         return (self.prony_weight.view(1, -1, 1) * (self.prony_decay.view(1, -1, 1) * h0[:, :, :n]
                                                      - self.prony_increment.view(1, -1, 1) * iso)).sum(1)
 
+    def relaxation_force(self, u: Tensor, h: Tensor) -> Tensor:
+        """Σ ḡ_i (h_i^f − K_iso u) [B, n] N: what relaxation takes off the linearised internal force
+        at displacements u [B, n] with internal variables h (those of a step's end: f_int,lin =
+        K u + this)."""
+        return self._relaxation(self.stiffness_iso(u), h[:, :, :self.n_free])
+
+    def internal_columns(self) -> List[Tuple[str, int]]:
+        """The nodal columns ``pack_internal`` gives the internal variables, as (name, width) per
+        group: per Prony term its force variable as a nodal vector (3) and its stress variable (6)."""
+        return [(f"prony_{kind}_{i + 1}", width) for i in range(self.n_terms)
+                for kind, width in (("force", 3), ("stress", 6))]
+
+    def pack_internal(self, h: Tensor) -> Tensor:
+        """Internal variables h [B, T, n + 6N] -> nodal columns [B, N, 9 T] (``internal_columns``)."""
+        n, B = self.n_free, h.shape[0]
+        cols: List[Tensor] = []
+        for i in range(self.n_terms):
+            cols.append(self.scatter(h[:, i, :n]))
+            cols.append(h[:, i, n:].reshape(B, -1, 6))
+        if len(cols) == 0:
+            return h.new_zeros(B, self.n_nodes, 0)
+        return torch.cat(cols, -1)
+
+    def unpack_internal(self, x: Tensor) -> Tensor:
+        """Nodal columns [B, N, 9 T] -> internal variables h [B, T, n + 6N]: the inverse of ``pack_internal``."""
+        B = x.shape[0]
+        terms: List[Tensor] = []
+        for i in range(self.n_terms):
+            terms.append(torch.cat([self.gather(x[:, :, 9 * i:9 * i + 3]),
+                                    x[:, :, 9 * i + 3:9 * i + 9].reshape(B, -1)], -1))
+        if len(terms) == 0:
+            return x.new_zeros(B, 0, 0)
+        return torch.stack(terms, 1)
+
     def _relaxation(self, iso: Tensor, h: Tensor) -> Tensor:
         """Σ ḡ_i (h_i − iso) [B, m]: what relaxation takes off the linearised force (iso = K_iso u,
         h the rows :n of the internal variables) or stress (Σ_iso u, rows n:) at displacements u,
@@ -267,7 +304,7 @@ class NewmarkPrior(nn.Module):
         elastic = self.elastic_force(uf)                                            # [S, n]: K u, or corotated
         f_lin = elastic[1:]
         if self.n_terms:
-            f_lin = f_lin + self._relaxation(self.stiffness_iso(uf[1:]), h[1:, :, :self.n_free])
+            f_lin = f_lin + self.relaxation_force(uf[1:], h[1:])
         # (1 + c) G1 − c G0 = M a1 + αM M v1 + c K (u1 − u0) + f_int,lin − f1 at every step's end
         lumped = (self.mass(a[1:] + self.alpha_m * vf[1:]) + c * (elastic[1:] - elastic[:-1]) + f_lin
                   - ff[1:] - self.body_force)                                      # [S - 1, n]
@@ -312,8 +349,17 @@ class CorotatedNewmarkPrior(NewmarkPrior):
     [B, n, n]; docs/accuracy.md, session 42: two reach the shell's converged errors). With the
     remainders G = f_corot(u) − f_int(u) and H = σ − σ_corot (what ``remainders`` recovers) it is
     the FE step; with none, the corotated FE model ``evaluate`` reports. The rotations are
-    differentiable (:func:`polar_rotation`), so rollouts back-propagate through them. Elastic only
-    (no Prony relaxation: a viscous solid's is left to the remainders).
+    differentiable (:func:`polar_rotation`), so rollouts back-propagate through them.
+
+    ``relax`` (a viscous solid): it relaxes as the corotated FE model does, each cell's Prony
+    history in its rotated frame. Per term i and cell e the internal variable is the isochoric
+    stress history s_i,e (Voigt, Pa) of the cell's strain ε̃ = sym(R_eᵀ F_e) − I: it starts at
+    2 μ dev ε̃ and steps as s_i ← d_i s_i + w_i 2 μ dev sym(R₁ᵀ (F₁ − F₀)) (the increment in the
+    step's end frame). Its force is the cell's V_e s ∇φ_a (K_iso,e of the history), so with
+    K_Δt,e = K_e − Σ ḡ_i (1 − w_i) K_iso,e the internal force at a step's end is
+    Σ_e R_e (K_Δt,e d_e + Σ ḡ_i V_e (d_i s_i − w_i 2 μ dev ε̃₀) ∇φ) (``thermognn.core.corotated``),
+    and the stress R (λ tr ε̃ I + 2 μ ε̃ + Σ ḡ_i (s_i − 2 μ dev ε̃)) Rᵀ. The variables are per cell
+    ([B, T_prony, 6 T]); carried states hold them packed into nodal columns (``pack_internal``).
 
     X [N, 3] m, tets [T, 4], Lamé λ, μ [Pa] at rest; the operators of ``linear`` as
     :class:`NewmarkPrior` takes them (its K is the assembled K_e; its Σ is not used).
@@ -325,14 +371,16 @@ class CorotatedNewmarkPrior(NewmarkPrior):
 
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
                  lam: float, mu: float, sweeps: int = 3, dtype: torch.dtype = torch.float64,
-                 neo_hookean: Optional[Tuple[float, float]] = None) -> None:
-        super().__init__(linear, n_nodes, dt, dtype, step_matrix=False)      # its step solves anew
+                 neo_hookean: Optional[Tuple[float, float]] = None, relax: bool = False) -> None:
+        if relax and neo_hookean is not None:
+            raise ValueError("the material law's stress has no Prony history (relax with the corotated linear stress)")
+        super().__init__(linear, n_nodes, dt, dtype, relax=relax, step_matrix=False)   # its step solves anew
         from thermognn.core.corotated import element_stiffness
         from thermognn.core.kinematics import shape_gradients
 
         X, tets = np.asarray(X, dtype=float), np.asarray(tets, dtype=np.int64)
         T, n = len(tets), self.n_free
-        Ke, _ = element_stiffness(X, tets, lam, mu)                                   # [T, 12, 12] N/m
+        Ke, Ke_iso = element_stiffness(X, tets, lam, mu)                              # [T, 12, 12] N/m
         grad, volume = shape_gradients(X, tets)                                       # [T, 4, 3], [T]
         index = np.full(3 * n_nodes, -1)
         index[np.asarray(linear.free, dtype=bool)] = np.arange(n)
@@ -352,10 +400,17 @@ class CorotatedNewmarkPrior(NewmarkPrior):
             "cell_volume": torch.as_tensor(volume, dtype=dtype),                      # [T] m³
             "node_weight": torch.as_tensor(weight, dtype=dtype),                      # [N] m³
             "reference": torch.as_tensor(X, dtype=dtype),                             # [N, 3] m
-            "mass_dense": _dense(linear.mass).to(dtype)}                              # [n, n] kg
+            "mass_dense": _dense(linear.mass).to(dtype),                              # [n, n] kg
+            # (1 + c) K_e − Σ ḡ_i (1 − w_i) K_iso,e: the step's cell stiffness with stiffness damping
+            # and relaxation (K_Δt,e + c K_e; (1 + c) K_e for the elastic prior)
+            "cell_K_step": torch.as_tensor((1.0 + self.c) * Ke - self._shrink() * Ke_iso, dtype=dtype),
+            "voigt_eye": torch.tensor([1.0, 1.0, 1.0, 0.0, 0.0, 0.0], dtype=dtype)}                # I in Voigt
         for name, value in buffers.items():
             self.register_buffer(name, value, persistent=False)
         self.lam, self.mu, self.sweeps = float(lam), float(mu), int(sweeps)
+        self.n_cells = int(T)
+        # nodal columns per Prony term that hold its 6 T cell variables in a carried state [N, ...]
+        self.cell_columns = -(-6 * T // int(n_nodes))
         self.material_stress = neo_hookean is not None
         self.c10, self.d1 = (float(neo_hookean[0]), float(neo_hookean[1])) if neo_hookean is not None else (0.0, 0.0)
 
@@ -392,10 +447,11 @@ class CorotatedNewmarkPrior(NewmarkPrior):
         R, _ = self.rotations(x)
         return self.to_free(R, torch.einsum("tij,btj->bti", self.cell_K, self.local(R, x)))
 
-    def rotated_stiffness(self, R: Tensor) -> Tensor:
-        """Σ_e R_e K_e R_eᵀ over the free DOFs [B, n, n] N/m (dense)."""
+    def rotated_stiffness(self, R: Tensor, cell_K: Optional[Tensor] = None) -> Tensor:
+        """Σ_e R_e K_e R_eᵀ over the free DOFs [B, n, n] N/m (dense), of the cells' K_e [T, 12, 12]
+        (default: the linear stiffness ``cell_K``)."""
         B, T = R.shape[0], R.shape[1]
-        K = self.cell_K.reshape(T, 4, 3, 4, 3)
+        K = (self.cell_K if cell_K is None else cell_K).reshape(T, 4, 3, 4, 3)
         KR = torch.einsum("ztij,tajck,ztlk->ztaicl", R, K, R).reshape(B, T * 144)
         values = KR.index_select(1, self.pair_keep)                                    # [B, k]
         n = self.n_free
@@ -411,7 +467,7 @@ class CorotatedNewmarkPrior(NewmarkPrior):
         inertia = self.mass(self.mass_factor * predictor - self.alpha_m * v0
                             - self.alpha_m * self.dt * (1.0 - self.gamma) * a0)
         x0 = self.positions(u0)
-        R, _ = self.rotations(x0)                                                           # at the step's start
+        R, F0 = self.rotations(x0)                                                          # at the step's start
         rhs = (inertia + self.c * self.to_free(R, torch.einsum("tij,btj->bti", self.cell_K, self.local(R, x0)))
                + f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0)                  # [B, n] N
         mass = self.c0 * self.mass_factor * self.mass_dense                                  # [n, n] kg/s²
@@ -420,15 +476,103 @@ class CorotatedNewmarkPrior(NewmarkPrior):
         for sweep in range(self.sweeps):         # fixed-point sweeps: the rotations of the latest u1
             if sweep > 0:
                 R, _ = self.rotations(self.positions(u1))
-            offset = self.to_free(R, torch.einsum("tij,btj->bti", self.cell_K, self.local(R, reference)))
-            A = mass + (1.0 + self.c) * self.rotated_stiffness(R)                            # [B, n, n] N/m
-            b = rhs - (1.0 + self.c) * offset
+            if self.n_terms == 0:
+                offset = self.to_free(R, torch.einsum("tij,btj->bti", self.cell_K, self.local(R, reference)))
+                A = mass + (1.0 + self.c) * self.rotated_stiffness(R)                        # [B, n, n] N/m
+                b = rhs - (1.0 + self.c) * offset
+            else:                                # K_Δt + c K, and the history at the step's start (class doc)
+                history = (self.prony_weight * self.prony_decay).view(1, -1, 1, 1) * h0.reshape(
+                    h0.shape[0], self.n_terms, self.n_cells, 6)                              # [B, T_p, T, 6] Pa
+                history = history.sum(1) - float((self.prony_weight * self.prony_increment).sum()) * \
+                    self.deviatoric_stress(R, F0)                                            # [B, T, 6] Pa
+                offset = self.to_free(R, torch.einsum("tij,btj->bti", self.cell_K_step, self.local(R, reference))
+                                      + self.cell_force(history))
+                A = mass + self.rotated_stiffness(R, self.cell_K_step)
+                b = rhs - offset
             if not bool(torch.isfinite(b).all()):      # a cell flattened, or the remainders blew up
                 raise RuntimeError("corotated prior: a non-finite state (a cell inverted, or the remainders diverged)")
             u1 = solve_each(A, b)
         a1 = self.c0 * u1 - predictor
         v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
-        return u1, v1, a1, h0
+        return u1, v1, a1, self.relax(u0, u1, h0)
+
+    # --- the Prony history per cell (``relax``; class docstring) ---------------------------------
+    def _shrink(self) -> float:
+        """Σ ḡ_i (1 − w_i): how much of K_iso the step's stiffness K_Δt takes off (0 elastic)."""
+        return float((self.prony_weight * (1.0 - self.prony_increment)).sum())
+
+    def deviatoric_stress(self, R: Tensor, F: Tensor) -> Tensor:
+        """2 μ dev sym(Rᵀ F) [B, T, 6] Pa (Voigt 11 22 33 12 13 23): the isochoric stress of the
+        cells' strain in their rotated frames (R, F [B, T, 3, 3]; with F an increment F₁ − F₀, of
+        the increment's)."""
+        local = R.transpose(-1, -2) @ F
+        eps = 0.5 * (local + local.transpose(-1, -2))
+        tr = eps.diagonal(dim1=-2, dim2=-1).sum(-1)                                        # [B, T]
+        return 2.0 * self.mu * (_voigt(eps) - (tr / 3.0).unsqueeze(-1) * self.voigt_eye)
+
+    def cell_force(self, s: Tensor) -> Tensor:
+        """The nodal forces V_e s ∇φ_a [B, T, 12] N of cell stresses s [B, T, 6] Pa (Voigt), in the
+        cells' own frames: K_e of a cell displacement is that of its stress."""
+        S = _matrix(s)                                                                       # [B, T, 3, 3]
+        f = torch.einsum("btij,taj->btai", S, self.shape_grad) * self.cell_volume.view(1, -1, 1, 1)
+        return f.reshape(f.shape[0], f.shape[1], 12)
+
+    def internal_variables(self, u: Tensor) -> Tensor:
+        """h [B, T_prony, 6 T] at displacements u [B, n] applied at once: s_i = 2 μ dev ε̃ per cell."""
+        if self.n_terms == 0:
+            return u.new_zeros(u.shape[0], 0, 0)
+        R, F = self.rotations(self.positions(u))
+        s = self.deviatoric_stress(R, F).reshape(u.shape[0], 1, -1)
+        return s.expand(-1, self.n_terms, -1).contiguous()
+
+    def relax(self, u0: Tensor, u1: Tensor, h0: Tensor) -> Tensor:
+        """h1 after a step from u0 to u1 [B, n]: s_i ← d_i s_i + w_i 2 μ dev sym(R₁ᵀ (F₁ − F₀))."""
+        if self.n_terms == 0:
+            return h0
+        R1, F1 = self.rotations(self.positions(u1))
+        F0 = self.deformation_gradients(self.positions(u0))
+        step = self.deviatoric_stress(R1, F1 - F0).reshape(u0.shape[0], 1, -1)               # [B, 1, 6 T]
+        return self.prony_decay.view(1, -1, 1) * h0 + self.prony_increment.view(1, -1, 1) * step
+
+    def _relaxed(self, R: Tensor, F: Tensor, h: Tensor) -> Tensor:
+        """Σ ḡ_i (s_i − 2 μ dev ε̃) [B, T, 6] Pa: what relaxation takes off the cells' stress."""
+        s = h.reshape(h.shape[0], self.n_terms, self.n_cells, 6)
+        return (self.prony_weight.view(1, -1, 1, 1) * (s - self.deviatoric_stress(R, F).unsqueeze(1))).sum(1)
+
+    def relaxation_force(self, u: Tensor, h: Tensor) -> Tensor:
+        """Σ_e R_e V_e Σ ḡ_i (s_i − 2 μ dev ε̃) ∇φ [B, n] N at displacements u [B, n] with the
+        internal variables h of a step's end."""
+        R, F = self.rotations(self.positions(u))
+        return self.to_free(R, self.cell_force(self._relaxed(R, F, h)))
+
+    def stress_relaxation(self, u: Tensor, h: Tensor) -> Tensor:
+        """R Σ ḡ_i (s_i − 2 μ dev ε̃) Rᵀ [B, N, 6] Pa, volume-averaged at the nodes."""
+        B = u.shape[0]
+        if self.n_terms == 0:
+            return u.new_zeros(B, self.n_nodes, 6)
+        R, F = self.rotations(self.positions(u))
+        return self.nodal(R @ _matrix(self._relaxed(R, F, h)) @ R.transpose(-1, -2))
+
+    def internal_columns(self) -> List[Tuple[str, int]]:
+        """Per Prony term its cell variables (6 T, Voigt per cell, cell-major), packed row-major
+        into ``cell_columns`` nodal columns (zero-padded)."""
+        return [(f"prony_cells_{i + 1}", self.cell_columns) for i in range(self.n_terms)]
+
+    def pack_internal(self, h: Tensor) -> Tensor:
+        """h [B, T_prony, 6 T] -> nodal columns [B, N, T_prony cell_columns] (``internal_columns``)."""
+        B, N, w = h.shape[0], self.n_nodes, self.cell_columns
+        if self.n_terms == 0:
+            return h.new_zeros(B, N, 0)
+        padded = torch.cat([h, h.new_zeros(B, self.n_terms, N * w - 6 * self.n_cells)], -1)   # [B, T_p, N w]
+        return padded.reshape(B, self.n_terms, N, w).permute(0, 2, 1, 3).reshape(B, N, self.n_terms * w)
+
+    def unpack_internal(self, x: Tensor) -> Tensor:
+        """Nodal columns [B, N, T_prony cell_columns] -> h [B, T_prony, 6 T]: the inverse of ``pack_internal``."""
+        B, N, w = x.shape[0], self.n_nodes, self.cell_columns
+        if self.n_terms == 0:
+            return x.new_zeros(B, 0, 0)
+        flat = x.reshape(B, N, self.n_terms, w).permute(0, 2, 1, 3).reshape(B, self.n_terms, N * w)
+        return flat[:, :, :6 * self.n_cells].contiguous()
 
     def stress(self, u: Tensor, H: Optional[Tensor] = None) -> Tensor:
         """Nodal Cauchy stress σ_cell + H [B, N, 6] Pa (Voigt 11 22 33 12 13 23) of the nodal
@@ -446,13 +590,30 @@ class CorotatedNewmarkPrior(NewmarkPrior):
             eps = 0.5 * (local + local.transpose(-1, -2)) - eye
             tr = eps.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
             sig = R @ (self.lam * tr * eye + 2.0 * self.mu * eps) @ R.transpose(-1, -2)    # [B, T, 3, 3]
-        voigt = torch.stack([sig[..., 0, 0], sig[..., 1, 1], sig[..., 2, 2], sig[..., 0, 1], sig[..., 0, 2],
-                             sig[..., 1, 2]], -1) * self.cell_volume.view(1, -1, 1)          # [B, T, 6]
+        cell = self.nodal(sig)
+        return cell if H is None else cell + H
+
+    def nodal(self, sig: Tensor) -> Tensor:
+        """Cell tensors sig [B, T, 3, 3] volume-averaged at the nodes [B, N, 6] (Voigt), as the
+        dataset stores its stress."""
+        B = sig.shape[0]
+        voigt = _voigt(sig) * self.cell_volume.view(1, -1, 1)                                 # [B, T, 6]
         T = voigt.shape[1]
         nodal = voigt.new_zeros(B, self.n_nodes, 6).index_add(
             1, self.cell_nodes.reshape(-1), voigt.unsqueeze(2).expand(B, T, 4, 6).reshape(B, 4 * T, 6))
-        cell = nodal / self.node_weight.view(1, -1, 1)
-        return cell if H is None else cell + H
+        return nodal / self.node_weight.view(1, -1, 1)
+
+
+def _voigt(S: Tensor) -> Tensor:
+    """Symmetric tensors [..., 3, 3] -> Voigt [..., 6] (11 22 33 12 13 23)."""
+    return torch.stack([S[..., 0, 0], S[..., 1, 1], S[..., 2, 2], S[..., 0, 1], S[..., 0, 2], S[..., 1, 2]], -1)
+
+
+def _matrix(s: Tensor) -> Tensor:
+    """Voigt [..., 6] (11 22 33 12 13 23) -> symmetric tensors [..., 3, 3]."""
+    rows = [torch.stack([s[..., 0], s[..., 3], s[..., 4]], -1), torch.stack([s[..., 3], s[..., 1], s[..., 5]], -1),
+            torch.stack([s[..., 4], s[..., 5], s[..., 2]], -1)]
+    return torch.stack(rows, -2)
 
 
 def neo_hookean_cauchy(F: Tensor, c10: float, d1: float) -> Tensor:
