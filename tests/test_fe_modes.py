@@ -792,8 +792,6 @@ def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders
     torch = pytest.importorskip("torch")
     from thermognn.core.corotated import CorotatedSolid
     from thermognn.core.kinematics import polar_rotations
-    from thermognn.train.hybrid import LinearPriorModel
-    from thermognn.train.model import TIGNN
     from thermognn.train.prior import NewmarkPrior, polar_rotation
 
     gen = torch.Generator().manual_seed(0)
@@ -833,6 +831,25 @@ def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders
     with pytest.raises(RuntimeError, match="corotated prior: a non-finite state"):
         prior.step(bad, bad, bad, prior.gather(f[1:2]), G[:1], G[1:2], prior.internal_variables(bad))
 
+    model, batched = _carried_steps_follow_rollouts(prior, graph)
+    assert rel(batched[..., 3:6], fe[..., 3:6]) > 1e-6                     # the network corrects something
+    ref = torch.as_tensor(X, dtype=torch.float32)
+    with torch.enable_grad():               # rollouts back-propagate through the rotations and the solves
+        loss = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, 3, True)[0, -1, :, 3:6].square().sum()
+        loss.backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.net.parameters() if p.requires_grad)
+
+
+def _carried_steps_follow_rollouts(prior, graph, width: int = 0):
+    """A LinearPriorModel on ``prior`` with a tiny seeded network, on the bent block's ``graph``
+    (``_bent_block_graph``): its carried step, eager and scripted, follows its batched rollout
+    (carried states [N, 12 + 6 + width]); returns (model, the batched rollout [S, N, 12])."""
+    import torch
+
+    from thermognn.train.hybrid import LinearPriorModel
+    from thermognn.train.model import TIGNN
+
+    layout, traj, dt, X, linear, node_type, edges, z, f = graph
     ref = torch.as_tensor(X, dtype=torch.float32)
     torch.manual_seed(0)
     net = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, velocity_edges=True)
@@ -840,17 +857,13 @@ def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders
     model = LinearPriorModel(net, prior, torch.as_tensor(X), order=2)
     with torch.enable_grad():
         batched = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
-        assert rel(batched[..., 3:6], fe[..., 3:6]) > 1e-6                 # the network corrects something
-        scripted = torch.jit.script(model)
-        for stepper in (model, scripted):
+        for stepper in (model, torch.jit.script(model)):
             states = [stepper.carry(z[0], f[0], edges, node_type, ref)]
+            assert states[0].shape == (len(X), 12 + 6 + width)
             for k in range(1, len(f)):
                 states.append(stepper.step(states[-1], f[k], edges, node_type, ref, torch.tensor(dt)))
-            assert rel(torch.stack(states)[..., :12], batched) < 1e-9
-        # rollouts back-propagate through the rotations and the solves
-        loss = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, 3, True)[0, -1, :, 3:6].square().sum()
-        loss.backward()
-    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in net.parameters() if p.requires_grad)
+            assert float((torch.stack(states)[..., :12] - batched).norm() / batched.norm()) < 1e-9
+    return model, batched
 
 
 def test_relaxing_corotated_prior_is_the_relaxing_corotated_fe_model():
@@ -865,12 +878,11 @@ def test_relaxing_corotated_prior_is_the_relaxing_corotated_fe_model():
     too."""
     torch = pytest.importorskip("torch")
     from thermognn.core.corotated import CorotatedSolid, element_stiffness
-    from thermognn.train.hybrid import LinearPriorModel
-    from thermognn.train.model import TIGNN
     from thermognn.train.prior import CorotatedNewmarkPrior, NewmarkPrior
 
     terms = ((0.4, 4e-3), (0.2, 2e-2))
-    layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph(steps=12, prony=terms)
+    graph = _bent_block_graph(steps=12, prony=terms)
+    layout, traj, dt, X, linear, node_type, edges, z, f = graph
     tets = _bent_block(1.0, "newmark", steps=2, prony=terms)[0].cells[:, :4]
     mu, kappa = linear.shear_modulus, linear.bulk_modulus
     make = lambda sweeps: CorotatedNewmarkPrior(linear, len(X), dt, X, tets, kappa - 2 * mu / 3, mu,  # noqa: E731
@@ -904,19 +916,7 @@ def test_relaxing_corotated_prior_is_the_relaxing_corotated_fe_model():
     packed = prior.pack_internal(h)                                         # [2, N, 2 cell_columns]
     assert packed.shape == (2, len(X), 2 * prior.cell_columns) and torch.equal(prior.unpack_internal(packed), h)
 
-    ref = torch.as_tensor(X, dtype=torch.float32)
-    torch.manual_seed(0)
-    net = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, velocity_edges=True)
-    net.set_stats({"dzdt_std": torch.full((12,), 1e-2)})
-    model = LinearPriorModel(net, prior, torch.as_tensor(X), order=2)
-    with torch.enable_grad():
-        batched = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
-        for stepper in (model, torch.jit.script(model)):
-            states = [stepper.carry(z[0], f[0], edges, node_type, ref)]
-            assert states[0].shape == (len(X), 12 + 6 + 2 * prior.cell_columns)
-            for k in range(1, len(f)):
-                states.append(stepper.step(states[-1], f[k], edges, node_type, ref, torch.tensor(dt)))
-            assert rel(torch.stack(states)[..., :12], batched) < 1e-9
+    _carried_steps_follow_rollouts(prior, graph, width=2 * prior.cell_columns)
 
 
 def test_material_stress_prior_is_the_neo_hookean_law_and_the_fe_stress_exactly():
