@@ -455,9 +455,8 @@ def describe(report: dict, scene: str = "") -> list[str]:
     rot = report.get("rotations")
     if rot:
         line = (f"rotations{where}: cells rotate up to {rot['rotation_max_deg']:.0f}° (RMS {rot['rotation_rms_deg']:.1f}° "
-                f"at the last step)")
-        if rot.get("strain_max") is not None:
-            line += f" and strain up to {pct(rot['strain_max'])} (volume RMS {pct(rot['strain_rms'])} where it peaks)"
+                f"at the last step) and strain up to {pct(rot['strain_max'])} (volume RMS {pct(rot['strain_rms'])} "
+                f"where it peaks)")
         if rot.get("stress_plain") is not None:
             line += (f"; the linear stress of the data's own displacements is off by {pct(rot['stress_plain'])} of its "
                      f"stress, corotated {pct(rot['stress_corotated'])}")

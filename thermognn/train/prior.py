@@ -409,6 +409,8 @@ class CorotatedNewmarkPrior(NewmarkPrior):
             self.register_buffer(name, value, persistent=False)
         self.lam, self.mu, self.sweeps = float(lam), float(mu), int(sweeps)
         self.n_cells = int(T)
+        # Σ ḡ_i w_i: the weight of the cells' isochoric stress at a step's start in its history force
+        self.history_increment = float((self.prony_weight * self.prony_increment).sum())
         # nodal columns per Prony term that hold its 6 T cell variables in a carried state [N, ...]
         self.cell_columns = -(-6 * T // int(n_nodes))
         self.material_stress = neo_hookean is not None
@@ -476,19 +478,15 @@ class CorotatedNewmarkPrior(NewmarkPrior):
         for sweep in range(self.sweeps):         # fixed-point sweeps: the rotations of the latest u1
             if sweep > 0:
                 R, _ = self.rotations(self.positions(u1))
-            if self.n_terms == 0:
-                offset = self.to_free(R, torch.einsum("tij,btj->bti", self.cell_K, self.local(R, reference)))
-                A = mass + (1.0 + self.c) * self.rotated_stiffness(R)                        # [B, n, n] N/m
-                b = rhs - (1.0 + self.c) * offset
-            else:                                # K_Δt + c K, and the history at the step's start (class doc)
+            # the cells' K_Δt + c K (class doc) of R_eᵀ X_e − X_e, and relaxing, the history at the step's start
+            cell = torch.einsum("tij,btj->bti", self.cell_K_step, self.local(R, reference))     # [B, T, 12] N
+            if self.n_terms > 0:
                 history = (self.prony_weight * self.prony_decay).view(1, -1, 1, 1) * h0.reshape(
                     h0.shape[0], self.n_terms, self.n_cells, 6)                              # [B, T_p, T, 6] Pa
-                history = history.sum(1) - float((self.prony_weight * self.prony_increment).sum()) * \
-                    self.deviatoric_stress(R, F0)                                            # [B, T, 6] Pa
-                offset = self.to_free(R, torch.einsum("tij,btj->bti", self.cell_K_step, self.local(R, reference))
-                                      + self.cell_force(history))
-                A = mass + self.rotated_stiffness(R, self.cell_K_step)
-                b = rhs - offset
+                cell = cell + self.cell_force(history.sum(1) - self.history_increment
+                                              * self.deviatoric_stress(R, F0))
+            A = mass + self.rotated_stiffness(R, self.cell_K_step)                            # [B, n, n] N/m
+            b = rhs - self.to_free(R, cell)
             if not bool(torch.isfinite(b).all()):      # a cell flattened, or the remainders blew up
                 raise RuntimeError("corotated prior: a non-finite state (a cell inverted, or the remainders diverged)")
             u1 = solve_each(A, b)
