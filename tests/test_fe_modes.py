@@ -919,6 +919,41 @@ def test_relaxing_corotated_prior_is_the_relaxing_corotated_fe_model():
     _carried_steps_follow_rollouts(prior, graph, width=2 * prior.cell_columns)
 
 
+def test_corotated_step_solves_sparse_on_the_cpu_as_dense():
+    """On the CPU the corotated prior factorises each sweep's system by sparse LU (scipy;
+    ``SparseSolve``), on a GPU and in TorchScript densely: on the relaxing viscous bend the two
+    give the same step, and the same gradients through the solve and the rotations (to
+    round-off); the sparse pattern holds the mass and every cell's pairs."""
+    torch = pytest.importorskip("torch")
+    from thermognn.train.prior import CorotatedNewmarkPrior
+
+    terms = ((0.4, 4e-3), (0.2, 2e-2))
+    layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph(steps=12, prony=terms)
+    tets = _bent_block(1.0, "newmark", steps=2, prony=terms)[0].cells[:, :4]
+    mu, kappa = linear.shear_modulus, linear.bulk_modulus
+    prior = CorotatedNewmarkPrior(linear, len(X), dt, X, tets, kappa - 2 * mu / 3, mu, sweeps=3, relax=True)
+    Xt = torch.as_tensor(X)
+    u, v, forces = prior.gather(z[..., 0:3] - Xt), prior.gather(z[..., 3:6]), prior.gather(f)
+
+    def step(sparse: bool):
+        prior.sparse_cpu = sparse
+        G = (1e-3 * torch.randn(2, prior.n_free, generator=torch.Generator().manual_seed(0),
+                                dtype=torch.float64)).requires_grad_(True)
+        u0 = u[5:7].clone().requires_grad_(True)                      # two states mid-way: a batch
+        h = prior.internal_variables(u0)
+        a = prior.initial_acceleration(u0, v[5:7], forces[5:7], G)
+        u1, v1, _, h1 = prior.step(u0, v[5:7], a, forces[6:8], G, 2 * G, h)
+        loss = u1.square().sum() + 3.0 * v1.sum() + 1e-12 * h1.square().sum()
+        return (u1, v1) + torch.autograd.grad(loss, (G, u0))
+
+    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
+    dense, sparse = step(False), step(True)
+    assert all(rel(s, d) < 1e-12 for s, d in zip(sparse, dense)), [rel(s, d) for s, d in zip(sparse, dense)]
+    A = prior.pattern.matrix(np.ones(len(prior.pattern.indices))).toarray()
+    assert A[np.asarray(linear.mass.toarray() != 0)].all()
+    assert int(prior.pair_slot.max()) < len(prior.pattern.indices) == int((A != 0).sum())
+
+
 def test_material_stress_prior_is_the_neo_hookean_law_and_the_fe_stress_exactly():
     """``model.prior_stress=material``: :func:`neo_hookean_cauchy` against closed forms (rest,
     uniform dilation, simple shear) and smooth at F = I; a corotated prior taking its stress from
