@@ -91,7 +91,9 @@ def main() -> None:
         rows.append(row)
         print(f"{name}: linear q/v/sigma {row['linear'][0]:.2e} / {100 * row['linear'][1]:.1f} % / "
               f"{100 * row['linear'][2]:.1f} %   corotated {row['corot'][0]:.2e} / {100 * row['corot'][1]:.1f} % / "
-              f"{100 * row['corot'][2]:.1f} %   ({ms:.0f} ms a step)", flush=True)
+              f"{100 * row['corot'][2]:.1f} %   ({ms:.0f} ms a step)"
+              + ("" if (crushed := corotated.first_inversion(pred[..., 0:3])) is None else
+                 f"   corotated turns {crushed[1]} cell(s) inside out from step {crushed[0]}"), flush=True)
     for key in ("linear", "corot"):
         m = np.mean([r[key] for r in rows], axis=0)
         print(f"mean over {len(rows)} {args.split} trajectories, {key}: whole rollout q {m[0]:.2e}, v {100 * m[1]:.1f} %, "

@@ -781,6 +781,31 @@ def _corotated_bend():
     return make, graph, tets, z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12], rel
 
 
+def test_the_corotated_solid_reports_where_it_turns_a_cell_inside_out():
+    """``CorotatedSolid.first_inversion``: the first state of a rollout with a cell of det F <= 0
+    and how many there (a node pushed through the opposite face of its cell; rest and a 10 %
+    squeeze turn none), and the clause ``train`` and ``evaluate`` print for it."""
+    from thermognn.core.corotated import CorotatedSolid
+    from thermognn.train.evaluation import inversion_clause
+
+    _, _, _, X, linear, *_ = _bent_block_graph()
+    tets = _bent_block(1.0, "newmark")[0].cells[:, :4]
+    solid = CorotatedSolid.of(linear, X, tets)
+    squeezed = X * np.array([1.0, 1.0, 0.9])
+    a, b, c, d = tets[0]
+    normal = np.cross(X[c] - X[b], X[d] - X[b])
+    normal /= np.linalg.norm(normal)
+    crushed = X.copy()
+    crushed[a] -= 2.0 * np.dot(X[a] - X[b], normal) * normal            # a mirrored through face bcd
+    assert solid.first_inversion(np.stack([X, squeezed])) is None
+    step, cells = solid.first_inversion(np.stack([X, squeezed, crushed, crushed]))
+    assert step == 2 and 1 <= cells <= int((tets == a).any(1).sum())
+    assert inversion_clause({"inverted": []}) == ""
+    assert inversion_clause({"inverted": [("traj_14", 5, 1), ("traj_45", 7, 3)]}) == (
+        " (it turns cells inside out on traj_14 from step 5 (1 cell), traj_45 from step 7 (3 cells):"
+        " its rollout is meaningless there)")
+
+
 def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders_the_fe_step():
     """``CorotatedNewmarkPrior`` (``model.prior_corotated``) on the damped 12 mm bend: its polar
     rotations match the SVD's and are differentiable at rest (F = I); with G = H = 0 it steps as

@@ -125,6 +125,17 @@ class CorotatedSolid:
         """From the moduli ``lin`` carries (``LinearSolid.lame``; ValueError where it carries none)."""
         return cls(lin, X, tets, *lin.lame(), **options)
 
+    def first_inversion(self, q: np.ndarray) -> tuple[int, int] | None:
+        """(step, cells) where positions q [S, N, 3] m first turn a cell inside out (det F ≤ 0),
+        and how many it turns then; None where none is. The corotated solid's linear stress does
+        not stiffen as a cell is crushed (a neo-Hookean one does), so a strong point load can push
+        a cell through itself, after which its rollout is meaningless."""
+        for s, x in enumerate(np.asarray(q, dtype=float)):
+            bad = int((np.linalg.det(deformation_gradients(x, self.tets, self.grad)) <= 0.0).sum())
+            if bad:
+                return s, bad
+        return None
+
     # -- per cell ------------------------------------------------------------------------------
     def rotations(self, x: np.ndarray) -> np.ndarray:
         """R_e [T, 3, 3] at positions x [N, 3] m (I when frozen)."""

@@ -313,13 +313,16 @@ def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors], corotated:
         return {"note": str(exc)}
     predicted = {"q"} | ({"v"} if lin.integrator == "newmark" else set()) \
         | ({"sigma"} if lin.stress is not None or corotated else set())
-    per_traj, whole, elapsed, steps = [], [], 0.0, 0
+    per_traj, whole, elapsed, steps, inverted = [], [], 0.0, 0, []
     try:
         for t in trajs:
             t0 = time.perf_counter()
             pred = solid.rollout_states(t.z.double().cpu().numpy(), t.force.double().cpu().numpy(), X, data.layout, data.dt)
             elapsed += time.perf_counter() - t0
             steps += pred.shape[0] - 1
+            crushed = solid.first_inversion(pred[..., 0:3]) if corotated else None
+            if crushed is not None:
+                inverted.append((t.name, *crushed))
             pred_t, truth = torch.as_tensor(pred), t.z.double()
             per_traj.append(trajectory_rrmse(rrmse_per_step(pred_t, truth, data.layout)))
             whole.append(trajectory_error(pred_t, truth, data.layout))
@@ -328,7 +331,18 @@ def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors], corotated:
     hide = lambda d: {g: (d[g] if g in predicted else math.nan) for g in groups}  # noqa: E731
     return {"snapshot": hide(_mean_groups(per_traj, groups)), "whole": hide(_mean_groups(whole, groups)),
             "whole_per_trajectory": [hide(w) for w in whole], "ms_per_step": 1e3 * elapsed / max(steps, 1),
-            "sweeps": solid.count.mean if corotated else 1.0, "note": ""}
+            "sweeps": solid.count.mean if corotated else 1.0, "note": "", "inverted": inverted}
+
+
+def inversion_clause(base: dict) -> str:
+    """" (it turns cells inside out on traj_14 from step 5 (1 cell), ...)" for the trajectories a
+    baseline's rollouts crush a cell through (``linear_baseline``'s "inverted"), else ""."""
+    cases = base.get("inverted") or []
+    if not cases:
+        return ""
+    return (" (it turns cells inside out on " + ", ".join(f"{name} from step {step} ({cells} cell"
+                                                          f"{'s' if cells != 1 else ''})" for name, step, cells in cases)
+            + ": its rollout is meaningless there)")
 
 
 def linear_validation_error(data: LoadedData, trajs: list[TrajectoryTensors], corotated: bool = False) -> str:
@@ -349,7 +363,7 @@ def linear_validation_error(data: LoadedData, trajs: list[TrajectoryTensors], co
         return clause
     left_out = [g for g in data.layout.names if not math.isfinite(linear["whole"][g])]
     if corotated:
-        return clause + f"; the corotated FE model's {float(np.mean(values)):.3e}"
+        return clause + f"; the corotated FE model's {float(np.mean(values)):.3e}" + inversion_clause(linear)
     return (f"; the linearised FE model's validation error {float(np.mean(values)):.3e}"
             + (f" (without {', '.join(left_out)})" if left_out else "") + ", the number val_error has to beat")
 
@@ -678,7 +692,7 @@ def evaluate(cfg) -> dict:
             print(f"evaluate: the {label} FE model's whole-rollout test error "
                   + ", ".join(f"{g} {_fmt(base['whole'][g])}" for g in groups)
                   + f" at {base['ms_per_step']:.2f} ms a step"
-                  + (f" ({base['sweeps']:.1f} sweeps)" if label == "corotated" else ""))
+                  + (f" ({base['sweeps']:.1f} sweeps)" + inversion_clause(base) if label == "corotated" else ""))
     print(f"evaluate: {ms:.2f} ms per step ({data.graph.n_nodes} nodes, {torch.get_num_threads()} threads); "
           f"wrote {out}")
 
@@ -694,7 +708,8 @@ def evaluate(cfg) -> dict:
     corotated_line = ("The corotated FE model (the same solid with each cell's linear force and stress in its "
                       "rotated frame, implicit in the rotations: no spurious strain from a rotation; rows "
                       f"`corotated FE`) steps in {corotated['ms_per_step']:.3f} ms ({corotated['sweeps']:.1f} "
-                      "fixed-point sweeps of one sparse LU a step): the baseline where the cells turn far."
+                      "fixed-point sweeps of one sparse LU a step): the baseline where the cells turn far"
+                      + inversion_clause(corotated) + "."
                       if "snapshot" in corotated else f"Corotated FE baseline: not computed, {corotated['note']}.")
     lines = [f"# Evaluation of `{ckpt_path}`", "",
              f"- dataset: `{ds_path}` (scene `{data.dataset.scene}`, {data.graph.n_nodes} nodes, "
