@@ -806,6 +806,40 @@ def test_the_corotated_solid_reports_where_it_turns_a_cell_inside_out():
         " its rollout is meaningless there)")
 
 
+def test_training_windows_that_turn_a_cell_inside_out_are_left_out_of_the_loss():
+    """A rollout window of the corotated prior that turns a cell inside out (here the bend's
+    loads x 100) has left the prior's physics: ``_RolloutPhase`` leaves it out of the loss (and
+    counts it), so in a batch beside a sound window the loss is that window's alone, and alone
+    the loss is zero and still back-propagates; the linearised prior has no cells to turn."""
+    torch = pytest.importorskip("torch")
+    from thermognn.train.data import Graph, TrajectoryTensors
+    from thermognn.train.hybrid import LinearPriorModel, _RolloutPhase
+    from thermognn.train.model import TIGNN
+    from thermognn.train.prior import NewmarkPrior
+
+    make, graph, _, _, _, _, _ = _corotated_bend()
+    layout, traj, dt, X, linear, node_type, edges, z, f = graph
+    g = Graph(torch.as_tensor(X, dtype=torch.float32), edges, node_type, torch.zeros(0, 3, dtype=torch.long))
+    times = torch.arange(len(f)) * dt
+    torch.manual_seed(0)
+    net = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, velocity_edges=True)
+    net.set_stats({"dzdt_std": torch.full((12,), 1e-2)})
+    model = LinearPriorModel(net, make(sweeps=2), torch.as_tensor(X), order=2)
+    trajs = [TrajectoryTensors("sound", z, f, times), TrajectoryTensors("crushing", z, 100.0 * f, times)]
+    phase = _RolloutPhase(model, trajs, window=3, scale="trajectory")
+    with torch.enable_grad():
+        sound = float(phase.loss([(0, 0)], g.copies(1))[0])
+        assert phase.left_out == 0 and sound > 0
+        both = float(phase.loss([(0, 0), (1, 0)], g.copies(2))[0])
+        assert phase.left_out == 1 and both == pytest.approx(sound, rel=1e-9)
+        crushed = phase.loss([(1, 0)], g.copies(1))[0]
+        assert phase.left_out == 2 and float(crushed) == 0.0
+        crushed.backward()                                   # a batch left out still steps the optimiser
+    x = torch.as_tensor(X).unsqueeze(0)
+    assert not bool(model.prior.inverted(x).any())
+    assert not bool(NewmarkPrior(linear, len(X), dt).inverted(x).any())
+
+
 def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders_the_fe_step():
     """``CorotatedNewmarkPrior`` (``model.prior_corotated``) on the damped 12 mm bend: its polar
     rotations match the SVD's and are differentiable at rest (F = I); with G = H = 0 it steps as

@@ -575,6 +575,7 @@ class _RolloutPhase:
         self.accelerations = [model.accelerations(z, t.force) for z, t in zip(Z, trajs)] if mid_way else []
         self.internal = ([model.trajectory_internal_variables(z) for z in Z]
                          if (mid_way or self.stress_weight > 0) and model.prior.n_terms else [])
+        self.left_out = 0        # samples left out of the loss since the last reset: a cell turned inside out
 
     def loss(self, chosen, g) -> Tuple[Tensor, float, float]:
         """Rollouts of ``window`` steps (fewer where a trajectory ends: a batch runs to its
@@ -594,8 +595,14 @@ class _RolloutPhase:
                 H = H - self.model.prior.stress_relaxation(u, h)     # begin's H is σ − Σ u (unpack of a start)
         pred = self.model.roll(u, v, a, G, H, h, forces, *mesh, W, True, r0, self.recompute)
         rows = torch.tensor([i for i, _ in chosen])
-        loss = sum(w * ((pred[:, 1:, :, sl] - truth[:, 1:, :, sl]) / sc[rows].view(-1, 1, 1, 1)).pow(2).mean()
-                   for w, (sl, sc) in zip(self.weights, self.scales))
+        per_sample = sum(w * ((pred[:, 1:, :, sl] - truth[:, 1:, :, sl]) / sc[rows].view(-1, 1, 1, 1)).pow(2)
+                         .mean((1, 2, 3)) for w, (sl, sc) in zip(self.weights, self.scales))        # [k]
+        # a rollout that turns a cell inside out has left the prior's physics (the corotated
+        # force pushes on through): its error says nothing a gradient can use, so it is left out
+        with torch.no_grad():
+            keep = ~self.model.prior.inverted(pred[:, 1:, :, 0:3].flatten(0, 1)).view(len(chosen), W).any(1)
+        self.left_out += int((~keep).sum())
+        loss = (per_sample * keep.to(per_sample.dtype)).sum() / max(int(keep.sum()), 1)
         rollout_loss = float(loss.detach())
         if self.stress_weight > 0:
             loss = loss + self.stress_weight * self.stress_remainder_loss(chosen, truth, forces, rows, r0)
@@ -908,6 +915,11 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                         print(f"epoch {epoch + 1} ({phase}): batch {b + 1} of {nb}, loss {total / (b + 1):.3e}; "
                               f"{last.name} written (train.checkpoint_minutes)", flush=True)
             total, data_total, deg_total = dist.mean([total, data_total, deg_total])
+            for kind in {id(rollouts): rollouts, id(whole): whole}.values():
+                if kind.left_out and dist.main:
+                    print(f"epoch {epoch + 1} ({phase}): {kind.left_out} of {nb * batch_size} samples left out of the "
+                          f"loss: their rollout turned a cell inside out (det F <= 0)", flush=True)
+                kind.left_out = 0
             if not math.isfinite(total):
                 raise DataError(f"{data.path}: training diverged (non-finite loss at epoch {epoch + 1}, {phase}); "
                                 f"lower train.lr or train.rollout_lr")

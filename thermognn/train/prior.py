@@ -185,6 +185,11 @@ class NewmarkPrior(nn.Module):
         v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
         return u1, v1, a1, self.relax(u0, u1, h0)
 
+    def inverted(self, x: Tensor) -> Tensor:
+        """Whether positions x [B, N, 3] m turn a cell inside out [B] (bool): never for the
+        linearised prior, which has no cells (``CorotatedNewmarkPrior`` checks det F)."""
+        return torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+
     # --- the Prony internal variables of the relaxing prior (module docstring) ---------------
     def isochoric(self, u: Tensor) -> Tensor:
         """J u = [K_iso u; Σ_iso u] [B, n + 6N] of displacements u [B, n]."""
@@ -479,6 +484,11 @@ class CorotatedNewmarkPrior(NewmarkPrior):
     def deformation_gradients(self, x: Tensor) -> Tensor:
         """F [B, T, 3, 3] of the cells at positions x [B, N, 3] m (constant over a P1 cell)."""
         return torch.einsum("btai,taj->btij", x[:, self.cell_nodes], self.shape_grad)   # x_e [B, T, 4, 3]
+
+    def inverted(self, x: Tensor) -> Tensor:
+        """Whether positions x [B, N, 3] m turn a cell inside out (det F <= 0) [B] (bool): where
+        they do, the polar factor is a reflection and the corotated force pushes on through."""
+        return (torch.linalg.det(self.deformation_gradients(x.to(self.cell_X.dtype))) <= 0).any(1)
 
     def rotations(self, x: Tensor) -> Tuple[Tensor, Tensor]:
         """(R [B, T, 3, 3], F [B, T, 3, 3]) of the cells at positions x [B, N, 3]."""

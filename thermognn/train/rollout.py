@@ -88,10 +88,15 @@ def trajectory_error(pred: Tensor, truth: Tensor, layout: StateLayout) -> dict[s
 def validation_error(model, graph: Graph, trajs: list[TrajectoryTensors], layout: StateLayout, dt: float) -> float:
     """One number for model selection and early stopping: :func:`trajectory_error` of the rollouts
     from each trajectory's initial state, averaged over the finite groups and the trajectories
-    (inf if none is finite)."""
+    (inf if none is finite, or where the corotated prior's rollout diverges: the run goes on)."""
     vals = []
     for t in trajs:
-        errors = trajectory_error(rollout(model, graph, t.z[0], t.force, dt), t.z, layout)
+        try:
+            errors = trajectory_error(rollout(model, graph, t.z[0], t.force, dt), t.z, layout)
+        except RuntimeError as exc:          # the corotated prior met a non-finite state: diverged
+            if "corotated prior:" not in str(exc):
+                raise
+            return float("inf")
         vals += [v for v in errors.values() if math.isfinite(v)]
     return float(np.mean(vals)) if vals else float("inf")
 
