@@ -21,9 +21,18 @@ def rollout(model, graph: Graph, z0: Tensor, forces: Tensor, dt: float, steps: i
     may exceed S - 1: the last load is then held."""
     steps = forces.shape[0] - 1 if steps is None else steps
     if isinstance(model, LinearPriorModel):  # the linearised FE step, carrying a and G between steps
-        with torch.enable_grad():
-            pred = model.rollouts(z0.unsqueeze(0), forces.unsqueeze(0), graph.edge_index, graph.node_type,
-                                  graph.ref_pos, steps, False)[0]
+        # weights frozen meanwhile: else every step's solve hangs on their graph until the rollout
+        # ends (the bunny's corotated prior: 24 GB by a 30-step validation rollout, killed)
+        weights = [p for p in model.parameters() if p.requires_grad]
+        try:
+            for p in weights:
+                p.requires_grad_(False)
+            with torch.enable_grad():
+                pred = model.rollouts(z0.unsqueeze(0), forces.unsqueeze(0), graph.edge_index, graph.node_type,
+                                      graph.ref_pos, steps, False)[0]
+        finally:
+            for p in weights:
+                p.requires_grad_(True)
         return pred.detach().to(z0.dtype)
     dt_t = torch.tensor(dt, dtype=z0.dtype)
     out = [model.impose(z0, graph.node_type, graph.ref_pos)]
