@@ -483,6 +483,14 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
     model = LinearPriorModel(net, NewmarkPrior(linear, len(X), dt), torch.as_tensor(X))
     rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
 
+    # rollout (validation, evaluate) steps with the weights frozen, so no step's solve hangs on
+    # their graph to the end, and gives them back trainable: the same states as the batched rollout
+    from thermognn.train.rollout import rollout
+    with torch.enable_grad():
+        batched = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
+    stepped = rollout(model, Graph(ref, edges, node_type, torch.zeros(0, 3, dtype=torch.long)), z[0], f, dt)
+    assert torch.equal(stepped, batched.detach().to(z.dtype)) and all(p.requires_grad for p in model.parameters())
+
     saved = _zero_remainders(net)
     with torch.enable_grad():
         pred = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
