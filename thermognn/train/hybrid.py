@@ -60,7 +60,7 @@ from thermognn.core.errors import ConfigError, DataError
 
 from .device import cpu_randn
 from .model import TIGNN, grown_blocks, load_grown
-from .prior import CorotatedNewmarkPrior, NewmarkPrior
+from .prior import DIVERGED, CorotatedNewmarkPrior, NewmarkPrior
 
 #: the state layout the prior steps: positions, velocities and stresses, nothing else
 LAYOUT = ["q", "v", "sigma"]
@@ -895,7 +895,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                     loss, data_loss, deg = (fit.loss(chosen, g, gen) if phase == "fit" else
                                             (rollouts if phase == "rollout" else whole).loss(chosen, g))
                 except RuntimeError as exc:                  # the corotated step met a non-finite state
-                    if "corotated prior:" not in str(exc):
+                    if DIVERGED not in str(exc):
                         raise
                     raise DataError(f"{data.path}: training diverged at epoch {epoch + 1}, batch {b + 1} ({phase}: "
                                     f"{str(exc).strip().splitlines()[-1]}); lower train.lr or train.rollout_lr "
@@ -915,11 +915,12 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                         print(f"epoch {epoch + 1} ({phase}): batch {b + 1} of {nb}, loss {total / (b + 1):.3e}; "
                               f"{last.name} written (train.checkpoint_minutes)", flush=True)
             total, data_total, deg_total = dist.mean([total, data_total, deg_total])
-            for kind in {id(rollouts): rollouts, id(whole): whole}.values():
-                if kind.left_out and dist.main:
-                    print(f"epoch {epoch + 1} ({phase}): {kind.left_out} of {nb * batch_size} samples left out of the "
+            if phase != "fit":                  # the rollout or whole phase's samples a crushed cell left out
+                rolled = rollouts if phase == "rollout" else whole
+                if rolled.left_out and dist.main:
+                    print(f"epoch {epoch + 1} ({phase}): {rolled.left_out} of {nb * batch_size} samples left out of the "
                           f"loss: their rollout turned a cell inside out (det F <= 0)", flush=True)
-                kind.left_out = 0
+                rolled.left_out = 0
             if not math.isfinite(total):
                 raise DataError(f"{data.path}: training diverged (non-finite loss at epoch {epoch + 1}, {phase}); "
                                 f"lower train.lr or train.rollout_lr")

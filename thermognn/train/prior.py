@@ -319,6 +319,12 @@ class NewmarkPrior(nn.Module):
         return G, sigma - self.stress(u) - self.stress_relaxation(uf, h)
 
 
+#: what the RuntimeError of the corotated step starts with where its state stopped being finite
+#: (``CorotatedNewmarkPrior.step`` raises it literally: TorchScript compiles no f-string of a
+#: global); training and validation catch it by this
+DIVERGED = "corotated prior:"
+
+
 class SparsePattern:
     """A fixed sparsity pattern of [n, n] matrices in CSC order: row index ``indices`` [nnz] and
     column pointers ``indptr`` [n + 1] (scipy's), with each slot's row and column as tensors."""
@@ -454,13 +460,14 @@ class CorotatedNewmarkPrior(NewmarkPrior):
             # and relaxation (K_Δt,e + c K_e; (1 + c) K_e for the elastic prior)
             "cell_K_step": torch.as_tensor((1.0 + self.c) * Ke - self._shrink() * Ke_iso, dtype=dtype),
             "voigt_eye": torch.tensor([1.0, 1.0, 1.0, 0.0, 0.0, 0.0], dtype=dtype)}                # I in Voigt
-        # the step matrix's sparsity (CSC over the free DOFs), for the CPU's sparse LU (``solve``)
+        # the step matrix's sparsity (CSC over the free DOFs), for the CPU's sparse LU (``sparse_solve``)
         mass = sparse.csc_matrix(linear.mass, dtype=float)
         mass_rows, mass_cols = mass.nonzero()
-        key = np.unique(np.concatenate([cols[keep] * n + rows[keep], mass_cols * n + mass_rows]))   # column-major
+        pair_key = cols[keep] * n + rows[keep]                                        # [k] column-major
+        key = np.unique(np.concatenate([pair_key, mass_cols * n + mass_rows]))       # [nnz]
         self.pattern = SparsePattern(key % n, np.searchsorted(key // n, np.arange(n + 1)), n)
         buffers.update({
-            "pair_slot": torch.as_tensor(np.searchsorted(key, cols[keep] * n + rows[keep])),   # [k] of nnz
+            "pair_slot": torch.as_tensor(np.searchsorted(key, pair_key)),            # [k] of nnz
             "mass_values": torch.as_tensor(np.asarray(mass[key % n, key // n]).ravel(), dtype=dtype)})  # [nnz] kg
         for name, value in buffers.items():
             self.register_buffer(name, value, persistent=False)
@@ -514,26 +521,27 @@ class CorotatedNewmarkPrior(NewmarkPrior):
         R, _ = self.rotations(x)
         return self.to_free(R, torch.einsum("tij,btj->bti", self.cell_K, self.local(R, x)))
 
+    def rotated_pairs(self, R: Tensor, cell_K: Tensor) -> Tensor:
+        """The entries R_e K_e R_eᵀ [B, k] N/m of the cells' K_e [T, 12, 12] that fall on pairs of
+        free DOFs (``pair_keep``), unsummed: ``pair_flat`` sums them densely, ``pair_slot`` sparsely."""
+        B, T = R.shape[0], R.shape[1]
+        KR = torch.einsum("ztij,tajck,ztlk->ztaicl", R, cell_K.reshape(T, 4, 3, 4, 3), R).reshape(B, T * 144)
+        return KR.index_select(1, self.pair_keep)
+
     def rotated_stiffness(self, R: Tensor, cell_K: Optional[Tensor] = None) -> Tensor:
         """Σ_e R_e K_e R_eᵀ over the free DOFs [B, n, n] N/m (dense), of the cells' K_e [T, 12, 12]
         (default: the linear stiffness ``cell_K``)."""
-        B, T = R.shape[0], R.shape[1]
-        K = (self.cell_K if cell_K is None else cell_K).reshape(T, 4, 3, 4, 3)
-        KR = torch.einsum("ztij,tajck,ztlk->ztaicl", R, K, R).reshape(B, T * 144)
-        values = KR.index_select(1, self.pair_keep)                                    # [B, k]
-        n = self.n_free
-        return KR.new_zeros(B, n * n).index_add(1, self.pair_flat, values).reshape(B, n, n)
+        values = self.rotated_pairs(R, self.cell_K if cell_K is None else cell_K)       # [B, k]
+        B, n = R.shape[0], self.n_free
+        return values.new_zeros(B, n * n).index_add(1, self.pair_flat, values).reshape(B, n, n)
 
     @torch.jit.unused
     def sparse_solve(self, R: Tensor, b: Tensor) -> Tensor:
         """u [B, n] m solving (c0 m_f M + Σ_e R_e K_Δt,e R_eᵀ) u = b [B, n] N, the step's system,
         assembled into ``pattern`` and factorised by sparse LU (:class:`SparseSolve`): the system
         ``rotated_stiffness`` builds dense, on the CPU (not in TorchScript)."""
-        B, T = R.shape[0], R.shape[1]
-        K = self.cell_K_step.reshape(T, 4, 3, 4, 3)
-        KR = torch.einsum("ztij,tajck,ztlk->ztaicl", R, K, R).reshape(B, T * 144)
-        values = (self.c0 * self.mass_factor * self.mass_values).expand(B, -1).index_add(
-            1, self.pair_slot, KR.index_select(1, self.pair_keep))                       # [B, nnz] N/m
+        values = (self.c0 * self.mass_factor * self.mass_values).expand(R.shape[0], -1).index_add(
+            1, self.pair_slot, self.rotated_pairs(R, self.cell_K_step))                   # [B, nnz] N/m
         return SparseSolve.apply(values, b, self.pattern)
 
     # --- the step -------------------------------------------------------------------------------

@@ -12,6 +12,7 @@ from thermognn.core.state import StateLayout
 
 from .data import Graph, TrajectoryTensors
 from .hybrid import LinearPriorModel
+from .prior import DIVERGED
 
 
 def rollout(model, graph: Graph, z0: Tensor, forces: Tensor, dt: float, steps: int | None = None) -> Tensor:
@@ -103,7 +104,7 @@ def validation_error(model, graph: Graph, trajs: list[TrajectoryTensors], layout
         try:
             errors = trajectory_error(rollout(model, graph, t.z[0], t.force, dt), t.z, layout)
         except RuntimeError as exc:          # the corotated prior met a non-finite state: diverged
-            if "corotated prior:" not in str(exc):
+            if DIVERGED not in str(exc):
                 raise
             return float("inf")
         vals += [v for v in errors.values() if math.isfinite(v)]
