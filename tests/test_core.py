@@ -134,3 +134,22 @@ def test_split_group_round_trip(tmp_path):
     ds = Dataset(tmp_path / "g.h5")
     assert ds.split_groups == {"a": "point_3"}
     assert ds.read("a").split_group == "point_3" and ds.read("b").split_group == ""
+
+
+def test_fe_cost_round_trip(tmp_path):
+    """``generate``'s record of what each FE solve cost is stored and read back; ``fe_cost`` sums
+    it per step over the trajectories named, and is None where one of them has no record."""
+    mesh, layout = unit_cube_mesh(), state_layout(["elastic"])
+    timed = make_traj("a", mesh, layout)
+    timed.fe_seconds, timed.fe_iterations, timed.fe_cuts = 0.5, 12, 1
+    steps = len(timed.time) - 1
+    with DatasetWriter(tmp_path / "c.h5", mesh, layout, 0.1, "c: 1\n", "{}", "t", ["elastic"]) as w:
+        w.write(timed)
+        w.write(make_traj("b", mesh, layout))
+    ds = Dataset(tmp_path / "c.h5")
+    back = ds.read("a")
+    assert (back.fe_seconds, back.fe_iterations, back.fe_cuts) == (0.5, 12, 1)
+    assert np.isnan(ds.read("b").fe_seconds)
+    assert ds.fe_cost(["a"]) == {"ms_per_step": pytest.approx(500.0 / steps),
+                                 "iterations_per_step": pytest.approx(12 / steps), "cuts": 1, "steps": steps}
+    assert ds.fe_cost(["a", "b"]) is None

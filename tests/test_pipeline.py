@@ -39,6 +39,10 @@ def test_demo_runs_every_stage_end_to_end(tmp_path):
         assert 0 < errors[f"linear_fe_{g}"] < 1 and 0 < errors[f"linear_fe_whole_{g}"] < 1, g
         assert math.isfinite(errors[f"whole_{g}"]) and errors[f"whole_{g}"] > 0, g   # the model's own, at full precision
     assert errors["linear_fe_ms_per_step"] > 0
+    # the data's own FE solve, as generate timed it: the exact answer's price beside the model's step
+    assert errors["fe_ms_per_step"] > 0 and errors["fe_iterations_per_step"] >= 1
+    assert "the FE model itself (the data: error 0) took" in res.stdout
+    assert all(math.isfinite(ds.read(n).fe_seconds) and ds.read(n).fe_iterations > 0 for n in ds.ok_names)
     assert "| linearised FE, test |" in (tmp_path / "eval" / "summary.md").read_text()
     # each trajectory's linear error beside the model's; the share of it the model leaves, their mean ratio
     import csv

@@ -110,6 +110,11 @@ class Trajectory:
     #: trajectories with the same non-empty group land in the same train/val/test part
     #: (``generate``: ``point_<i>``, the load point pressed, whatever the magnitude)
     split_group: str = ""
+    #: what the FE solve of it cost (``generate``): wall time [s] (nan: not recorded), Newton
+    #: iterations and step cuts in all, the price of the data a learned model is measured against
+    fe_seconds: float = float("nan")
+    fe_iterations: int = 0
+    fe_cuts: int = 0
 
 
 def config_hash(config_yaml: str) -> str:
@@ -227,6 +232,10 @@ class DatasetWriter:
         g.attrs["load_point"] = np.asarray(traj.load_point, np.float64)
         if traj.split_group:
             g.attrs["split_group"] = traj.split_group
+        if np.isfinite(traj.fe_seconds):
+            g.attrs["fe_seconds"] = float(traj.fe_seconds)
+            g.attrs["fe_iterations"] = int(traj.fe_iterations)
+            g.attrs["fe_cuts"] = int(traj.fe_cuts)
         self._f.flush()
 
     def close(self, finalize: bool) -> None:
@@ -326,6 +335,28 @@ class Dataset:
     def ok_names(self) -> list[str]:
         return [n for n in self.names if self.status[n] == "ok"]
 
+    def fe_cost(self, names: list[str]) -> dict | None:
+        """What ``generate``'s FE solve of the trajectories ``names`` cost, as it recorded it (on
+        the machine that generated them): {"ms_per_step": wall time a step [ms], "iterations_per_step":
+        Newton iterations a step, "cuts": step cuts in all, "steps"}; None where any of them has no
+        record (datasets from before session 49, imported ones)."""
+        import h5py
+
+        seconds, iterations, cuts, steps = 0.0, 0, 0, 0
+        with h5py.File(self.path, "r") as f:
+            for name in names:
+                g = f["trajectories"][name]
+                if "fe_seconds" not in g.attrs:
+                    return None
+                seconds += float(g.attrs["fe_seconds"])
+                iterations += int(g.attrs["fe_iterations"])
+                cuts += int(g.attrs["fe_cuts"])
+                steps += int(g["time"].shape[0]) - 1
+        if not steps:
+            return None
+        return {"ms_per_step": 1e3 * seconds / steps, "iterations_per_step": iterations / steps, "cuts": cuts,
+                "steps": steps}
+
     def read(self, name: str) -> Trajectory:
         import h5py
 
@@ -368,7 +399,10 @@ def _trajectory_from_group(g, name: str) -> Trajectory:
                       load_point=np.asarray(g.attrs.get("load_point", np.zeros(3))),
                       status=str(g.attrs.get("status", "ok")),
                       reason=str(g.attrs.get("reason", "")),
-                      split_group=str(g.attrs.get("split_group", "")))
+                      split_group=str(g.attrs.get("split_group", "")),
+                      fe_seconds=float(g.attrs.get("fe_seconds", float("nan"))),
+                      fe_iterations=int(g.attrs.get("fe_iterations", 0)),
+                      fe_cuts=int(g.attrs.get("fe_cuts", 0)))
 
 
 def _natural_key(s: str):

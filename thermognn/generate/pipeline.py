@@ -99,10 +99,12 @@ def simulate(solid, spec: SceneSpec, layout: StateLayout, k: int, ntype: np.ndar
         times.append(s * dt)
         zs.append(z)
         forces.append(ramp(s * dt, dt, ramp_steps, shape) * full_force)
+    cost = TrajectoryCost(time.perf_counter() - t0, len(times) - 1, iterations, cuts)
     traj = Trajectory(name=f"traj_{k}", time=np.asarray(times), z=np.stack(zs), force=np.stack(forces),
                       load_nodes=load_nodes, load_point=point, status=status, reason=reason,
-                      split_group=f"point_{case.point_index}")
-    return traj, TrajectoryCost(time.perf_counter() - t0, len(times) - 1, iterations, cuts)
+                      split_group=f"point_{case.point_index}", fe_seconds=cost.seconds,
+                      fe_iterations=iterations, fe_cuts=cuts)
+    return traj, cost
 
 
 def _stale_partial(out: Path, nodes: np.ndarray, load_points) -> str:

@@ -334,6 +334,15 @@ def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors], corotated:
             "sweeps": solid.count.mean if corotated else 1.0, "note": "", "inverted": inverted}
 
 
+def fe_sentence(fe: dict) -> str:
+    """What the data's own FE solve of the test trajectories cost (``Dataset.fe_cost``): the
+    exact answer's price, beside which a learned model's speed and error are read."""
+    return (f"the FE model itself (the data: error 0) took {fe['ms_per_step']:.1f} ms a step on these "
+            f"test trajectories ({fe['iterations_per_step']:.1f} Newton iterations a step"
+            + (f", {fe['cuts']} step cuts" if fe["cuts"] else "")
+            + "; dolfinx, as `generate` timed it on the machine that generated the dataset)")
+
+
 def inversion_clause(base: dict) -> str:
     """" (it turns cells inside out on traj_14 from step 5 (1 cell), ...)" for the trajectories a
     baseline's rollouts crush a cell through (``linear_baseline``'s "inverted"), else ""."""
@@ -464,7 +473,9 @@ def evaluate(cfg) -> dict:
     "linear_fe_left_<group>" / "linear_fe_left_train_<group>" (:func:`error_left` on the test
     trajectories and on the training ones evaluate rolls out), and for datasets with the moduli at
     rest the corotated FE model's "corotated_fe_<group>", "corotated_fe_whole_<group>",
-    "corotated_fe_ms_per_step" and "corotated_fe_sweeps" (``linear_baseline(corotated=True)``)}."""
+    "corotated_fe_ms_per_step" and "corotated_fe_sweeps" (``linear_baseline(corotated=True)``), and for
+    datasets that record their FE solve's cost "fe_ms_per_step", "fe_iterations_per_step"
+    (``Dataset.fe_cost``)}."""
     torch.set_num_threads(int(OmegaConf.select(cfg, "train.threads", default=2)))
     ckpt_path = project_path(cfg.paths.checkpoint)
     ckpt = load_checkpoint(ckpt_path)
@@ -501,6 +512,7 @@ def evaluate(cfg) -> dict:
     linear = linear_baseline(data, test)
     linear_train = linear_baseline(data, train_trajs) if "snapshot" in linear else {}
     corotated = linear_baseline(data, test, corotated=True)
+    fe = data.dataset.fe_cost([t.name for t in test])           # the data's own FE solve (generate's record)
     split = stress_split(model, preds, test) if prior and "sigma" in groups else {}
     left = {}                      # the share of the linear model's error the model leaves, test and train
     if "snapshot" in linear and "snapshot" in linear_train:
@@ -667,6 +679,9 @@ def evaluate(cfg) -> dict:
         mean_test["corotated_fe_ms_per_step"] = corotated["ms_per_step"]
         mean_test["corotated_fe_sweeps"] = corotated["sweeps"]
         rows["corotated FE, test"] = corotated["snapshot"]
+    if fe:
+        mean_test["fe_ms_per_step"] = fe["ms_per_step"]
+        mean_test["fe_iterations_per_step"] = fe["iterations_per_step"]
     mean_test.update({f"stress_{k}": v for k, v in split.items()})
     if left:
         mean_test.update({f"linear_fe_left_{g}": left["test"][g] for g in groups})
@@ -693,6 +708,8 @@ def evaluate(cfg) -> dict:
                   + ", ".join(f"{g} {_fmt(base['whole'][g])}" for g in groups)
                   + f" at {base['ms_per_step']:.2f} ms a step"
                   + (f" ({base['sweeps']:.1f} sweeps)" + inversion_clause(base) if label == "corotated" else ""))
+    if fe:
+        print(f"evaluate: {fe_sentence(fe)}")
     print(f"evaluate: {ms:.2f} ms per step ({data.graph.n_nodes} nodes, {torch.get_num_threads()} threads); "
           f"wrote {out}")
 
@@ -721,7 +738,8 @@ def evaluate(cfg) -> dict:
                 if which_split == "dataset" else ""),
              f"- speed: {ms:.2f} ms per step (forward + autograd, {torch.get_num_threads()} threads, CPU, "
              + describe_step(model_step(ckpt))
-             + (f"; `rollout` overrides: {stepped}" if stepped else "") + ")",
+             + (f"; `rollout` overrides: {stepped}" if stepped else "") + ")"
+             + (f"; {fe_sentence(fe)}" if fe else ""),
              f"- energy balance: {_fmt(balance)} = sum |E_s - E_(s-1) - dt P| / sum |E_s - E_(s-1)| over the "
              "test rollouts (the learned energy's change that the port's work P does not explain: the "
              "integrator's drift, and for GENERIC models also what M changes where the learned "
