@@ -42,6 +42,12 @@ def test_demo_runs_every_stage_end_to_end(tmp_path):
     # the data's own FE solve, as generate timed it: the exact answer's price beside the model's step
     assert errors["fe_ms_per_step"] > 0 and errors["fe_iterations_per_step"] >= 1
     assert "the FE model itself (the data: error 0) took" in res.stdout
+    # the data's own law with one Newton iteration a step (the block is neo-Hookean): nearer the
+    # data than the linearised model, and its rows in the summary
+    for g in ("q", "v", "sigma"):
+        assert 0 < errors[f"newton1_fe_whole_{g}"] < errors[f"linear_fe_whole_{g}"], g
+    assert errors["newton1_fe_ms_per_step"] > 0
+    assert "| linearly implicit FE, test |" in (tmp_path / "eval" / "summary.md").read_text()
     assert all(math.isfinite(ds.read(n).fe_seconds) and ds.read(n).fe_iterations > 0 for n in ds.ok_names)
     assert "| linearised FE, test |" in (tmp_path / "eval" / "summary.md").read_text()
     # each trajectory's linear error beside the model's; the share of it the model leaves, their mean ratio

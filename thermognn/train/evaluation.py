@@ -26,10 +26,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
 from omegaconf import OmegaConf
 
 from thermognn.core.config import project_path
 from thermognn.core.corotated import CorotatedSolid
+from thermognn.core.hyperelastic import NeoHookeanSolid
 from thermognn.core.errors import ConfigError, DataError
 from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
@@ -290,11 +292,15 @@ def hardest(whole: list[dict[str, float]], mean: dict[str, float], groups: list[
     return sorted(range(len(whole)), key=lambda k: -score[k] if math.isfinite(score[k]) else math.inf)
 
 
-def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors], corotated: bool = False) -> dict:
+def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors], corotated: bool = False,
+                    newton: int = 0) -> dict:
     """The linearised FE model (the dataset's ``/linear`` operators, ``thermognn.core.linear``; no
     learning) rolled out over the same trajectories, from the same first states under the same
     loads; with ``corotated`` the same solid corotated per cell (``thermognn.core.corotated``:
-    each cell's linear force and stress in its rotated frame, implicit in the rotations). Returns
+    each cell's linear force and stress in its rotated frame, implicit in the rotations); with
+    ``newton`` > 0 the data's own law (``thermognn.core.hyperelastic``, neo-Hookean scenes) with
+    that many Newton iterations a step (1: the linearly implicit step of real-time FE), whose
+    rollouts that fail (a cell crushed through: non-finite) score inf and are named in "blown". Returns
     {"snapshot": {group: mean per-snapshot RRMSE}, "whole": {group: mean whole-rollout error},
     "whole_per_trajectory": [{group: whole-rollout error}, one per trajectory], "ms_per_step":
     wall time of one step [ms], "sweeps": mean fixed-point sweeps a step (corotated; 1 else),
@@ -308,16 +314,28 @@ def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors], corotated:
     groups = data.layout.names
     X = data.reference_positions()
     try:
-        solid = CorotatedSolid.of(lin, X, data.dataset.mesh.tets) if corotated else lin
-    except ValueError as exc:
-        return {"note": str(exc)}
+        if newton:
+            material = (yaml.safe_load(data.dataset.config_yaml or "") or {}).get("scene", {}).get("material", {})
+            solid = NeoHookeanSolid.of(lin, X, data.dataset.mesh.tets, material, iterations=newton)
+        else:
+            solid = CorotatedSolid.of(lin, X, data.dataset.mesh.tets) if corotated else lin
+    except (ValueError, KeyError, AttributeError) as exc:
+        return {"note": str(exc) if isinstance(exc, ValueError) else f"the dataset's config has no scene material ({exc})"}
     predicted = {"q"} | ({"v"} if lin.integrator == "newmark" else set()) \
-        | ({"sigma"} if lin.stress is not None or corotated else set())
-    per_traj, whole, elapsed, steps, inverted = [], [], 0.0, 0, []
+        | ({"sigma"} if lin.stress is not None or corotated or newton else set())
+    per_traj, whole, elapsed, steps, inverted, blown = [], [], 0.0, 0, [], []
     try:
         for t in trajs:
             t0 = time.perf_counter()
-            pred = solid.rollout_states(t.z.double().cpu().numpy(), t.force.double().cpu().numpy(), X, data.layout, data.dt)
+            z, force = t.z.double().cpu().numpy(), t.force.double().cpu().numpy()
+            try:
+                with np.errstate(all="ignore"):
+                    pred = solid.rollout_states(z, force, X, data.layout, data.dt)
+            except (RuntimeError, np.linalg.LinAlgError):           # a singular tangent: crushed through
+                pred = np.full_like(z, math.inf)
+            if newton and not np.all(np.isfinite(pred)):
+                blown.append(t.name)
+                pred = np.where(np.isfinite(pred), pred, math.inf)
             elapsed += time.perf_counter() - t0
             steps += pred.shape[0] - 1
             crushed = solid.first_inversion(pred[..., 0:3]) if corotated else None
@@ -331,7 +349,7 @@ def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors], corotated:
     hide = lambda d: {g: (d[g] if g in predicted else math.nan) for g in groups}  # noqa: E731
     return {"snapshot": hide(_mean_groups(per_traj, groups)), "whole": hide(_mean_groups(whole, groups)),
             "whole_per_trajectory": [hide(w) for w in whole], "ms_per_step": 1e3 * elapsed / max(steps, 1),
-            "sweeps": solid.count.mean if corotated else 1.0, "note": "", "inverted": inverted}
+            "sweeps": solid.count.mean if corotated else 1.0, "note": "", "inverted": inverted, "blown": blown}
 
 
 def fe_sentence(fe: dict) -> str:
@@ -341,6 +359,13 @@ def fe_sentence(fe: dict) -> str:
             f"test trajectories ({fe['iterations_per_step']:.1f} Newton iterations a step"
             + (f", {fe['cuts']} step cuts" if fe["cuts"] else "")
             + "; dolfinx, as `generate` timed it on the machine that generated the dataset)")
+
+
+def blown_clause(base: dict) -> str:
+    """" (it fails on traj_31, ...: inf there)" for the trajectories a budgeted FE model's rollouts
+    do not finish (``linear_baseline``'s "blown"), else ""."""
+    cases = base.get("blown") or []
+    return f" (it fails on {', '.join(cases)}: inf there)" if cases else ""
 
 
 def inversion_clause(base: dict) -> str:
@@ -473,7 +498,9 @@ def evaluate(cfg) -> dict:
     "linear_fe_left_<group>" / "linear_fe_left_train_<group>" (:func:`error_left` on the test
     trajectories and on the training ones evaluate rolls out), and for datasets with the moduli at
     rest the corotated FE model's "corotated_fe_<group>", "corotated_fe_whole_<group>",
-    "corotated_fe_ms_per_step" and "corotated_fe_sweeps" (``linear_baseline(corotated=True)``), and for
+    "corotated_fe_ms_per_step" and "corotated_fe_sweeps" (``linear_baseline(corotated=True)``), for
+    neo-Hookean scenes the linearly implicit FE model's "newton1_fe_<group>", "newton1_fe_whole_<group>",
+    "newton1_fe_ms_per_step" (``linear_baseline(newton=1)``), and for
     datasets that record their FE solve's cost "fe_ms_per_step", "fe_iterations_per_step"
     (``Dataset.fe_cost``)}."""
     torch.set_num_threads(int(OmegaConf.select(cfg, "train.threads", default=2)))
@@ -512,6 +539,7 @@ def evaluate(cfg) -> dict:
     linear = linear_baseline(data, test)
     linear_train = linear_baseline(data, train_trajs) if "snapshot" in linear else {}
     corotated = linear_baseline(data, test, corotated=True)
+    implicit = linear_baseline(data, test, newton=1)            # the data's law, one Newton iteration a step
     fe = data.dataset.fe_cost([t.name for t in test])           # the data's own FE solve (generate's record)
     split = stress_split(model, preds, test) if prior and "sigma" in groups else {}
     left = {}                      # the share of the linear model's error the model leaves, test and train
@@ -679,6 +707,11 @@ def evaluate(cfg) -> dict:
         mean_test["corotated_fe_ms_per_step"] = corotated["ms_per_step"]
         mean_test["corotated_fe_sweeps"] = corotated["sweeps"]
         rows["corotated FE, test"] = corotated["snapshot"]
+    if "snapshot" in implicit:
+        mean_test.update({f"newton1_fe_{g}": implicit["snapshot"][g] for g in groups})
+        mean_test.update({f"newton1_fe_whole_{g}": implicit["whole"][g] for g in groups})
+        mean_test["newton1_fe_ms_per_step"] = implicit["ms_per_step"]
+        rows["linearly implicit FE, test"] = implicit["snapshot"]
     if fe:
         mean_test["fe_ms_per_step"] = fe["ms_per_step"]
         mean_test["fe_iterations_per_step"] = fe["iterations_per_step"]
@@ -702,12 +735,14 @@ def evaluate(cfg) -> dict:
                                          for part in ("train", "test")))
     if split:
         print(f"evaluate: {stress_split_sentence(split)} (test)")
-    for label, base in (("linearised", linear), ("corotated", corotated)):
+    for label, base in (("linearised", linear), ("corotated", corotated), ("linearly implicit", implicit)):
         if "whole" in base:
             print(f"evaluate: the {label} FE model's whole-rollout test error "
                   + ", ".join(f"{g} {_fmt(base['whole'][g])}" for g in groups)
                   + f" at {base['ms_per_step']:.2f} ms a step"
-                  + (f" ({base['sweeps']:.1f} sweeps)" + inversion_clause(base) if label == "corotated" else ""))
+                  + (f" ({base['sweeps']:.1f} sweeps)" + inversion_clause(base) if label == "corotated" else "")
+                  + (" (the data's law, one Newton iteration a step)" + blown_clause(base)
+                     if label == "linearly implicit" else ""))
     if fe:
         print(f"evaluate: {fe_sentence(fe)}")
     print(f"evaluate: {ms:.2f} ms per step ({data.graph.n_nodes} nodes, {torch.get_num_threads()} threads); "
@@ -715,7 +750,8 @@ def evaluate(cfg) -> dict:
 
     def linear_rows(kind: str) -> list[str]:
         return [f"| {label} FE, test | " + " | ".join(_fmt(base[kind][g]) for g in groups) + " |"
-                for label, base in (("linearised", linear), ("corotated", corotated)) if kind in base]
+                for label, base in (("linearised", linear), ("corotated", corotated), ("linearly implicit", implicit))
+                if kind in base]
 
     linear_line = ("The linearised FE model (the dataset's own K, M and stress operator at rest, stepped by "
                    "the data's integrator; no learning; rows `linearised FE` above; nan: a group it does not "
@@ -728,6 +764,12 @@ def evaluate(cfg) -> dict:
                       "fixed-point sweeps of one sparse LU a step): the baseline where the cells turn far"
                       + inversion_clause(corotated) + "."
                       if "snapshot" in corotated else f"Corotated FE baseline: not computed, {corotated['note']}.")
+    implicit_line = ("The linearly implicit FE model (the data's own law, `thermognn.core.hyperelastic`, with "
+                     "one Newton iteration a step from the FE's predictor, as a real-time FE solver steps; rows "
+                     f"`linearly implicit FE`) steps in {implicit['ms_per_step']:.3f} ms (one sparse LU of the exact "
+                     "tangent a step): what the physics itself gives at about the cost of one linear solve"
+                     + blown_clause(implicit) + "." if "snapshot" in implicit
+                     else f"Linearly implicit FE baseline: not computed, {implicit['note']}.")
     lines = [f"# Evaluation of `{ckpt_path}`", "",
              f"- dataset: `{ds_path}` (scene `{data.dataset.scene}`, {data.graph.n_nodes} nodes, "
              f"D = {data.layout.dim}, dt = {data.dt} s)",
@@ -776,7 +818,7 @@ def evaluate(cfg) -> dict:
                 "|---|---|" + "---|" * len(groups),
                 *(f"| {test[k].name} | {where(k)} | " + " | ".join(_fmt(whole_traj[k][g]) for g in groups) + " |"
                   for k in worst), ""] if worst else []),
-             linear_line, corotated_line, "",
+             linear_line, corotated_line, implicit_line, "",
              *(["The share of the linearised FE model's whole-rollout error that the model leaves (the mean "
                 "over trajectories of the ratio of the two; `linear_fe_whole_*` in `rrmse_per_trajectory.csv`): "
                 "on the training trajectories how well the network fits the nonlinearity, on the test ones how "
