@@ -31,7 +31,7 @@ from omegaconf import OmegaConf
 
 from thermognn.core.config import project_path
 from thermognn.core.corotated import CorotatedSolid
-from thermognn.core.hyperelastic import NeoHookeanSolid
+from thermognn.core.hyperelastic import HyperelasticSolid
 from thermognn.core.errors import ConfigError, DataError
 from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
@@ -298,7 +298,7 @@ def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors], corotated:
     learning) rolled out over the same trajectories, from the same first states under the same
     loads; with ``corotated`` the same solid corotated per cell (``thermognn.core.corotated``:
     each cell's linear force and stress in its rotated frame, implicit in the rotations); with
-    ``newton`` > 0 the data's own law (``thermognn.core.hyperelastic``, neo-Hookean scenes) with
+    ``newton`` > 0 the data's own law (``thermognn.core.hyperelastic``, neo-Hookean and Ogden) with
     that many Newton iterations a step (1: the linearly implicit step of real-time FE), whose
     rollouts that fail (a cell crushed through: non-finite) score inf and are named in "blown". Returns
     {"snapshot": {group: mean per-snapshot RRMSE}, "whole": {group: mean whole-rollout error},
@@ -316,7 +316,7 @@ def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors], corotated:
     try:
         if newton:
             material = (yaml.safe_load(data.dataset.config_yaml or "") or {}).get("scene", {}).get("material", {})
-            solid = NeoHookeanSolid.of(lin, X, data.dataset.mesh.tets, material, iterations=newton)
+            solid = HyperelasticSolid.of(lin, X, data.dataset.mesh.tets, material, iterations=newton)
         else:
             solid = CorotatedSolid.of(lin, X, data.dataset.mesh.tets) if corotated else lin
     except (ValueError, KeyError, AttributeError) as exc:
@@ -499,7 +499,7 @@ def evaluate(cfg) -> dict:
     trajectories and on the training ones evaluate rolls out), and for datasets with the moduli at
     rest the corotated FE model's "corotated_fe_<group>", "corotated_fe_whole_<group>",
     "corotated_fe_ms_per_step" and "corotated_fe_sweeps" (``linear_baseline(corotated=True)``), for
-    neo-Hookean scenes the linearly implicit FE model's "newton1_fe_<group>", "newton1_fe_whole_<group>",
+    hyperelastic scenes the linearly implicit FE model's "newton1_fe_<group>", "newton1_fe_whole_<group>",
     "newton1_fe_ms_per_step" (``linear_baseline(newton=1)``), and for
     datasets that record their FE solve's cost "fe_ms_per_step", "fe_iterations_per_step"
     (``Dataset.fe_cost``)}."""
