@@ -41,7 +41,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from .kinematics import (deformation_gradients, linear_cell_stress, node_average, polar_rotations,
+from .kinematics import (P1Cells, deformation_gradients, linear_cell_stress, node_average, polar_rotations,
                          shape_gradients)
 from .linear import LinearSolid, free_rows
 
@@ -89,7 +89,7 @@ class SweepCount:
         return self.sweeps / max(self.steps, 1)
 
 
-class CorotatedSolid:
+class CorotatedSolid(P1Cells):
     """The linearised solid ``lin`` (its mass, free DOFs, Rayleigh damping, Newmark β, γ, body
     force and Prony terms) corotated per P1 cell (module docstring), for nodes X [N, 3] [m], cells
     ``tets`` [T, 4] and Lamé moduli at rest λ, μ [Pa]. ``frozen``: every R_e = I (the linearised
@@ -100,23 +100,13 @@ class CorotatedSolid:
         if lin.integrator != "newmark":
             raise ValueError(f"corotated FE: integrator {lin.integrator!r} is not reproduced (expected newmark)")
         self.lin, self.frozen = lin, frozen
-        self.X, self.tets = np.asarray(X, dtype=float), np.asarray(tets)
-        if self.tets.ndim != 2 or self.tets.shape[1] != 4:
-            raise ValueError(f"corotated FE: cells of {self.tets.shape[-1]} nodes, expected P1 tets (4)")
+        if np.ndim(tets) != 2 or np.shape(tets)[1] != 4:
+            raise ValueError(f"corotated FE: cells of {np.shape(tets)[-1]} nodes, expected P1 tets (4)")
+        super().__init__(X, tets, lin.free)
         self.lam, self.mu = float(lam), float(mu)
         self.max_sweeps, self.tol = int(max_sweeps), float(tol)
         self.K, self.K_iso = element_stiffness(self.X, self.tets, lam, mu)   # [T, 12, 12] N/m
-        self.grad, self.volume = shape_gradients(self.X, self.tets)
         self.Xe = self.X[self.tets].reshape(len(self.tets), 12)              # [T, 12] m
-        self.dofs = (3 * self.tets[:, :, None] + np.arange(3)).reshape(len(self.tets), 12)   # [T, 12]
-        self.free = np.asarray(lin.free, dtype=bool)
-        self.n_all = 3 * len(self.X)
-        index = np.full(self.n_all, -1)
-        index[self.free] = np.arange(int(self.free.sum()))
-        rows = np.repeat(index[self.dofs], 12, axis=1).ravel()               # [T 144]: free index or −1
-        cols = np.tile(index[self.dofs], (1, 12)).ravel()
-        self._keep = (rows >= 0) & (cols >= 0)
-        self._rows, self._cols = rows[self._keep], cols[self._keep]
         self.count = SweepCount()
         self._floor = 1e-13 * float(np.linalg.norm(self.X))               # [m]: round-off; a step that hardly moves stops
 
@@ -152,12 +142,6 @@ class CorotatedSolid:
         """R_e applied to each node's 3-vector of cell vectors fe [T, 12] -> [T, 12]."""
         return np.einsum("tij,taj->tai", R, fe.reshape(-1, 4, 3)).reshape(-1, 12)
 
-    def scatter(self, fe: np.ndarray) -> np.ndarray:
-        """Cell vectors [T, 12] summed into the free DOFs [n]."""
-        out = np.zeros(self.n_all)
-        np.add.at(out, self.dofs.ravel(), fe.ravel())
-        return out[self.free]
-
     def rotated_matrix(self, R: np.ndarray, Ke: np.ndarray) -> sp.csc_matrix:
         """Σ_e R_e K_e R_eᵀ over the free DOFs [n, n] (sparse), R_e block-diagonal per node."""
         T = len(self.tets)
@@ -170,12 +154,6 @@ class CorotatedSolid:
         return self.scatter(self.rotate(R, np.einsum("tij,tj->ti", self.K, self.local(R, x))))
 
     # -- rollouts ------------------------------------------------------------------------------
-    def positions(self, u_free: np.ndarray) -> np.ndarray:
-        """Nodal positions [N, 3] m of a free-DOF displacement [n] (clamped nodes at rest)."""
-        u = np.zeros(self.n_all)
-        u[self.free] = u_free
-        return self.X + u.reshape(-1, 3)
-
     def rollout(self, u0: np.ndarray, v0: np.ndarray, forces: np.ndarray,
                 dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Displacements U [S, n] m and velocities V [S, n] m/s over the free DOFs from u0 [n],
@@ -255,12 +233,8 @@ class CorotatedSolid:
         U, V = self.rollout(free_rows(z[:1, :, 0:3] - X[None], self.free)[0],
                             free_rows(z[:1, :, sv], self.free)[0], free_rows(forces, self.free), dt)
         out = np.repeat(z[:1], S, axis=0)                                 # [S, N, D]
-        full = np.zeros((S, self.n_all))
-        full[:, self.free] = U
-        out[..., 0:3] = X[None] + full.reshape(S, N, 3)
-        full = np.zeros((S, self.n_all))
-        full[:, self.free] = V
-        out[..., sv] = full.reshape(S, N, 3)
+        out[..., 0:3] = X[None] + self.nodal(U)
+        out[..., sv] = self.nodal(V)
         if "sigma" in layout.names:
             cell = linear_cell_stress(out[..., 0:3], self.X, self.tets, self.lam, self.mu, self.lin.prony, dt,
                                       corotated=not self.frozen, volume_from_det=False)

@@ -42,7 +42,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from .kinematics import deformation_gradients, node_average, shape_gradients
+from .kinematics import P1Cells, deformation_gradients, node_average
 from .linear import LinearSolid, free_rows
 
 #: Newton's stopping rule when the budget is not the limit: ‖R‖ ≤ max(ATOL, RTOL ‖R0‖) (the scenes')
@@ -172,7 +172,7 @@ def law_from_config(material: dict) -> tuple["NeoHookean | Ogden", tuple[tuple[f
     raise ValueError(f"hyperelastic FE: scene.material.law {law!r} is not reproduced (expected neo_hookean or ogden)")
 
 
-class HyperelasticSolid:
+class HyperelasticSolid(P1Cells):
     """The scene's hyperelastic solid (``law``: ``NeoHookean`` or ``Ogden``; Prony terms ((ḡ, τ [s]),
     ...)) on P1 cells ``tets`` [T, 4] of nodes X [N, 3] [m], with the mass, free DOFs, body force,
     Rayleigh damping and Newmark β, γ of ``lin`` (the dataset's ``/linear``), stepped with at most
@@ -182,22 +182,13 @@ class HyperelasticSolid:
                  iterations: int = 0) -> None:
         if lin.integrator != "newmark":
             raise ValueError(f"hyperelastic FE: integrator {lin.integrator!r} is not reproduced (expected newmark)")
+        super().__init__(X, tets, lin.free)
         self.lin, self.law = lin, law
         self.prony = tuple((float(g), float(tau)) for g, tau in prony)
         self.iterations = int(iterations)
-        self.X, self.tets = np.asarray(X, dtype=float), np.asarray(tets)
-        self.grad, self.volume = shape_gradients(self.X, self.tets)        # [T, 4, 3] 1/m, [T] m³
-        self.free = np.asarray(lin.free, dtype=bool)
-        self.n_all = 3 * len(self.X)
-        self.dofs = (3 * self.tets[:, :, None] + np.arange(3)).reshape(len(self.tets), 12)   # [T, 12]
-        index = np.full(self.n_all, -1)
-        index[self.free] = np.arange(int(self.free.sum()))
-        rows = np.repeat(index[self.dofs], 12, axis=1).ravel()               # [T 144]: free index or −1
-        cols = np.tile(index[self.dofs], (1, 12)).ravel()
-        self._keep = (rows >= 0) & (cols >= 0)
         n = int(self.free.sum())
         # the cells' pairs summed into one CSC pattern, built once: slot of each kept pair
-        pairs, self._slot = np.unique(cols[self._keep] * n + rows[self._keep], return_inverse=True)
+        pairs, self._slot = np.unique(self._cols * n + self._rows, return_inverse=True)
         self._indices = (pairs % n).astype(np.int32)
         self._indptr = np.searchsorted(pairs // n, np.arange(n + 1)).astype(np.int32)
         mass = sp.csc_matrix(lin.mass)
@@ -213,12 +204,6 @@ class HyperelasticSolid:
         return cls(lin, X, tets, law, prony, **options)
 
     # -- assembly ----------------------------------------------------------------------------
-    def scatter(self, fe: np.ndarray) -> np.ndarray:
-        """Cell vectors [T, 12] summed into the free DOFs [n]."""
-        out = np.zeros(self.n_all)
-        np.add.at(out, self.dofs.ravel(), fe.ravel())
-        return out[self.free]
-
     def force_and_tangent(self, P: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, sp.csc_matrix]:
         """Σ_e V_e P_e Grad φ_a over the free DOFs [n] N and its tangent [n, n] N/m."""
         fe = np.einsum("t,tij,taj->tai", self.volume, P, self.grad).reshape(len(self.tets), 12)
@@ -230,11 +215,6 @@ class HyperelasticSolid:
         """The free-DOF matrix [n, n] of values in the cells' pattern (``_slot`` order)."""
         n = len(self._indptr) - 1
         return sp.csc_matrix((values, self._indices, self._indptr), shape=(n, n))
-
-    def positions(self, u_free: np.ndarray) -> np.ndarray:
-        u = np.zeros(self.n_all)
-        u[self.free] = u_free
-        return self.X + u.reshape(-1, 3)
 
     # -- rollouts ----------------------------------------------------------------------------
     def rollout(self, u0: np.ndarray, v0: np.ndarray, forces: np.ndarray, dt: float
@@ -255,18 +235,22 @@ class HyperelasticSolid:
         g_inf = 1.0 - sum(gi for gi, _ in self.prony)
         iso = g_inf + sum(gi * ci for (gi, _), ci in zip(self.prony, coef))   # S_iso's weight in a step
 
+        def committed(s_iso: np.ndarray, s_vol: np.ndarray, h: list[np.ndarray]) -> np.ndarray:
+            """S = S_vol + g∞ S_iso + Σ ḡ_i h_i [T, 3, 3] Pa of a committed state."""
+            return s_vol + g_inf * s_iso + sum(gi * hi for (gi, _), hi in zip(self.prony, h))
+
         u, v = np.array(u0, dtype=float), np.array(v0, dtype=float)
         Fc = deformation_gradients(self.positions(u), self.tets, self.grad)
         s_iso_n, s_vol = self.law.pk2(Fc)
         h = [s_iso_n.copy() for _ in self.prony]                          # h_i = S_iso(F0): applied at once
-        P0 = Fc @ (s_vol + g_inf * s_iso_n + sum(gi * hi for (gi, _), hi in zip(self.prony, h)))
+        P0 = Fc @ committed(s_iso_n, s_vol, h)
         f_int0 = self.scatter(np.einsum("t,tij,taj->tai", self.volume, P0, self.grad).reshape(len(self.tets), 12))
         a = sla.spsolve(M, Fext[0] - f_int0 - alpha_m * (M @ v))
         P_el_n = Fc @ (s_iso_n + s_vol)
-        U, V, SIG = [u], [v], [self.cauchy(Fc, s_vol + g_inf * s_iso_n + sum(gi * hi for (gi, _), hi in zip(self.prony, h)))]
+        U, V, SIG = [u], [v], [self.cauchy(Fc, committed(s_iso_n, s_vol, h))]
         for s in range(1, Fext.shape[0]):
-            hist = sum((gi * (d * hi - c * s_iso_n) for (gi, _), d, c, hi in zip(self.prony, decay, coef, h)),
-                       np.zeros_like(s_iso_n))                            # S's part fixed within the step
+            hist = (sum(gi * (d * hi - c * s_iso_n) for (gi, _), d, c, hi in zip(self.prony, decay, coef, h))
+                    if self.prony else None)                              # S's part fixed within the step
             u_it = u + dt * v                                             # the FE's predictor
             it, norm0 = 0, None
             while not (self.iterations and it >= self.iterations):       # the budget spent: take the iterate
@@ -299,7 +283,7 @@ class HyperelasticSolid:
             P_el_n = F @ (s_iso + s_vol)
             U.append(u)
             V.append(v)
-            SIG.append(self.cauchy(F, s_vol + g_inf * s_iso + sum(gi * hi for (gi, _), hi in zip(self.prony, h))))
+            SIG.append(self.cauchy(F, committed(s_iso, s_vol, h)))
         return np.asarray(U), np.asarray(V), np.asarray(SIG)
 
     @staticmethod
@@ -319,10 +303,8 @@ class HyperelasticSolid:
         U, V, SIG = self.rollout(free_rows(z[:1, :, 0:3] - X[None], self.free)[0],
                                  free_rows(z[:1, :, sv], self.free)[0], free_rows(forces, self.free), dt)
         out = np.repeat(z[:1], S, axis=0)                                 # [S, N, D]
-        for col, values in ((slice(0, 3), U), (sv, V)):
-            full = np.zeros((S, self.n_all))
-            full[:, self.free] = values
-            out[..., col] = full.reshape(S, N, 3) + (X[None] if col == slice(0, 3) else 0.0)
+        out[..., 0:3] = X[None] + self.nodal(U)
+        out[..., sv] = self.nodal(V)
         if "sigma" in layout.names:
             out[..., layout.slice("sigma")] = node_average(SIG, self.tets, self.volume, N)
         return out

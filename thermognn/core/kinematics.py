@@ -45,6 +45,43 @@ def shape_gradients(X: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.nda
     return grad, volume
 
 
+class P1Cells:
+    """P1 cells ``tets`` [T, 4] of nodes X [N, 3] [m] over the free DOFs ``free`` [3N] (bool): the
+    bookkeeping the FE-free solids (``thermognn.core.corotated``, ``thermognn.core.hyperelastic``)
+    share. Attributes: ``grad`` [T, 4, 3] 1/m and ``volume`` [T] m³ (``shape_gradients``), ``dofs``
+    [T, 12] (node-major: 3 a + c), ``n_all`` = 3N; of a cell matrix's T 144 entries (row-major per
+    cell), ``_keep`` those on pairs of free DOFs and their free row and column ``_rows``, ``_cols``."""
+
+    def __init__(self, X: np.ndarray, tets: np.ndarray, free: np.ndarray) -> None:
+        self.X, self.tets = np.asarray(X, dtype=float), np.asarray(tets)
+        self.grad, self.volume = shape_gradients(self.X, self.tets)
+        self.dofs = (3 * self.tets[:, :, None] + np.arange(3)).reshape(len(self.tets), 12)   # [T, 12]
+        self.free = np.asarray(free, dtype=bool)
+        self.n_all = 3 * len(self.X)
+        index = np.full(self.n_all, -1)
+        index[self.free] = np.arange(int(self.free.sum()))
+        rows = np.repeat(index[self.dofs], 12, axis=1).ravel()               # [T 144]: free index or −1
+        cols = np.tile(index[self.dofs], (1, 12)).ravel()
+        self._keep = (rows >= 0) & (cols >= 0)
+        self._rows, self._cols = rows[self._keep], cols[self._keep]
+
+    def scatter(self, fe: np.ndarray) -> np.ndarray:
+        """Cell vectors [T, 12] summed into the free DOFs [n]."""
+        out = np.zeros(self.n_all)
+        np.add.at(out, self.dofs.ravel(), fe.ravel())
+        return out[self.free]
+
+    def nodal(self, rows: np.ndarray) -> np.ndarray:
+        """Free-DOF rows [..., n] -> nodal vectors [..., N, 3] (zero at clamped DOFs)."""
+        full = np.zeros(rows.shape[:-1] + (self.n_all,))
+        full[..., self.free] = rows
+        return full.reshape(rows.shape[:-1] + (-1, 3))
+
+    def positions(self, u_free: np.ndarray) -> np.ndarray:
+        """Nodal positions [N, 3] m of a free-DOF displacement [n] (clamped nodes at rest)."""
+        return self.X + self.nodal(u_free)
+
+
 def deformation_gradients(q: np.ndarray, tets: np.ndarray, grad: np.ndarray) -> np.ndarray:
     """F = Σ_a x_a ⊗ Grad φ_a per cell, [..., T, 3, 3], for current positions q [..., N, 3] [m]."""
     x = np.asarray(q, dtype=float)[..., np.asarray(tets), :]          # [..., T, 4, 3]
