@@ -25,7 +25,6 @@ import argparse
 import time
 
 import numpy as np
-import yaml
 
 from thermognn.core.corotated import MAX_SWEEPS, CorotatedSolid
 from thermognn.core.kinematics import rotation_report
@@ -41,7 +40,7 @@ def moduli(ds: Dataset) -> tuple[float, float]:
         return lin.shear_modulus, lin.bulk_modulus
     from thermognn.generate.materials import material_from_config
 
-    mat = material_from_config(yaml.safe_load(ds.config_yaml)["scene"]["material"])
+    mat = material_from_config(ds.material)
     return mat.shear_modulus, mat.bulk_modulus
 
 

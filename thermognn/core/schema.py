@@ -335,6 +335,19 @@ class Dataset:
     def ok_names(self) -> list[str]:
         return [n for n in self.names if self.status[n] == "ok"]
 
+    @property
+    def material(self) -> dict:
+        """``scene.material`` of the config the dataset was generated with (the law, its parameters
+        and Prony terms), {} where it has none (imported datasets)."""
+        import yaml
+
+        try:
+            scene = (yaml.safe_load(self.config_yaml or "") or {}).get("scene") or {}
+            material = scene.get("material") or {}
+        except (yaml.YAMLError, AttributeError):
+            return {}
+        return material if isinstance(material, dict) else {}
+
     def fe_cost(self, names: list[str]) -> dict | None:
         """What ``generate``'s FE solve of the trajectories ``names`` cost, as it recorded it (on
         the machine that generated them): {"ms_per_step": wall time a step [ms], "iterations_per_step":

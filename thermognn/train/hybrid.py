@@ -397,18 +397,17 @@ def neo_hookean_of(ds) -> Tuple[float, float]:
     """(C10 [Pa], D1 [1/Pa]) of the dataset's material (``scene.material`` of the config it was
     generated with) for ``model.prior_stress = material``; one-line errors where the law is another
     or the solid is viscous (its stress then has a history the law alone does not give)."""
-    try:
-        mat = OmegaConf.create(ds.config_yaml).scene.material
-        law = str(mat.law)
-    except Exception:
-        raise DataError(f"{ds.path}: no scene.material in the dataset's config (model.prior_stress = material)") from None
+    mat = ds.material
+    if "law" not in mat:
+        raise DataError(f"{ds.path}: no scene.material in the dataset's config (model.prior_stress = material)")
+    law = str(mat["law"])
     if law != "neo_hookean":
         raise ConfigError(f"model.prior_stress = material: {ds.path} is of material law '{law}', expected "
                           f"neo_hookean (the one law the prior applies yet)")
-    if list(OmegaConf.select(mat, "prony", default=None) or []):
+    if list(mat.get("prony") or []):
         raise ConfigError(f"model.prior_stress = material: {ds.path}'s material is viscous (Prony terms), expected "
                           f"an elastic one (its stress has a history the law alone does not give)")
-    return float(mat.C10), float(mat.D1)
+    return float(mat["C10"]), float(mat["D1"])
 
 
 def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material: bool = False) -> NewmarkPrior:
