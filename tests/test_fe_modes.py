@@ -1087,3 +1087,66 @@ def test_hyperelastic_solid_is_the_fe_solid_and_one_newton_iteration_its_linearl
         assert errors[2][g] < 0.2 * errors[1][g], (g, errors)
     with pytest.raises(ValueError, match="scene.material.law 'mooney' is not reproduced"):
         HyperelasticSolid.of(linear, s.nodes, s.cells[:, :4], {"law": "mooney"})
+
+
+@pytest.mark.parametrize("law,prony", [
+    (("neo_hookean", {"C10": 1.0e4, "D1": 1.0e-5}), ()),
+    (("ogden", {"mu": [2.0e4], "alpha": [8.0], "D": [1.0e-5]}), ((0.4, 4e-3),)),
+])
+def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanish(law, prony):
+    """``HyperelasticNewmarkPrior`` (``model.prior_law``, torch) on the FE solid's own data (the
+    damped 1 N bend; neo-Hookean, and viscous Ogden): with G = H = 0 and k Newton iterations a step
+    it is the numpy ``HyperelasticSolid`` with the same budget (u, v, σ to round-off; k = 1, the
+    linearly implicit step, is not the FE's), converged it is the FE rollout, so the exact
+    remainders of the data vanish; its sparse solve is the dense one; a LinearPriorModel on it
+    steps its carried state as its rollouts, scripted too; the config names what it cannot combine."""
+    torch = pytest.importorskip("torch")
+    from omegaconf import OmegaConf
+
+    from thermognn.core.errors import ConfigError
+    from thermognn.core.hyperelastic import HyperelasticSolid
+    from thermognn.train.hybrid import prior_settings
+    from thermognn.train.law_prior import HyperelasticNewmarkPrior
+
+    graph = _bent_block_graph(steps=12, prony=prony, law=law)
+    layout, traj, dt, X, linear, node_type, edges, z, f = graph
+    tets = _bent_block(1.0, "newmark", steps=2, prony=prony, law=law)[0].cells[:, :4]
+    material = {"law": law[0], **law[1], "prony": [{"g": g, "tau": t} for g, t in prony]}
+    lam, mu = linear.lame()
+    make = lambda k: HyperelasticNewmarkPrior(linear, len(X), dt, X, tets, lam, mu, law[0], law[1],  # noqa: E731
+                                              iterations=k)
+    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
+    u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
+    G0 = torch.zeros(len(f), int(linear.free.sum()), dtype=torch.float64)
+    for k in (1, 2):
+        prior = make(k)
+        assert prior.n_terms == len(prony)
+        U, V, Sig = _prior_rollout(prior, u, v, f, G0, None)
+        fe = torch.as_tensor(HyperelasticSolid.of(linear, X, tets, material, iterations=k)
+                             .rollout_states(traj.z, traj.force, X, layout, dt))
+        assert rel(U, fe[..., 0:3] - torch.as_tensor(X)) < 1e-10 and rel(V, fe[..., 3:6]) < 1e-9
+        assert rel(Sig, fe[..., 6:12]) < 1e-9
+        if k == 1:
+            assert 1e-4 < rel(V, v) < 0.05                                  # measured 2.3e-3
+    prior = make(6)
+    U, V, Sig = _prior_rollout(prior, u, v, f, G0, None)
+    assert rel(U, u) < 1e-12 and rel(V, v) < 1e-12 and rel(Sig, sigma) < 1e-12
+    G, H = prior.remainders(u, v, sigma, f)
+    assert float(G.abs().max()) < 1e-10 * float(f.abs().max()) and float(H.abs().max()) < 1e-12 * float(sigma.abs().max())
+    # the CPU's sparse LU and the dense solve (TorchScript, GPU) step alike
+    prior = make(2)
+    uf, vf = prior.gather(u[3:4]), prior.gather(v[3:4])
+    h = prior.internal_variables(uf)
+    a = prior.initial_acceleration(uf, vf, prior.gather(f[3:4]), G0[:1])
+    sparse_step = prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0]
+    prior.sparse_cpu = False
+    assert rel(prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0], sparse_step) < 1e-12
+    prior.sparse_cpu = True
+    _carried_steps_follow_rollouts(prior, graph, width=len(prony) * prior.cell_columns)
+
+    settings = prior_settings(OmegaConf.create({"prior": "linear", "prior_law": True, "prior_newton": 2}))
+    assert settings["law"] == 2
+    with pytest.raises(ConfigError, match="model.prior_law = true steps the dataset's own law"):
+        prior_settings(OmegaConf.create({"prior_law": True, "prior_corotated": True}))
+    with pytest.raises(ConfigError, match="model.prior_newton = 0, expected an integer >= 1"):
+        prior_settings(OmegaConf.create({"prior_law": True, "prior_newton": 0}))

@@ -98,6 +98,9 @@ def describe_step(step) -> str:
         second = int(step.get("order", 1)) == 2
         solid = (f"corotated solid ({int(step['corotated'])} rotation sweeps)" if step.get("corotated")
                  else "linearised solid") + (", its stress the material's law" if step.get("stress") == "material" else "")
+        if step.get("law"):
+            iterations = int(step["law"])
+            solid = f"solid of the data's own law ({iterations} Newton iteration{'s' if iterations > 1 else ''})"
         return (f"the data's Newmark step of the {solid} with learned remainders"
                 + (" of second order" if second else "")
                 + f" ({calls} network call{'s' if calls > 1 else ''} a step"

@@ -14,7 +14,8 @@ A checkpoint is a ``torch.save``d dict of plain types and tensors (loadable with
     prior         (only with ``model.prior=linear``) {"kind", "sweeps", "positions_only"} and
                   "order" when 2 (``model.prior_order``), "relax" when true
                   (``model.prior_relax``), "corotated" (rotation sweeps, ``model.prior_corotated``),
-                  "stress": "material" (``model.prior_stress``): the weights are a
+                  "stress": "material" (``model.prior_stress``), "law" (Newton iterations a step,
+                  ``model.prior_law``): the weights are a
                   ``hybrid.LinearPriorModel``'s; its operators come from the dataset
     (the ``last`` checkpoint adds optimizer, scheduler, rng, history, best_val, stale_rounds)
 """
@@ -156,7 +157,8 @@ def model_step(ckpt: dict) -> dict:
     the TIGNN's ``step_settings``, or for a linear-prior model {"integrator": "newmark",
     "prior": "linear", "sweeps": network calls per step, "kinematics": "exact"} (and "order": 2
     for second-order remainders, "corotated": the rotation sweeps of a corotated prior, "stress":
-    "material" where its stress is the material's law)."""
+    "material" where its stress is the material's law, "law": the Newton iterations a step of the
+    law prior)."""
     from .model import step_settings
 
     prior = ckpt.get("prior")
@@ -165,5 +167,6 @@ def model_step(ckpt: dict) -> dict:
                 "sweeps": int(prior.get("sweeps", 1)), "kinematics": "exact",
                 **({"order": 2} if int(prior.get("order", 1)) == 2 else {}),
                 **({"corotated": int(prior["corotated"])} if prior.get("corotated") else {}),
-                **({"stress": "material"} if prior.get("stress") == "material" else {})}
+                **({"stress": "material"} if prior.get("stress") == "material" else {}),
+                **({"law": int(prior["law"])} if prior.get("law") else {})}
     return step_settings(ckpt.get("hparams", {}))

@@ -42,6 +42,7 @@ from .data import (Graph, LoadedData, TrajectoryTensors, check_fingerprint, load
 from .loop import print_rrmse_table, rest_growth
 from .device import cpu_randn
 from .hybrid import LinearPriorModel
+from .law_prior import HyperelasticNewmarkPrior
 from .prior import CorotatedNewmarkPrior
 from .model import parameter_count
 from .rollout import one_step_errors, rollout, rrmse_per_step, trajectory_error, trajectory_rrmse
@@ -523,7 +524,8 @@ def evaluate(cfg) -> dict:
         print(f"evaluate: stepping the trained model with {stepped}")
     model = model_from_checkpoint(ckpt, data.dataset).eval()
     prior = isinstance(model, LinearPriorModel)      # the network learned remainders, not E and S
-    prior_name = "corotated" if prior and isinstance(model.prior, CorotatedNewmarkPrior) else "linearised"
+    prior_name = ("hyperelastic" if prior and isinstance(model.prior, HyperelasticNewmarkPrior)
+                  else "corotated" if prior and isinstance(model.prior, CorotatedNewmarkPrior) else "linearised")
     stress_name = ("the material law's stress (`model.prior_stress=material`)"
                    if prior and bool(getattr(model.prior, "material_stress", False)) else f"the {prior_name} prior's stress")
     groups = data.layout.names

@@ -381,6 +381,17 @@ def prior_settings(cfg_model) -> dict:
     if stress == "material" and relax:
         raise ConfigError("model.prior_stress = material with model.prior_relax = true: the material law's stress "
                           "has no Prony history (set model.prior_stress=linear to relax)")
+    law = OmegaConf.select(cfg_model, "prior_law", default=False)
+    if not isinstance(law, bool):
+        raise ConfigError(f"model.prior_law = {law!r}, expected true | false (the prior is the dataset's own "
+                          f"hyperelastic law, stepped with model.prior_newton Newton iterations)")
+    newton = OmegaConf.select(cfg_model, "prior_newton", default=1)
+    if not isinstance(newton, int) or isinstance(newton, bool) or newton < 1:
+        raise ConfigError(f"model.prior_newton = {newton!r}, expected an integer >= 1 (Newton iterations a step "
+                          f"of the law prior)")
+    if law and (corotated or stress == "material"):
+        raise ConfigError("model.prior_law = true steps the dataset's own law (its stress and Prony history "
+                          "included): set model.prior_corotated=false and model.prior_stress=linear")
     settings = {"kind": "linear", "sweeps": sweeps, "positions_only": inputs == "positions"}
     if order != 1:
         settings["order"] = int(order)
@@ -390,6 +401,8 @@ def prior_settings(cfg_model) -> dict:
         settings["corotated"] = int(rotation_sweeps)
     if stress == "material":
         settings["stress"] = "material"
+    if law:                                       # the law prior's Newton iterations a step
+        settings["law"] = int(newton)
     return settings
 
 
@@ -410,11 +423,13 @@ def neo_hookean_of(ds) -> Tuple[float, float]:
     return float(mat["C10"]), float(mat["D1"])
 
 
-def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material: bool = False) -> NewmarkPrior:
+def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material: bool = False,
+                law: int = 0) -> NewmarkPrior:
     """The dataset's ``/linear`` as a NewmarkPrior (float64), relaxing as its viscous solid does
     with ``relax``, or corotated per cell with ``corotated`` > 0 fixed-point sweeps a step
-    (:class:`CorotatedNewmarkPrior`), its stress the material's law with ``material``; one-line
-    errors where it cannot be."""
+    (:class:`CorotatedNewmarkPrior`), its stress the material's law with ``material``, or with
+    ``law`` > 0 the dataset's own hyperelastic law stepped with that many Newton iterations
+    (:class:`thermognn.train.law_prior.HyperelasticNewmarkPrior`); one-line errors where it cannot be."""
     names = list(ds.layout.names)
     if names != LAYOUT:
         raise ConfigError(f"model.prior = linear: {ds.path} has state variables {names}, expected {LAYOUT} "
@@ -423,17 +438,28 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
     if linear is None:
         raise DataError(f"{ds.path}: no linearised FE operators (/linear) for model.prior = linear "
                         f"(regenerate the dataset with this version of thermognn generate)")
-    if corotated:
+    if corotated or law:
         try:
             lam, mu = linear.lame()
         except ValueError:
             raise DataError(f"{ds.path}: /linear holds no moduli at rest for model.prior_corotated = true "
                             f"(regenerate the dataset with this version of thermognn generate)") from None
     try:
-        if corotated:
+        if corotated or law:
             tets = np.asarray(ds.mesh.tets)
             if tets.ndim != 2 or tets.shape[1] != 4 or len(tets) == 0:
-                raise ValueError("the corotated prior needs P1 tets in /mesh/tets")
+                raise ValueError(f"the {'law' if law else 'corotated'} prior needs P1 tets in /mesh/tets")
+        if law:
+            from .law_prior import HyperelasticNewmarkPrior, law_parameters
+
+            if "law" not in ds.material:
+                raise DataError(f"{ds.path}: no scene.material in the dataset's config (model.prior_law = true)")
+            name, parameters = law_parameters(ds.material)
+            prony = tuple((float(t["g"]), float(t["tau"])) for t in (ds.material.get("prony") or []))
+            if not np.allclose(np.asarray(prony).reshape(-1, 2), np.asarray(linear.prony).reshape(-1, 2)):
+                raise ValueError(f"scene.material.prony {prony} is not /linear's {tuple(linear.prony)}")
+            return HyperelasticNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
+                                            name, parameters, iterations=int(law))
             return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                          sweeps=int(corotated), neo_hookean=neo_hookean_of(ds) if material else None,
                                          relax=relax)
@@ -447,7 +473,8 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
     X = torch.as_tensor(ds.mesh.nodes, dtype=torch.float64)
     return LinearPriorModel(net, build_prior(ds, dt, bool(settings.get("relax", False)),
                                              int(settings.get("corotated", 0)),
-                                             settings.get("stress", "linear") == "material"), X,
+                                             settings.get("stress", "linear") == "material",
+                                             int(settings.get("law", 0))), X,
                             bool(settings.get("positions_only", True)),
                             int(settings.get("sweeps", 1)), int(settings.get("order", 1)))
 

@@ -1,0 +1,64 @@
+"""thermognn/train/law_prior.py: the data's own hyperelastic laws in torch, against the numpy
+laws of ``thermognn.core.hyperelastic`` (the FE's, without dolfinx). The prior's step against the
+FE solid is in tests/test_fe_modes.py (it needs dolfinx's data)."""
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from thermognn.core.hyperelastic import NeoHookean, Ogden  # noqa: E402
+from thermognn.train.law_prior import (cofactor, law_parameters, neo_hookean_pk2,  # noqa: E402
+                                       ogden_isochoric_pk2, ogden_volumetric_pk2)
+
+
+def _gradients() -> np.ndarray:
+    """Deformation gradients [52, 3, 3]: 50 random ones near I, I itself (all stretches
+    coincide) and a uniaxial stretch (two coincide), where Cardano's eigenvalues degenerate."""
+    F = np.eye(3) + 0.1 * np.random.default_rng(0).standard_normal((50, 3, 3))
+    return np.concatenate([F, np.eye(3)[None], np.diag([1.1, 0.95, 0.95])[None]])
+
+
+def test_ogden_stress_is_the_derivative_of_the_fe_laws_regularised_eigenvalues():
+    """The chain rule written out in ``ogden_isochoric_pk2`` is the derivative the numpy law takes
+    by complex steps of the same regularised expression (as UFL differentiates it), to round-off,
+    at random F, at F = I and at a uniaxial stretch (two terms, one of negative α); the volumetric
+    stress too, and the neo-Hookean closed form."""
+    F = _gradients()
+    Ft = torch.as_tensor(F)
+    C = Ft.transpose(-1, -2) @ Ft
+    mu, alpha, d = [2000.0, -500.0], [16.19, -3.0], [1e-4, 1e-3]
+    s_iso, s_vol = Ogden(mu, alpha, d).pk2(F)
+    t_iso, t_vol = ogden_isochoric_pk2(C, mu, alpha).numpy(), ogden_volumetric_pk2(Ft, C, d).numpy()
+    scale = np.abs(s_iso).max()
+    assert np.abs(t_iso - s_iso).max() < 1e-12 * scale and np.abs(t_vol - s_vol).max() < 1e-12 * np.abs(s_vol).max()
+    assert np.abs(t_iso[-2]).max() < 1e-12 * scale                       # no isochoric stress at rest
+    n_iso, n_vol = NeoHookean(1e4, 1e-5).pk2(F)
+    t_iso, t_vol = (x.numpy() for x in neo_hookean_pk2(Ft, 1e4, 1e-5))
+    assert np.abs(t_iso - n_iso).max() < 1e-12 * np.abs(n_iso).max() and np.abs(t_vol - n_vol).max() < 1e-9
+    B = torch.randn(4, 3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    assert torch.allclose(cofactor(B), torch.linalg.det(B)[:, None, None] * torch.linalg.inv(B).transpose(-1, -2))
+
+
+def test_ogden_stress_is_smooth_for_autograd_where_stretches_coincide():
+    """Back-propagation through the Ogden stress (a rollout's loss through the law prior) is
+    finite at F = I and at a uniaxial stretch, and matches central differences elsewhere."""
+    F = torch.as_tensor(_gradients()[[0, -2, -1]]).requires_grad_()
+    S = ogden_isochoric_pk2(F.transpose(-1, -2) @ F, [2000.0], [16.19])
+    (grad,) = torch.autograd.grad((S * S).sum(), F)
+    assert torch.isfinite(grad).all()
+    with torch.no_grad():
+        E = torch.zeros(3, 3, 3, dtype=torch.float64)
+        E[0, 1, 2] = 1e-6
+
+        def f(G):
+            return (ogden_isochoric_pk2(G.transpose(-1, -2) @ G, [2000.0], [16.19]) ** 2).sum()
+        assert float((f(F + E) - f(F - E)) / 2e-6) == pytest.approx(float(grad[0, 1, 2]), rel=1e-5)
+
+
+def test_law_parameters_name_the_law_they_do_not_step():
+    assert law_parameters({"law": "neo_hookean", "C10": 1, "D1": 2}) == ("neo_hookean", {"C10": 1.0, "D1": 2.0})
+    assert law_parameters({"law": "ogden", "mu": [1], "alpha": [2], "D": [3]})[1] == {
+        "mu": [1.0], "alpha": [2.0], "D": [3.0]}
+    with pytest.raises(ValueError, match="scene.material.law 'mooney' is not stepped by the law prior"):
+        law_parameters({"law": "mooney"})

@@ -1,0 +1,331 @@
+"""The data's own hyperelastic law as a learned model's prior: the FE step itself, in torch, with
+a fixed Newton budget (``model.prior_law``).
+
+``thermognn.core.hyperelastic.HyperelasticSolid`` is the scene's solid on P1 cells in numpy: its
+law (neo-Hookean or Ogden), the FE's Prony history per cell, the stored mass, Rayleigh damping and
+Newmark rule, each step k Newton iterations from the predictor u0 + Δt v0 (docs/accuracy.md,
+session 49: one iteration a step is within 1 % on the liver, two on the bunny, four on the shell).
+:class:`HyperelasticNewmarkPrior` is that step in torch, so that ``train``, ``export`` and ``serve``
+step it without dolfinx, with the remainders of :class:`thermognn.train.prior.NewmarkPrior`'s
+contract: with G the internal-force remainder and H the stress's, a step solves, over the free DOFs,
+
+    R(u1) = M a1 + αM M v1 + c (f_el(u1) − f_el(u0)) + f_int(u1; h0) − f1 − f_body
+            − (1 + c) G1 + c G0 = 0,        c = βK / Δt                                   [N]
+
+by k Newton iterations (each one linear solve of the exact tangent; the data's step when
+converged and G = 0), and σ = σ_law(u) + H. f_el is the unrelaxed elastic force Σ_e V_e F S Grad φ
+with S = S_iso + S_vol, f_int the relaxed one with S = S_vol + g∞ S_iso + Σ ḡ_i h_i (module
+docstring of ``thermognn.core.hyperelastic``). With G = H = 0 and the budget spent it is the
+budgeted FE model ``evaluate`` reports as "linearly implicit FE"; a network learns what the budget
+leaves (G, H) on top of it.
+
+The stresses are closed-form torch expressions (autograd of any order passes, TorchScript
+compiles them): the neo-Hookean law's, and the Ogden law's isochoric stress as the exact
+derivative of the FE's regularised trigonometric eigenvalues of C̄
+(``thermognn.generate.materials.regularised_eigenvalues``), written out by the chain rule
+(:func:`ogden_isochoric_pk2`; tests/test_law_prior.py checks it against the numpy law's
+complex-step derivative). The tangent ∂P/∂F per cell is by central differences (as the numpy
+Ogden law's) and is held fixed in back-propagation: a rollout's gradients pass through each
+iteration's residual and linear solve, not through its matrix (exact for a converged step's
+dependence on the load and the remainders).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from thermognn.core.linear import LinearSolid
+
+from .prior import CorotatedNewmarkPrior, SparseSolve, _matrix, _voigt, solve_each
+
+#: the FE's regularisation of the deviatoric norm (``thermognn.generate.materials.EIGEN_EPS``)
+EIGEN_EPS = 1.0e-6
+#: central-difference step of the tangent ∂P/∂F (F is dimensionless, ~1), as the numpy Ogden law's
+FD_STEP = 1.0e-6
+#: the laws the prior steps (``scene.material.law``)
+LAWS = ("neo_hookean", "ogden")
+
+
+def _eye(F: Tensor) -> Tensor:
+    return torch.eye(3, dtype=F.dtype, device=F.device)
+
+
+def cofactor(B: Tensor) -> Tensor:
+    """The cofactor matrix cof B = ∂ det B / ∂B [..., 3, 3] (= det B B⁻ᵀ where B is invertible;
+    defined where it is not, as at F = I, where B = dev C̄ = 0)."""
+    r0, r1, r2 = B[..., 0, :], B[..., 1, :], B[..., 2, :]
+    return torch.stack([torch.linalg.cross(r1, r2), torch.linalg.cross(r2, r0), torch.linalg.cross(r0, r1)], -2)
+
+
+def neo_hookean_pk2(F: Tensor, c10: float, d1: float) -> Tuple[Tensor, Tensor]:
+    """(S_iso, S_vol) [..., 3, 3] Pa of Ψ = C10 (J^(-2/3) I1 − 3) + (J − 1)²/D1 at deformation
+    gradients F [..., 3, 3]: S_iso = 2 C10 J^(-2/3) (I − I1/3 C⁻¹), S_vol = (2/D1)(J − 1) J C⁻¹."""
+    C = F.transpose(-1, -2) @ F
+    Ci = torch.linalg.inv(C)
+    J = torch.linalg.det(F)[..., None, None]
+    I1 = C.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
+    s_iso = 2.0 * c10 * J.pow(-2.0 / 3.0) * (_eye(F) - I1 / 3.0 * Ci)
+    return s_iso, 2.0 / d1 * (J - 1.0) * J * Ci
+
+
+def ogden_isochoric_pk2(C: Tensor, mu: List[float], alpha: List[float], eps: float = EIGEN_EPS) -> Tensor:
+    """S_iso = 2 ∂Ψ_iso/∂C [..., 3, 3] Pa of the Ogden law Ψ_iso = Σ_i 2 μ_i/α_i² (Σ_a λ̄_a^α_i − 3)
+    with the FE's regularised eigenvalues λ̄_a² of C̄ = J^(-2/3) C (C [..., 3, 3]):
+
+        m = tr C̄ / 3,  B = C̄ − m I,  p = sqrt(B:B/6 + ε²),  r = det B / (2 p³) (clipped to [−1, 1]),
+        φ = arccos(r)/3,  λ̄_k² = m + 2 p cos(φ + 2πk/3)
+
+    differentiated by the chain rule: ∂Ψ/∂λ̄_k² = Σ_i μ_i/α_i λ̄_k^(α_i − 2); through m (I/3), p
+    (B/(6p)), r (cof B/(2p³) and −3r/p through p) and φ (−1/(3 sqrt(1 − r²)), zero where r is
+    clipped, as the FE's max/min is flat there); then ∂Ψ/∂C = a (Ψ_C̄ − (Ψ_C̄ : C)/3 C⁻¹),
+    a = J^(-2/3)."""
+    eye = _eye(C)
+    a = torch.linalg.det(C).pow(-1.0 / 3.0)[..., None, None]                       # J^(-2/3)
+    Cb = a * C
+    m = Cb.diagonal(dim1=-2, dim2=-1).sum(-1) / 3.0                                   # [...]
+    B = Cb - m[..., None, None] * eye
+    p = torch.sqrt((B * B).sum((-2, -1)) / 6.0 + eps * eps)                          # [...]
+    r = torch.linalg.det(B) / (2.0 * p**3)
+    inside = (r > -1.0) & (r < 1.0)
+    rc = torch.clamp(r, -1.0, 1.0)
+    phi = torch.acos(rc) / 3.0
+    psi_m = torch.zeros_like(m)
+    psi_p = torch.zeros_like(m)
+    psi_phi = torch.zeros_like(m)
+    for k in range(3):
+        theta = phi + 2.0 * math.pi * k / 3.0
+        l2 = m + 2.0 * p * torch.cos(theta)                                           # λ̄_k²
+        d = torch.zeros_like(m)
+        for mu_i, alpha_i in zip(mu, alpha):
+            d = d + mu_i / alpha_i * l2.pow(alpha_i / 2.0 - 1.0)                      # ∂Ψ/∂λ̄_k²
+        psi_m = psi_m + d
+        psi_p = psi_p + 2.0 * d * torch.cos(theta)
+        psi_phi = psi_phi - 2.0 * p * d * torch.sin(theta)
+    dphi_dr = torch.where(inside, -1.0 / (3.0 * torch.sqrt(torch.clamp(1.0 - rc * rc, min=1e-300))),
+                          torch.zeros_like(rc))
+    psi_r = psi_phi * dphi_dr
+    psi_p = psi_p - 3.0 * psi_r * rc / p                                               # r's own p
+    psi_B = (psi_p / (6.0 * p))[..., None, None] * B + (psi_r / (2.0 * p**3))[..., None, None] * cofactor(B)
+    tr_B = psi_B.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
+    psi_Cb = (psi_m / 3.0)[..., None, None] * eye + psi_B - tr_B / 3.0 * eye          # I/3 Ψ_m + dev Ψ_B
+    inner = (psi_Cb * C).sum((-2, -1))[..., None, None]
+    return 2.0 * a * (psi_Cb - inner / 3.0 * torch.linalg.inv(C))
+
+
+def ogden_volumetric_pk2(F: Tensor, C: Tensor, d: List[float]) -> Tensor:
+    """S_vol = U'(J) J C⁻¹ [..., 3, 3] Pa of U = Σ_i (J − 1)^(2i)/D_i (i from 1)."""
+    J = torch.linalg.det(F)[..., None, None]
+    dU = torch.zeros_like(J)
+    for i, di in enumerate(d):
+        dU = dU + 2.0 * (i + 1) * (J - 1.0).pow(2 * i + 1) / di
+    return dU * J * torch.linalg.inv(C)
+
+
+class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
+    """The scene's hyperelastic FE step with ``iterations`` Newton iterations (module docstring)
+    over the n free DOFs of an N-node P1 mesh (X [N, 3] m, tets [T, 4]); the law ``law``
+    (neo_hookean: C10 [Pa], D1 [1/Pa]; ogden: lists mu [Pa], alpha, D [1/Pa]) from the dataset's
+    ``scene.material``, the mass, Rayleigh damping, Newmark β, γ and the Prony terms of ``linear``
+    (the dataset's ``/linear``; a viscous solid relaxes always, as its FE does).
+
+    It keeps :class:`CorotatedNewmarkPrior`'s cell bookkeeping and solves (sparse LU on the CPU,
+    dense and batched on a GPU and in TorchScript) and its per-cell internal variables: per Prony
+    term i and cell e the FE's history h_i,e (S_iso seen through exp(−t/τ_i), Voigt, Pa), packed
+    into nodal columns ``prony_cells_i`` of a carried state. lam, mu [Pa] (the moduli at rest) only
+    size the base class's unused linear cell stiffness."""
+
+    def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
+                 lam: float, mu: float, law: str, parameters: dict, iterations: int = 1,
+                 dtype: torch.dtype = torch.float64) -> None:
+        if law not in LAWS:
+            raise ValueError(f"the law prior steps scene.material.law {' | '.join(LAWS)}, not {law!r}")
+        if int(iterations) < 1:
+            raise ValueError(f"the law prior's Newton iterations a step: {iterations!r}, expected >= 1")
+        super().__init__(linear, n_nodes, dt, X, tets, lam, mu, sweeps=1, dtype=dtype, relax=bool(linear.prony))
+        self.iterations = int(iterations)
+        self.ogden = law == "ogden"
+        if self.ogden:
+            self.ogden_mu = [float(x) for x in parameters["mu"]]
+            self.ogden_alpha = [float(x) for x in parameters["alpha"]]
+            self.ogden_d = [float(x) for x in parameters["D"]]
+        else:
+            # unused; non-empty so that TorchScript types them List[float]
+            self.ogden_mu, self.ogden_alpha, self.ogden_d = [0.0], [1.0], [1.0]
+            self.c10, self.d1 = float(parameters["C10"]), float(parameters["D1"])
+        # S_iso's weight in a relaxing step: g∞ + Σ ḡ_i w_i (1 elastic)
+        self.iso_weight = 1.0 - self._shrink()
+        self.fd_step = FD_STEP
+        # the nine unit directions E_kl, ±FD_STEP: [18, 1, 1, 3, 3] (F [B, T, 3, 3] + each)
+        steps = torch.zeros(18, 1, 1, 3, 3, dtype=dtype)
+        for k in range(3):
+            for l in range(3):
+                steps[3 * k + l, 0, 0, k, l] = FD_STEP
+                steps[9 + 3 * k + l, 0, 0, k, l] = -FD_STEP
+        self.register_buffer("fd_steps", steps, persistent=False)
+
+    # --- the law per cell -----------------------------------------------------------------------
+    def pk2(self, F: Tensor) -> Tuple[Tensor, Tensor]:
+        """(S_iso, S_vol) [..., 3, 3] Pa of cells' deformation gradients F [..., 3, 3]."""
+        if self.ogden:
+            C = F.transpose(-1, -2) @ F
+            return (ogden_isochoric_pk2(C, self.ogden_mu, self.ogden_alpha),
+                    ogden_volumetric_pk2(F, C, self.ogden_d))
+        return neo_hookean_pk2(F, self.c10, self.d1)
+
+    def pk1(self, F: Tensor, w_iso: float, w_vol: float, extra: Optional[Tensor]) -> Tensor:
+        """P = F (w_vol S_vol + w_iso S_iso + extra) [..., 3, 3] Pa (``extra`` [B, T, 3, 3] a stress
+        constant in F: the Prony history's part of a step)."""
+        s_iso, s_vol = self.pk2(F)
+        S = w_vol * s_vol + w_iso * s_iso
+        if extra is not None:
+            S = S + extra
+        return F @ S
+
+    def cells(self, u: Tensor) -> Tensor:
+        """The cells' deformation gradients F [B, T, 3, 3] at free-DOF displacements u [B, n] m."""
+        return self.deformation_gradients(self.positions(u))
+
+    def assemble(self, P: Tensor) -> Tensor:
+        """Σ_e V_e P_e Grad φ_a over the free DOFs [B, n] N of the cells' P [B, T, 3, 3] Pa."""
+        B, T = P.shape[0], P.shape[1]
+        fe = torch.einsum("btij,taj->btai", P, self.shape_grad) * self.cell_volume.view(1, -1, 1, 1)   # [B, T, 4, 3]
+        full = fe.new_zeros(B, 3 * self.n_nodes).index_add(1, self.cell_dofs, fe.reshape(B, 12 * T))
+        return full.index_select(1, self.free_index)
+
+    def tangent_pairs(self, F: Tensor, w_iso: float, w_vol: float, extra: Optional[Tensor]) -> Tensor:
+        """The cells' tangent stiffness V_e Grad φ_a · ∂P/∂F · Grad φ_b on the pairs of free DOFs
+        [B, k] N/m (``pair_keep``; as ``rotated_pairs``), ∂P/∂F by central differences, detached."""
+        with torch.no_grad():
+            B, T = F.shape[0], F.shape[1]
+            P = self.pk1(F.unsqueeze(0) + self.fd_steps, w_iso, w_vol,
+                         None if extra is None else extra.unsqueeze(0))                  # [18, B, T, 3, 3]
+            dP = (P[:9] - P[9:]) / (2.0 * self.fd_step)                                         # [9 (k l), B, T, i, j]
+            A = dP.reshape(3, 3, B, T, 3, 3).permute(2, 3, 4, 5, 0, 1)                    # [B, T, i, j, k, l]
+            Ke = torch.einsum("taj,btijkl,tcl->btaick", self.shape_grad, A, self.shape_grad)
+            Ke = Ke * self.cell_volume.view(1, -1, 1, 1, 1, 1)                             # [B, T, 4, 3, 4, 3]
+            return Ke.reshape(B, T * 144).index_select(1, self.pair_keep)
+
+    @torch.jit.unused
+    def law_solve(self, pairs: Tensor, b: Tensor) -> Tensor:
+        """u [B, n] solving (c0 m_f M + K_T) u = b [B, n] N, K_T's pairs [B, k] N/m, by sparse LU."""
+        values = (self.c0 * self.mass_factor * self.mass_values).expand(pairs.shape[0], -1).index_add(
+            1, self.pair_slot, pairs)                                                        # [B, nnz] N/m
+        return SparseSolve.apply(values, b, self.pattern)
+
+    def solve(self, pairs: Tensor, b: Tensor) -> Tensor:
+        """``law_solve``, dense (batched on a GPU; in TorchScript) off the CPU path."""
+        if not torch.jit.is_scripting() and self.sparse_cpu and b.device.type == "cpu":
+            return self.law_solve(pairs, b)
+        B, n = b.shape[0], self.n_free
+        K = pairs.new_zeros(B, n * n).index_add(1, self.pair_flat, pairs).reshape(B, n, n)
+        return solve_each(self.c0 * self.mass_factor * self.mass_dense + K, b)
+
+    # --- the step -------------------------------------------------------------------------------
+    def elastic_force(self, u: Tensor) -> Tensor:
+        """f_el = Σ_e V_e F (S_iso + S_vol) Grad φ [B, n] N at free-DOF displacements u [B, n]."""
+        return self.assemble(self.pk1(self.cells(u), 1.0, 1.0, None))
+
+    def history_stress(self, S_iso0: Tensor, h0: Tensor) -> Optional[Tensor]:
+        """Σ ḡ_i (d_i h_i − w_i S_iso,0) [B, T, 3, 3] Pa: the part of a step's relaxed stress fixed
+        at its start (None elastic); S_iso0 [B, T, 3, 3], h0 [B, T_prony, 6 T]."""
+        if self.n_terms == 0:
+            return None
+        B = h0.shape[0]
+        h = _matrix(h0.reshape(B, self.n_terms, self.n_cells, 6))                           # [B, T_p, T, 3, 3]
+        w = self.prony_weight.view(1, -1, 1, 1, 1)
+        return (w * (self.prony_decay.view(1, -1, 1, 1, 1) * h
+                     - self.prony_increment.view(1, -1, 1, 1, 1) * S_iso0.unsqueeze(1))).sum(1)
+
+    def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
+             G1: Tensor, h0: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(u1, v1, a1, h1) as :meth:`NewmarkPrior.step`: ``iterations`` Newton iterations on
+        R(u1) = 0 (module docstring) from the predictor u0 + Δt v0."""
+        predictor = self.c0 * (u0 + self.dt * v0) + self.c1 * a0                          # a1 = c0 u1 − predictor
+        F0 = self.cells(u0)
+        S_iso0, S_vol0 = self.pk2(F0)
+        extra = self.history_stress(S_iso0, h0)
+        # what R takes from outside the step's unknown: loads, remainders, the stiffness damping's f_el(u0)
+        fixed = (f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0
+                 + self.c * self.assemble(F0 @ (S_iso0 + S_vol0)))                        # [B, n] N
+        # f_int(u1; h0) + c f_el(u1) in one law evaluation: P = F ((1 + c) S_vol + (w_iso + c) S_iso + extra)
+        w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
+        u1 = u0 + self.dt * v0                                                              # the FE's predictor
+        for _ in range(self.iterations):
+            a1 = self.c0 * u1 - predictor
+            v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
+            F = self.cells(u1)
+            residual = (self.mass(a1 + self.alpha_m * v1) + self.assemble(self.pk1(F, w_iso, w_vol, extra))
+                        - fixed)                                                           # [B, n] N
+            if not bool(torch.isfinite(residual).all()):        # a cell inverted, or the remainders blew up
+                raise RuntimeError("corotated prior: a non-finite state (a cell inverted, or the remainders diverged)")
+            u1 = u1 - self.solve(self.tangent_pairs(F.detach(), w_iso, w_vol,
+                                                    None if extra is None else extra.detach()), residual)
+        a1 = self.c0 * u1 - predictor
+        v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
+        return u1, v1, a1, self.relax(u0, u1, h0)
+
+    # --- the Prony history per cell (the FE's h_i) ----------------------------------------------
+    def internal_variables(self, u: Tensor) -> Tensor:
+        """h [B, T_prony, 6 T] at displacements u [B, n] applied at once: h_i = S_iso(F)."""
+        if self.n_terms == 0:
+            return u.new_zeros(u.shape[0], 0, 0)
+        s = _voigt(self.pk2(self.cells(u))[0]).reshape(u.shape[0], 1, -1)
+        return s.expand(-1, self.n_terms, -1).contiguous()
+
+    def relax(self, u0: Tensor, u1: Tensor, h0: Tensor) -> Tensor:
+        """h1 after a step from u0 to u1 [B, n]: h_i ← d_i h_i + w_i (S_iso(u1) − S_iso(u0))."""
+        if self.n_terms == 0:
+            return h0
+        B = u0.shape[0]
+        step = _voigt(self.pk2(self.cells(u1))[0] - self.pk2(self.cells(u0))[0]).reshape(B, 1, -1)
+        return self.prony_decay.view(1, -1, 1) * h0 + self.prony_increment.view(1, -1, 1) * step
+
+    def _law_relaxed(self, F: Tensor, h: Tensor) -> Tensor:
+        """Σ ḡ_i (h_i − S_iso(F)) [B, T, 3, 3] Pa: what relaxation takes off the unrelaxed S."""
+        s = _matrix(h.reshape(h.shape[0], self.n_terms, self.n_cells, 6))                  # [B, T_p, T, 3, 3]
+        return (self.prony_weight.view(1, -1, 1, 1, 1) * (s - self.pk2(F)[0].unsqueeze(1))).sum(1)
+
+    def relaxation_force(self, u: Tensor, h: Tensor) -> Tensor:
+        """Σ_e V_e F Σ ḡ_i (h_i − S_iso) Grad φ [B, n] N at displacements u [B, n] with the internal
+        variables h of a step's end (f_int = f_el + this)."""
+        F = self.cells(u)
+        return self.assemble(F @ self._law_relaxed(F, h))
+
+    def stress_relaxation(self, u: Tensor, h: Tensor) -> Tensor:
+        """J⁻¹ F Σ ḡ_i (h_i − S_iso) Fᵀ [B, N, 6] Pa, volume-averaged at the nodes."""
+        B = u.shape[0]
+        if self.n_terms == 0:
+            return u.new_zeros(B, self.n_nodes, 6)
+        F = self.cells(u)
+        J = torch.linalg.det(F)[..., None, None]
+        return self.nodal(F @ self._law_relaxed(F, h) @ F.transpose(-1, -2) / J)
+
+    def stress(self, u: Tensor, H: Optional[Tensor] = None) -> Tensor:
+        """Nodal Cauchy stress σ = J⁻¹ F (S_iso + S_vol) Fᵀ + H [B, N, 6] Pa of the nodal
+        displacements u [B, N, 3] m (unrelaxed; ``stress_relaxation`` adds the history's part),
+        volume-averaged at the nodes as the dataset's."""
+        F = self.deformation_gradients(self.reference.unsqueeze(0) + u)
+        s_iso, s_vol = self.pk2(F)
+        J = torch.linalg.det(F)[..., None, None]
+        cell = self.nodal(F @ (s_iso + s_vol) @ F.transpose(-1, -2) / J)
+        return cell if H is None else cell + H
+
+
+def law_parameters(material: dict) -> Tuple[str, dict]:
+    """(law, its parameters) of a scene's ``material`` mapping; ValueError naming the law where
+    the prior does not step it."""
+    law = str(material.get("law"))
+    if law == "neo_hookean":
+        return law, {"C10": float(material["C10"]), "D1": float(material["D1"])}
+    if law == "ogden":
+        return law, {k: [float(x) for x in material[k]] for k in ("mu", "alpha", "D")}
+    raise ValueError(f"scene.material.law {law!r} is not stepped by the law prior (expected {' | '.join(LAWS)})")
+
+
+__all__ = ["HyperelasticNewmarkPrior", "cofactor", "law_parameters", "neo_hookean_pk2", "ogden_isochoric_pk2",
+           "ogden_volumetric_pk2"]
