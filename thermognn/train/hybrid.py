@@ -509,13 +509,32 @@ def exact_remainders(model: LinearPriorModel, trajs) -> Tuple[List[Tensor], List
     return Gs, Hs
 
 
-def remainder_scale(stats: Dict[str, Tensor], G: List[Tensor], H: List[Tensor], free_nodes: Tensor) -> Tensor:
+def remainder_scale(stats: Dict[str, Tensor], G: List[Tensor], H: List[Tensor], free_nodes: Tensor,
+                    floor: Optional[Tensor] = None) -> Tensor:
     """The network's output scale ``dzdt_std`` [D]: the RMS of G over the free nodes [N] (v
-    columns, one number) and of each H component (σ columns) in the training data."""
+    columns, one number) and of each H component (σ columns) in the training data, at least
+    ``floor`` [D] (``law_scale_floor``: the law prior's exact remainders are round-off)."""
     scale = stats["dzdt_std"].clone().double()
     scale[3:6] = torch.cat([g[:, free_nodes] for g in G]).pow(2).mean().sqrt()
     scale[6:12] = torch.cat([h.reshape(-1, 6) for h in H]).pow(2).mean(0).sqrt()
+    if floor is not None:
+        scale = torch.maximum(scale, floor.double())
     return scale.clamp(min=1e-30)
+
+
+#: the law prior's output scale, as a fraction of the training data's loads (G) and stresses (H)
+LAW_SCALE = 1.0e-2
+
+
+def law_scale_floor(trajs, free_nodes: Tensor, D: int) -> Tensor:
+    """The law prior's output scale [D]: its exact remainders vanish (the prior is the data's own
+    step, converged), so the network learns only what the Newton budget leaves, which is no
+    round-off: ``LAW_SCALE`` of the RMS load on the free nodes (G, v columns) and of each stress
+    component (H, σ columns) in the training data."""
+    floor = torch.zeros(D, dtype=torch.float64)
+    floor[3:6] = torch.cat([t.force.double()[:, free_nodes] for t in trajs]).pow(2).mean().sqrt() * LAW_SCALE
+    floor[6:12] = torch.cat([t.z.double()[..., 6:12].reshape(-1, 6) for t in trajs]).pow(2).mean(0).sqrt() * LAW_SCALE
+    return floor
 
 
 def _lr(base: float, decay: float, progress: float) -> float:
@@ -782,7 +801,8 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     graph = data.graph
     G_true, H_true = exact_remainders(model, train_trajs)
     stats = compute_stats(train_trajs, graph, ds.dt, hparams)
-    stats["dzdt_std"] = remainder_scale(stats, G_true, H_true, model.prior.free_nodes())
+    floor = law_scale_floor(train_trajs, model.prior.free_nodes(), model.dim) if "law" in settings else None
+    stats["dzdt_std"] = remainder_scale(stats, G_true, H_true, model.prior.free_nodes(), floor)
     net.set_stats(stats)
     with torch.no_grad():                        # start at (1 % from) the linearised FE model
         for p in [*net.decoder.net[-1].parameters(), *net.port.parameters(),
