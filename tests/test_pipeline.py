@@ -485,3 +485,28 @@ def test_corotated_prior_through_train_evaluate_and_export(tmp_path, tiny_block)
                               f"paths.dataset={tiny_block}", "model=linear_prior", bad],
                              capture_output=True, text=True, timeout=600)
         assert res.returncode == 2 and said in res.stderr.strip().splitlines()[-1], res.stderr[-2000:]
+
+
+def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
+    """`model=law_prior` (the data's own neo-Hookean law stepped with one Newton iteration a step,
+    thermognn/train/law_prior.py) on the tiny block: a fit epoch and a rollout epoch (back-propagated
+    through the Newton step's solves), evaluate (its whole rollouts nearer the data than the
+    linearised FE model's, and at the linearly implicit FE model's, which it is with the remainders
+    at zero) and export (scripted against eager)."""
+    from thermognn.export.exporter import verify
+    from thermognn.train.checkpoint import load_checkpoint
+
+    out = tmp_path / "law"
+    _train_prior(out, tiny_block, "model.prior_law=true", "model.prior_newton=1", "train.epochs=1",
+                 "train.rollout_epochs=1", "train.rollout_window=3")
+    assert load_checkpoint(out / "model.ckpt")["prior"]["law"] == 1
+    for stage in ("evaluate", "export"):
+        res = subprocess.run([sys.executable, "-m", "thermognn.cli", stage, f"out={out}", f"paths.dataset={tiny_block}",
+                              "train.eval_max_train=1", "train.threads=1"], capture_output=True, text=True, timeout=600)
+        assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    errors = json.loads((out / "eval" / "rrmse.json").read_text())
+    for g in ("q", "v", "sigma"):
+        assert 0 < errors[f"whole_{g}"] < 0.5 * errors[f"linear_fe_whole_{g}"], (g, errors)
+        assert errors[f"whole_{g}"] == pytest.approx(errors[f"newton1_fe_whole_{g}"], rel=0.2), (g, errors)
+    layout = json.loads(verify(out / "model.pt")["state_layout"])
+    assert [g for g, _ in layout] == ["q", "v", "sigma", "a", "G"]
