@@ -62,3 +62,24 @@ def test_law_parameters_name_the_law_they_do_not_step():
         "mu": [1.0], "alpha": [2.0], "D": [3.0]}
     with pytest.raises(ValueError, match="scene.material.law 'mooney' is not stepped by the law prior"):
         law_parameters({"law": "mooney"})
+
+
+def test_the_law_prior_fits_only_trajectories_the_fe_stepped_once_a_step():
+    """Where the FE cut its steps the data's step is not one Newmark step of Δt and the law prior's
+    exact remainders are not round-off: ``law_fit_trajectories`` leaves such trajectories out of
+    the fit and names them with the size of their G against their loads."""
+    from types import SimpleNamespace
+
+    from thermognn.core.errors import DataError
+    from thermognn.train.hybrid import LAW_STEP_TOL, law_fit_trajectories
+
+    free = torch.tensor([True, True, False])
+    force = torch.ones(4, 3, 3)
+    trajs = [SimpleNamespace(name=f"traj_{i}", force=force) for i in range(3)]
+    G = [torch.full((4, 3, 3), 1e-12), torch.full((4, 3, 3), 0.3), torch.zeros(4, 3, 3)]
+    H = [torch.zeros(4, 3, 6)] * 3
+    kept, G_kept, H_kept, cut = law_fit_trajectories(trajs, G, H, free)
+    assert [t.name for t in kept] == ["traj_0", "traj_2"] and len(G_kept) == len(H_kept) == 2
+    assert [n for n, _ in cut] == ["traj_1"] and cut[0][1] == pytest.approx(0.3) and cut[0][1] > LAW_STEP_TOL
+    with pytest.raises(DataError, match="every training trajectory's FE cut its steps"):
+        law_fit_trajectories(trajs[1:2], G[1:2], H[1:2], free)
