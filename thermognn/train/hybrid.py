@@ -347,11 +347,25 @@ def prior_kind(cfg_model) -> str:
     return kind
 
 
+def _flag(cfg_model, key: str, meaning: str) -> bool:
+    """The boolean ``model.<key>`` (default false); a one-line ConfigError saying what it means."""
+    value = OmegaConf.select(cfg_model, key, default=False)
+    if not isinstance(value, bool):
+        raise ConfigError(f"model.{key} = {value!r}, expected true | false ({meaning})")
+    return value
+
+
+def _count(cfg_model, key: str, default: int, meaning: str) -> int:
+    """The integer ``model.<key>`` >= 1; a one-line ConfigError saying what it counts."""
+    value = OmegaConf.select(cfg_model, key, default=default)
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise ConfigError(f"model.{key} = {value!r}, expected an integer >= 1 ({meaning})")
+    return value
+
+
 def prior_settings(cfg_model) -> dict:
     """The checkpoint's ``prior`` entry from the ``model`` config group."""
-    sweeps = OmegaConf.select(cfg_model, "prior_sweeps", default=1)
-    if not isinstance(sweeps, int) or isinstance(sweeps, bool) or sweeps < 1:
-        raise ConfigError(f"model.prior_sweeps = {sweeps!r}, expected an integer >= 1 (network calls per step)")
+    sweeps = _count(cfg_model, "prior_sweeps", 1, "network calls per step")
     inputs = str(OmegaConf.select(cfg_model, "prior_inputs", default="positions"))
     if inputs not in ("positions", "state"):
         raise ConfigError(f"model.prior_inputs = '{inputs}', expected positions | state")
@@ -359,18 +373,9 @@ def prior_settings(cfg_model) -> dict:
     if order not in ORDERS or isinstance(order, bool):
         raise ConfigError(f"model.prior_order = {order!r}, expected 1 | 2 (the order in the load at which "
                           f"the learned remainders start)")
-    relax = OmegaConf.select(cfg_model, "prior_relax", default=False)
-    if not isinstance(relax, bool):
-        raise ConfigError(f"model.prior_relax = {relax!r}, expected true | false (the prior relaxes as the "
-                          f"viscous FE solid does)")
-    corotated = OmegaConf.select(cfg_model, "prior_corotated", default=False)
-    if not isinstance(corotated, bool):
-        raise ConfigError(f"model.prior_corotated = {corotated!r}, expected true | false (the prior's solid "
-                          f"corotated per cell)")
-    rotation_sweeps = OmegaConf.select(cfg_model, "prior_rotation_sweeps", default=3)
-    if not isinstance(rotation_sweeps, int) or isinstance(rotation_sweeps, bool) or rotation_sweeps < 1:
-        raise ConfigError(f"model.prior_rotation_sweeps = {rotation_sweeps!r}, expected an integer >= 1 "
-                          f"(fixed-point sweeps of the corotated step)")
+    relax = _flag(cfg_model, "prior_relax", "the prior relaxes as the viscous FE solid does")
+    corotated = _flag(cfg_model, "prior_corotated", "the prior's solid corotated per cell")
+    rotation_sweeps = _count(cfg_model, "prior_rotation_sweeps", 3, "fixed-point sweeps of the corotated step")
     stress = str(OmegaConf.select(cfg_model, "prior_stress", default="linear"))
     if stress not in ("linear", "material"):
         raise ConfigError(f"model.prior_stress = '{stress}', expected linear | material (the prior's stress: the "
@@ -381,14 +386,9 @@ def prior_settings(cfg_model) -> dict:
     if stress == "material" and relax:
         raise ConfigError("model.prior_stress = material with model.prior_relax = true: the material law's stress "
                           "has no Prony history (set model.prior_stress=linear to relax)")
-    law = OmegaConf.select(cfg_model, "prior_law", default=False)
-    if not isinstance(law, bool):
-        raise ConfigError(f"model.prior_law = {law!r}, expected true | false (the prior is the dataset's own "
-                          f"hyperelastic law, stepped with model.prior_newton Newton iterations)")
-    newton = OmegaConf.select(cfg_model, "prior_newton", default=1)
-    if not isinstance(newton, int) or isinstance(newton, bool) or newton < 1:
-        raise ConfigError(f"model.prior_newton = {newton!r}, expected an integer >= 1 (Newton iterations a step "
-                          f"of the law prior)")
+    law = _flag(cfg_model, "prior_law", "the prior is the dataset's own hyperelastic law, stepped with "
+                "model.prior_newton Newton iterations")
+    newton = _count(cfg_model, "prior_newton", 1, "Newton iterations a step of the law prior")
     if law and (corotated or stress == "material"):
         raise ConfigError("model.prior_law = true steps the dataset's own law (its stress and Prony history "
                           "included): set model.prior_corotated=false and model.prior_stress=linear")
