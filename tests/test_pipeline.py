@@ -496,6 +496,14 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
     from thermognn.export.exporter import verify
     from thermognn.train.checkpoint import load_checkpoint
 
+    from thermognn.train.hybrid import build_prior
+    from thermognn.train.law_prior import HyperelasticNewmarkPrior
+    from thermognn.train.prior import CorotatedNewmarkPrior, NewmarkPrior
+
+    ds = Dataset(tiny_block)
+    assert type(build_prior(ds, ds.dt)) is NewmarkPrior
+    assert type(build_prior(ds, ds.dt, corotated=2)) is CorotatedNewmarkPrior
+    assert type(build_prior(ds, ds.dt, law=1)) is HyperelasticNewmarkPrior
     out = tmp_path / "law"
     _train_prior(out, tiny_block, "model.prior_law=true", "model.prior_newton=1", "train.epochs=1",
                  "train.rollout_epochs=1", "train.rollout_window=3")
