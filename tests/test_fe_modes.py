@@ -1142,6 +1142,10 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
     prior.sparse_cpu = False
     assert rel(prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0], sparse_step) < 1e-12
     prior.sparse_cpu = True
+    from thermognn.train.prior import DIVERGED
+    with pytest.raises(RuntimeError, match="law prior: a non-finite state") as diverged:   # what training catches
+        prior.step(uf * float("nan"), vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)
+    assert DIVERGED in str(diverged.value)
     _carried_steps_follow_rollouts(prior, graph, width=len(prony) * prior.cell_columns)
 
     settings = prior_settings(OmegaConf.create({"prior": "linear", "prior_law": True, "prior_newton": 2}))

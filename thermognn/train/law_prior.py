@@ -262,7 +262,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             residual = (self.mass(a1 + self.alpha_m * v1) + self.assemble(self.pk1(F, w_iso, w_vol, extra))
                         - fixed)                                                           # [B, n] N
             if not bool(torch.isfinite(residual).all()):        # a cell inverted, or the remainders blew up
-                raise RuntimeError("corotated prior: a non-finite state (a cell inverted, or the remainders diverged)")
+                raise RuntimeError("law prior: a non-finite state (a cell inverted, or the remainders diverged)")
             u1 = u1 - self.solve(self.tangent_pairs(F.detach(), w_iso, w_vol,
                                                     None if extra is None else extra.detach()), residual)
         a1 = self.c0 * u1 - predictor

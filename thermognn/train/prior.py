@@ -319,10 +319,10 @@ class NewmarkPrior(nn.Module):
         return G, sigma - self.stress(u) - self.stress_relaxation(uf, h)
 
 
-#: what the RuntimeError of the corotated step starts with where its state stopped being finite
-#: (``CorotatedNewmarkPrior.step`` raises it literally: TorchScript compiles no f-string of a
-#: global); training and validation catch it by this
-DIVERGED = "corotated prior:"
+#: what the RuntimeError of a cell-wise prior's step holds where its state stopped being finite
+#: ("corotated prior: a non-finite state ...", "law prior: ..."; the steps raise it literally:
+#: TorchScript compiles no f-string of a global); training and validation catch it by this
+DIVERGED = "prior: a non-finite state"
 
 
 class SparsePattern:
