@@ -1104,7 +1104,7 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
     from omegaconf import OmegaConf
 
     from thermognn.core.errors import ConfigError
-    from thermognn.core.hyperelastic import HyperelasticSolid
+    from thermognn.core.hyperelastic import HyperelasticSolid, law_from_config
     from thermognn.train.hybrid import prior_settings
     from thermognn.train.law_prior import HyperelasticNewmarkPrior
 
@@ -1113,8 +1113,8 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
     tets = _bent_block(1.0, "newmark", steps=2, prony=prony, law=law)[0].cells[:, :4]
     material = {"law": law[0], **law[1], "prony": [{"g": g, "tau": t} for g, t in prony]}
     lam, mu = linear.lame()
-    make = lambda k: HyperelasticNewmarkPrior(linear, len(X), dt, X, tets, lam, mu, law[0], law[1],  # noqa: E731
-                                              iterations=k)
+    make = lambda k: HyperelasticNewmarkPrior(linear, len(X), dt, X, tets, lam, mu,  # noqa: E731
+                                              law_from_config(material)[0], iterations=k)
     rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
     G0 = torch.zeros(len(f), int(linear.free.sum()), dtype=torch.float64)

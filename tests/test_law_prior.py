@@ -8,7 +8,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from thermognn.core.hyperelastic import NeoHookean, Ogden  # noqa: E402
-from thermognn.train.law_prior import (cofactor, law_parameters, neo_hookean_pk2,  # noqa: E402
+from thermognn.train.law_prior import (HyperelasticNewmarkPrior, cofactor, neo_hookean_pk2,  # noqa: E402
                                        ogden_isochoric_pk2, ogden_volumetric_pk2)
 
 
@@ -56,12 +56,11 @@ def test_ogden_stress_is_smooth_for_autograd_where_stretches_coincide():
         assert float((f(F + E) - f(F - E)) / 2e-6) == pytest.approx(float(grad[0, 1, 2]), rel=1e-5)
 
 
-def test_law_parameters_name_the_law_they_do_not_step():
-    assert law_parameters({"law": "neo_hookean", "C10": 1, "D1": 2}) == ("neo_hookean", {"C10": 1.0, "D1": 2.0})
-    assert law_parameters({"law": "ogden", "mu": [1], "alpha": [2], "D": [3]})[1] == {
-        "mu": [1.0], "alpha": [2.0], "D": [3.0]}
-    with pytest.raises(ValueError, match="scene.material.law 'mooney' is not stepped by the law prior"):
-        law_parameters({"law": "mooney"})
+def test_the_law_prior_names_a_law_it_does_not_step():
+    """It steps the laws ``law_from_config`` reads (whose own errors name the scene's law,
+    tests/test_fe_modes.py); anything else is refused by name."""
+    with pytest.raises(ValueError, match="the law prior steps a NeoHookean or Ogden law, not 'mooney'"):
+        HyperelasticNewmarkPrior(None, 0, 1e-3, None, None, 0.0, 0.0, "mooney")
 
 
 def test_the_law_prior_fits_only_trajectories_the_fe_stepped_once_a_step():

@@ -450,16 +450,17 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
             if tets.ndim != 2 or tets.shape[1] != 4 or len(tets) == 0:
                 raise ValueError(f"the {'law' if law else 'corotated'} prior needs P1 tets in /mesh/tets")
         if law:
-            from .law_prior import HyperelasticNewmarkPrior, law_parameters
+            from thermognn.core.hyperelastic import law_from_config
+
+            from .law_prior import HyperelasticNewmarkPrior
 
             if "law" not in ds.material:
                 raise DataError(f"{ds.path}: no scene.material in the dataset's config (model.prior_law = true)")
-            name, parameters = law_parameters(ds.material)
-            prony = tuple((float(t["g"]), float(t["tau"])) for t in (ds.material.get("prony") or []))
+            solid_law, prony = law_from_config(ds.material)
             if not np.allclose(np.asarray(prony).reshape(-1, 2), np.asarray(linear.prony).reshape(-1, 2)):
                 raise ValueError(f"scene.material.prony {prony} is not /linear's {tuple(linear.prony)}")
             return HyperelasticNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
-                                            name, parameters, iterations=int(law))
+                                            solid_law, iterations=int(law))
         if corotated:
             return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                          sweeps=int(corotated), neo_hookean=neo_hookean_of(ds) if material else None,

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from thermognn.core.hyperelastic import NeoHookean, Ogden
 from thermognn.core.linear import LinearSolid
 
 from .prior import CorotatedNewmarkPrior, SparseSolve, _matrix, _voigt, solve_each
@@ -47,8 +48,6 @@ from .prior import CorotatedNewmarkPrior, SparseSolve, _matrix, _voigt, solve_ea
 EIGEN_EPS = 1.0e-6
 #: central-difference step of the tangent ∂P/∂F (F is dimensionless, ~1), as the numpy Ogden law's
 FD_STEP = 1.0e-6
-#: the laws the prior steps (``scene.material.law``)
-LAWS = ("neo_hookean", "ogden")
 
 
 def _eye(F: Tensor) -> Tensor:
@@ -129,8 +128,8 @@ def ogden_volumetric_pk2(F: Tensor, C: Tensor, d: List[float]) -> Tensor:
 class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     """The scene's hyperelastic FE step with ``iterations`` Newton iterations (module docstring)
     over the n free DOFs of an N-node P1 mesh (X [N, 3] m, tets [T, 4]); the law ``law``
-    (neo_hookean: C10 [Pa], D1 [1/Pa]; ogden: lists mu [Pa], alpha, D [1/Pa]) from the dataset's
-    ``scene.material``, the mass, Rayleigh damping, Newmark β, γ and the Prony terms of ``linear``
+    (``thermognn.core.hyperelastic``'s ``NeoHookean`` or ``Ogden``, as ``law_from_config`` reads
+    the dataset's ``scene.material``), the mass, Rayleigh damping, Newmark β, γ and the Prony terms of ``linear``
     (the dataset's ``/linear``; a viscous solid relaxes always, as its FE does).
 
     It keeps :class:`CorotatedNewmarkPrior`'s cell bookkeeping and solves (sparse LU on the CPU,
@@ -140,23 +139,21 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     size the base class's unused linear cell stiffness."""
 
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
-                 lam: float, mu: float, law: str, parameters: dict, iterations: int = 1,
+                 lam: float, mu: float, law: NeoHookean | Ogden, iterations: int = 1,
                  dtype: torch.dtype = torch.float64) -> None:
-        if law not in LAWS:
-            raise ValueError(f"the law prior steps scene.material.law {' | '.join(LAWS)}, not {law!r}")
+        if not isinstance(law, (NeoHookean, Ogden)):
+            raise ValueError(f"the law prior steps a NeoHookean or Ogden law, not {law!r}")
         if int(iterations) < 1:
             raise ValueError(f"the law prior's Newton iterations a step: {iterations!r}, expected >= 1")
         super().__init__(linear, n_nodes, dt, X, tets, lam, mu, sweeps=1, dtype=dtype, relax=bool(linear.prony))
         self.iterations = int(iterations)
-        self.ogden = law == "ogden"
-        if self.ogden:
-            self.ogden_mu = [float(x) for x in parameters["mu"]]
-            self.ogden_alpha = [float(x) for x in parameters["alpha"]]
-            self.ogden_d = [float(x) for x in parameters["D"]]
+        self.ogden = isinstance(law, Ogden)
+        if isinstance(law, Ogden):
+            self.ogden_mu, self.ogden_alpha, self.ogden_d = list(law.mu), list(law.alpha), list(law.d)
         else:
             # unused; non-empty so that TorchScript types them List[float]
             self.ogden_mu, self.ogden_alpha, self.ogden_d = [0.0], [1.0], [1.0]
-            self.c10, self.d1 = float(parameters["C10"]), float(parameters["D1"])
+            self.c10, self.d1 = law.c10, law.d1
         # S_iso's weight in a relaxing step: g∞ + Σ ḡ_i w_i (1 elastic)
         self.iso_weight = 1.0 - self._shrink()
         self.fd_step = FD_STEP
@@ -316,16 +313,5 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         return cell if H is None else cell + H
 
 
-def law_parameters(material: dict) -> Tuple[str, dict]:
-    """(law, its parameters) of a scene's ``material`` mapping; ValueError naming the law where
-    the prior does not step it."""
-    law = str(material.get("law"))
-    if law == "neo_hookean":
-        return law, {"C10": float(material["C10"]), "D1": float(material["D1"])}
-    if law == "ogden":
-        return law, {k: [float(x) for x in material[k]] for k in ("mu", "alpha", "D")}
-    raise ValueError(f"scene.material.law {law!r} is not stepped by the law prior (expected {' | '.join(LAWS)})")
-
-
-__all__ = ["HyperelasticNewmarkPrior", "cofactor", "law_parameters", "neo_hookean_pk2", "ogden_isochoric_pk2",
+__all__ = ["HyperelasticNewmarkPrior", "cofactor", "neo_hookean_pk2", "ogden_isochoric_pk2",
            "ogden_volumetric_pk2"]
