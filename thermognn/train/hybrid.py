@@ -442,7 +442,8 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
         try:
             lam, mu = linear.lame()
         except ValueError:
-            raise DataError(f"{ds.path}: /linear holds no moduli at rest for model.prior_corotated = true "
+            raise DataError(f"{ds.path}: /linear holds no moduli at rest for "
+                            f"{'model.prior_law' if law else 'model.prior_corotated'} = true "
                             f"(regenerate the dataset with this version of thermognn generate)") from None
     try:
         if corotated or law:
