@@ -1141,6 +1141,27 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
     sparse_step = prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0]
     prior.sparse_cpu = False
     assert rel(prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0], sparse_step) < 1e-12
+    # a second step from the same start (a model step's, with the network's G1) reuses the first
+    # one's start and factors, by identity on the sparse path and by value on the dense one: the
+    # same step as from scratch; a start changed in place, or another one, is not reused
+    G1 = 1e-3 * float(f.abs().max()) * torch.randn(1, G0.shape[1], dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    for sparse_cpu in (True, False):
+        prior.sparse_cpu = sparse_cpu
+        prior.forget()
+        first = prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)
+        assert (prior._start_memo[0][0] is uf) if sparse_cpu else prior.memo_key.numel() > 0    # kept
+        again = prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G1, h)
+        prior.forget()
+        fresh = prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G1, h)
+        assert rel(again[0] - first[0], fresh[0] - first[0]) < 1e-9 and rel(again[1], fresh[1]) < 1e-12
+        assert rel(again[3], fresh[3]) < 1e-12 if prior.n_terms else True
+        moved = uf.clone()
+        prior.step(moved, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)
+        moved.mul_(1.01)                                      # in place: the kept start is stale
+        in_place = prior.step(moved, vf, a, prior.gather(f[4:5]), G0[:1], G1, h)
+        prior.forget()
+        assert rel(in_place[0], prior.step(moved, vf, a, prior.gather(f[4:5]), G0[:1], G1, h)[0]) < 1e-12
+    prior.forget()
     prior.sparse_cpu = True
     from thermognn.train.prior import DIVERGED
     with pytest.raises(RuntimeError, match="law prior: a non-finite state") as diverged:   # what training catches

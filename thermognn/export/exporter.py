@@ -123,6 +123,9 @@ def export(cfg) -> Path:
                         f"(relative), above train.export_rtol = {rtol:.1e}")
     out = project_path(cfg.paths.exported)
     internal = eager.core.prior.internal_columns() if isinstance(eager, ExportedLinearPrior) else []
+    forget = getattr(scripted.core.prior, "forget", None) if isinstance(eager, ExportedLinearPrior) else None
+    if forget is not None:              # the law prior's kept step start (its factors): not for the file
+        forget()
     with atomic_path(out) as tmp:
         torch.jit.save(scripted, str(tmp), _extra_files={META_FILE: metadata(ckpt, internal)})
         verify(tmp)

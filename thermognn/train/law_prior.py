@@ -42,7 +42,7 @@ from torch import Tensor
 from thermognn.core.hyperelastic import NeoHookean, Ogden
 from thermognn.core.linear import LinearSolid
 
-from .prior import CorotatedNewmarkPrior, SparseSolve, _matrix, _voigt, solve_each
+from .prior import CorotatedNewmarkPrior, FactoredSolve, SparseSolve, _matrix, _voigt, solve_each, sparse_factors
 
 #: the FE's regularisation of the deviatoric norm (``thermognn.generate.materials.EIGEN_EPS``)
 EIGEN_EPS = 1.0e-6
@@ -138,6 +138,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     into nodal columns ``prony_cells_i`` of a carried state. lam, mu [Pa] (the moduli at rest) only
     size the base class's unused linear cell stiffness."""
 
+    __jit_ignored_attributes__ = ["_start_memo"]
+
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
                  lam: float, mu: float, law: NeoHookean | Ogden, iterations: int = 1,
                  dtype: torch.dtype = torch.float64) -> None:
@@ -164,6 +166,13 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                 steps[3 * k + l, 0, 0, k, l] = FD_STEP
                 steps[9 + 3 * k + l, 0, 0, k, l] = -FD_STEP
         self.register_buffer("fd_steps", steps, persistent=False)
+        self._start_memo = None         # eager CPU: the last step start and its factors (``_eager_first_iteration``)
+        # dense path without gradients (TorchScript, serve): the last step start, by value, and its
+        # LU factors (``first_iteration``); empty until a step sets them
+        for name in ("memo_key", "memo_predictor", "memo_S_iso0", "memo_extra", "memo_damping0", "memo_u1",
+                     "memo_internal", "memo_lu"):
+            self.register_buffer(name, torch.zeros(0, dtype=dtype), persistent=False)
+        self.register_buffer("memo_pivots", torch.zeros(0, dtype=torch.int32), persistent=False)
 
     # --- the law per cell -----------------------------------------------------------------------
     def pk2(self, F: Tensor) -> Tuple[Tensor, Tensor]:
@@ -238,21 +247,128 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         return (w * (self.prony_decay.view(1, -1, 1, 1, 1) * h
                      - self.prony_increment.view(1, -1, 1, 1, 1) * S_iso0.unsqueeze(1))).sum(1)
 
-    def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
-             G1: Tensor, h0: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
-        """(u1, v1, a1, h1) as :meth:`NewmarkPrior.step`: ``iterations`` Newton iterations on
-        R(u1) = 0 (module docstring) from the predictor u0 + Δt v0."""
+    def step_start(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor
+                   ) -> Tuple[Tensor, Tensor, Optional[Tensor], Tensor, Tensor, Tensor, Tensor]:
+        """What a step's first Newton iteration takes from the step's start (u0, v0, a0 [B, n],
+        h0) alone, not from its loads or remainders: (predictor [B, n], S_iso,0 [B, T, 3, 3] Pa,
+        the history's stress ``extra`` [B, T, 3, 3] Pa (None elastic), c f_el(u0) [B, n] N, the
+        FE's predictor u0 + Δt v0 [B, n] m, the residual there without the loads and remainders
+        [B, n] N, M (a + αM v) + f_int + c f_el − c f_el(u0), and the tangent's pairs there
+        [B, k] N/m).
+        A model step with the network's remainders steps the prior twice from the same start
+        (``LinearPriorModel.advance``): with one Newton iteration everything but one solve is
+        shared (``_eager_first_iteration`` keeps it, with the sparse factors, on the CPU)."""
         predictor = self.c0 * (u0 + self.dt * v0) + self.c1 * a0                          # a1 = c0 u1 − predictor
         F0 = self.cells(u0)
         S_iso0, S_vol0 = self.pk2(F0)
         extra = self.history_stress(S_iso0, h0)
-        # what R takes from outside the step's unknown: loads, remainders, the stiffness damping's f_el(u0)
-        fixed = (f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0
-                 + self.c * self.assemble(F0 @ (S_iso0 + S_vol0)))                        # [B, n] N
         # f_int(u1; h0) + c f_el(u1) in one law evaluation: P = F ((1 + c) S_vol + (w_iso + c) S_iso + extra)
         w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
         u1 = u0 + self.dt * v0                                                              # the FE's predictor
-        for _ in range(self.iterations):
+        a1 = self.c0 * u1 - predictor
+        v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
+        F = self.cells(u1)
+        damping0 = self.c * self.assemble(F0 @ (S_iso0 + S_vol0))                        # c f_el(u0): [B, n] N
+        internal = self.mass(a1 + self.alpha_m * v1) + self.assemble(self.pk1(F, w_iso, w_vol, extra)) - damping0
+        pairs = self.tangent_pairs(F.detach(), w_iso, w_vol, None if extra is None else extra.detach())
+        return predictor, S_iso0, extra, damping0, u1, internal, pairs
+
+    @torch.jit.unused
+    def _eager_first_iteration(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor, loads: Tensor
+                               ) -> Tuple[Tensor, Tensor, Tensor, Optional[Tensor], Tensor]:
+        """``first_iteration`` on the CPU, eager: ``step_start`` and its tangent's sparse LU kept
+        for the next step from the same start tensors (the same objects, unmodified, with the same
+        grad mode), so that a model step's second prior step costs one back-substitution more."""
+        key = (u0, v0, a0, h0)
+        stamp = tuple(t._version for t in key) + (torch.is_grad_enabled(),)
+        memo = self._start_memo
+        kept = memo is not None and all(a is b for a, b in zip(memo[0], key)) and memo[1] == stamp
+        start = memo[2] if kept else self.step_start(u0, v0, a0, h0)
+        predictor, S_iso0, extra, damping0, u1, internal, pairs = start
+        residual = internal - loads
+        if not bool(torch.isfinite(residual).all()):
+            raise RuntimeError("law prior: a non-finite state (a cell inverted, or the remainders diverged)")
+        if kept:
+            lus = memo[3]
+        else:
+            values = (self.c0 * self.mass_factor * self.mass_values).expand(pairs.shape[0], -1).index_add(
+                1, self.pair_slot, pairs)                                                   # [B, nnz] N/m
+            lus = sparse_factors(values, self.pattern)
+            self._start_memo = (key, stamp, start, lus)
+        return u1 - FactoredSolve.apply(residual, lus), predictor, S_iso0, extra, damping0
+
+    @torch.jit.unused
+    def _forget_eager(self) -> None:
+        self._start_memo = None
+
+    @torch.jit.export
+    def forget(self) -> None:
+        """Drop the step start the first Newton iteration keeps (``first_iteration``), e.g. before
+        a model is saved: it holds the last step's tensors and factors."""
+        if not torch.jit.is_scripting():
+            self._forget_eager()
+        empty = self.memo_key.new_zeros(0)
+        self.memo_key, self.memo_predictor, self.memo_S_iso0, self.memo_extra = empty, empty, empty, empty
+        self.memo_damping0, self.memo_u1, self.memo_internal, self.memo_lu = empty, empty, empty, empty
+        self.memo_pivots = self.memo_pivots.new_zeros(0)
+
+    def first_iteration(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor, loads: Tensor
+                        ) -> Tuple[Tensor, Tensor, Tensor, Optional[Tensor], Tensor]:
+        """(u1 after the first Newton iteration [B, n] m, predictor, S_iso,0, extra, c f_el(u0))
+        of a step from (u0, v0, a0, h0) under ``loads`` = f1 + f_body + (1 + c) G1 − c G0 [B, n] N
+        (``step_start``'s names). A second step from the same start (a model step's, with the
+        network's remainders) reuses the first one's start and factors: on the CPU's sparse path
+        kept by tensor identity (``_eager_first_iteration``, gradients included), on the dense
+        path (TorchScript, GPU) by value where no gradient is taken (serve)."""
+        if not torch.jit.is_scripting() and self.sparse_cpu and u0.device.type == "cpu":
+            return self._eager_first_iteration(u0, v0, a0, h0, loads)
+        key = torch.cat([u0.reshape(-1), v0.reshape(-1), a0.reshape(-1), h0.reshape(-1)])
+        if key.requires_grad or loads.requires_grad:          # training: one solve, differentiable
+            predictor, S_iso0, extra, damping0, u1, internal, pairs = self.step_start(u0, v0, a0, h0)
+            residual = internal - loads
+            if not bool(torch.isfinite(residual).all()):
+                raise RuntimeError("law prior: a non-finite state (a cell inverted, or the remainders diverged)")
+            return u1 - self.solve(pairs, residual), predictor, S_iso0, extra, damping0
+        if not (self.memo_key.shape == key.shape and bool(torch.equal(self.memo_key, key))):
+            predictor, S_iso0, extra, damping0, u1, internal, pairs = self.step_start(u0, v0, a0, h0)
+            if not bool(torch.isfinite(internal).all()):
+                raise RuntimeError("law prior: a non-finite state (a cell inverted, or the remainders diverged)")
+            B, n = u0.shape[0], self.n_free
+            K = pairs.new_zeros(B, n * n).index_add(1, self.pair_flat, pairs).reshape(B, n, n)
+            A = self.c0 * self.mass_factor * self.mass_dense + K                           # [B, n, n] N/m
+            if A.device.type == "cpu":                  # one at a time (solve_each: batched CPU LU fails)
+                lus: List[Tensor] = []
+                pivots: List[Tensor] = []
+                for i in range(B):
+                    lu, piv = torch.linalg.lu_factor(A[i])
+                    lus.append(lu)
+                    pivots.append(piv)
+                self.memo_lu, self.memo_pivots = torch.stack(lus), torch.stack(pivots)
+            else:
+                self.memo_lu, self.memo_pivots = torch.linalg.lu_factor(A)
+            self.memo_key, self.memo_predictor, self.memo_S_iso0 = key, predictor, S_iso0
+            self.memo_extra = extra if extra is not None else key.new_zeros(0)
+            self.memo_damping0, self.memo_u1, self.memo_internal = damping0, u1, internal
+        residual = self.memo_internal - loads
+        if not bool(torch.isfinite(residual).all()):
+            raise RuntimeError("law prior: a non-finite state (a cell inverted, or the remainders diverged)")
+        du = torch.linalg.lu_solve(self.memo_lu, self.memo_pivots, residual.unsqueeze(-1)).squeeze(-1)
+        extra_kept: Optional[Tensor] = None
+        if self.n_terms > 0:
+            extra_kept = self.memo_extra
+        return self.memo_u1 - du, self.memo_predictor, self.memo_S_iso0, extra_kept, self.memo_damping0
+
+    def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
+             G1: Tensor, h0: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(u1, v1, a1, h1) as :meth:`NewmarkPrior.step`: ``iterations`` Newton iterations on
+        R(u1) = 0 (module docstring) from the predictor u0 + Δt v0 (the first one
+        ``first_iteration``'s)."""
+        # what R takes from outside the step's start: loads and remainders
+        loads = f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0                  # [B, n] N
+        u1, predictor, S_iso0, extra, damping0 = self.first_iteration(u0, v0, a0, h0, loads)
+        fixed = loads + damping0
+        w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
+        for _ in range(self.iterations - 1):
             a1 = self.c0 * u1 - predictor
             v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
             F = self.cells(u1)
@@ -264,7 +380,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                                                     None if extra is None else extra.detach()), residual)
         a1 = self.c0 * u1 - predictor
         v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
-        return u1, v1, a1, self.relax(u0, u1, h0)
+        return u1, v1, a1, self.relax_from(S_iso0, u1, h0)
 
     # --- the Prony history per cell (the FE's h_i) ----------------------------------------------
     def internal_variables(self, u: Tensor) -> Tensor:
@@ -278,8 +394,14 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         """h1 after a step from u0 to u1 [B, n]: h_i ← d_i h_i + w_i (S_iso(u1) − S_iso(u0))."""
         if self.n_terms == 0:
             return h0
-        B = u0.shape[0]
-        step = _voigt(self.pk2(self.cells(u1))[0] - self.pk2(self.cells(u0))[0]).reshape(B, 1, -1)
+        return self.relax_from(self.pk2(self.cells(u0))[0], u1, h0)
+
+    def relax_from(self, S_iso0: Tensor, u1: Tensor, h0: Tensor) -> Tensor:
+        """``relax`` with the step start's S_iso,0 [B, T, 3, 3] Pa already evaluated."""
+        if self.n_terms == 0:
+            return h0
+        B = u1.shape[0]
+        step = _voigt(self.pk2(self.cells(u1))[0] - S_iso0).reshape(B, 1, -1)
         return self.prony_decay.view(1, -1, 1) * h0 + self.prony_increment.view(1, -1, 1) * step
 
     def _law_relaxed(self, F: Tensor, h: Tensor) -> Tensor:

@@ -367,6 +367,34 @@ class SparseSolve(torch.autograd.Function):
         return grad_values, grad_b, None
 
 
+def sparse_factors(values: Tensor, pattern: SparsePattern) -> list:
+    """One sparse LU (scipy's SuperLU) per sample of the matrices ``values`` [B, nnz] (detached:
+    their gradient is not taken) in ``pattern``, for :class:`FactoredSolve` to solve with as often
+    as a step needs."""
+    from scipy.sparse.linalg import splu
+
+    V = values.detach().cpu().numpy()
+    return [splu(pattern.matrix(V[i]), permc_spec="COLAMD") for i in range(V.shape[0])]
+
+
+class FactoredSolve(torch.autograd.Function):
+    """x [B, n] with A_i x_i = b_i by the factors of :func:`sparse_factors` (A fixed: the gradient
+    reaches b only, ∂L/∂b = A⁻ᵀ ∂L/∂x). CPU, float64."""
+
+    @staticmethod
+    def forward(ctx, b: Tensor, lus: list) -> Tensor:
+        rhs = b.detach().cpu().numpy()
+        ctx.lus = lus
+        return torch.as_tensor(np.stack([lu.solve(rhs[i]) for i, lu in enumerate(lus)]), dtype=b.dtype)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_x: Tensor):
+        g = grad_x.detach().cpu().numpy()
+        return torch.as_tensor(np.stack([lu.solve(np.ascontiguousarray(g[i]), trans="T")
+                                         for i, lu in enumerate(ctx.lus)]), dtype=grad_x.dtype), None
+
+
 def solve_each(A: Tensor, b: Tensor) -> Tensor:
     """x [B, n] with A[i] x[i] = b[i] (A [B, n, n], b [B, n]), one LU per sample: torch 2.13's
     CPU build fails batched LU factorisations with more than one thread (MKL's DLASWP rejects the
