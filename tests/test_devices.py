@@ -80,6 +80,29 @@ def test_sim_paths_start_above_and_press_into_the_body(path):
     assert not dev.is_open and np.all(dev.last_force == 0)   # close() commands zero force
 
 
+@pytest.mark.parametrize("path", ["press", "palpate", "drag"])
+def test_sim_paths_press_the_surface_under_the_tool_not_the_bounding_box(path):
+    """A body whose top is a ridge along y = 0 falling off to the sides (z = 0.04 − |y|, so the
+    box's top face is 4 cm above most of it): given the surface (``attach_surface``, as serve
+    does), every path starts ``clearance`` above the surface under the tool and reaches ``depth``
+    into it, wherever the tool is."""
+    g = np.linspace(-0.03, 0.03, 31)
+    x, y = np.meshgrid(g, g, indexing="ij")
+    surface = np.stack([x.ravel(), y.ravel(), 0.04 - np.abs(y.ravel())], 1)         # [M, 3] m
+    lo, hi, r = np.array([-0.03, -0.03, 0.0]), np.array([0.03, 0.03, 0.04]), 0.003
+    dev = devices.load("sim")(path=path, period=2.0)
+    dev.attach_scene(lo, hi, r)
+    dev.attach_surface(surface)
+    for t in np.linspace(0.0, 18.0, 181):
+        p = dev.position_at(float(t))
+        under = 0.04 - abs(p[1])                                   # the surface's height under the tool
+        assert abs(dev.surface_top(p[0], p[1]) - under) < 0.0025    # the grid and the reach: a few mm
+        s = (under + r + dev.clearance - p[2]) / (dev.clearance + dev.depth)
+        assert -1e-9 < s < 1.0 + 0.1                                # between clearance above and depth into it
+    deepest = dev.position_at(1.0)
+    assert deepest[2] - r < dev.surface_top(deepest[0], deepest[1]) - 0.9 * dev.depth
+
+
 def test_sim_rejects_unknown_path():
     with pytest.raises(DeviceError, match="serve.path"):
         devices.load("sim")(path="zigzag")

@@ -94,6 +94,10 @@ class Device:
     def attach_scene(self, lo: np.ndarray, hi: np.ndarray, tool_radius: float) -> None:
         """Bounding box [m] of the model's reference geometry (virtual devices place their path)."""
 
+    def attach_surface(self, points: np.ndarray) -> None:
+        """Reference positions [M, 3] m of the body's surface nodes, after ``attach_scene``
+        (virtual devices aim their path at the surface itself, not at its bounding box)."""
+
     # -- I/O -----------------------------------------------------------------------------
     def read(self) -> DeviceReading:
         if not self.is_open:

@@ -1,7 +1,10 @@
 """A virtual haptic device: the tool follows a scripted path relative to the body.
 
 Paths (option ``path``), placed on the model's reference bounding box (``attach_scene``), all
-starting ``clearance`` above the top face (z = max) and pressing ``depth`` into it:
+starting ``clearance`` above the body's top surface under the tool and pressing ``depth`` into it:
+that surface is the highest surface node within ``SURFACE_REACH`` of the tool's (x, y) once
+``attach_surface`` has given the surface (serve does; the liver's top under its bounding box's
+centre lies 2 cm below the box), else the box's top face (z = max):
 
     press     up and down at the centre of the top face, period ``period`` [s]
     palpate   one press per point of a 3x3 grid over the top face
@@ -23,6 +26,10 @@ from thermognn.core.errors import DeviceError
 from .base import Device, DeviceReading, DeviceSpecs
 
 PATHS = ("press", "palpate", "drag")
+#: surface heights are looked up on a grid of this many cells a side over the bounding box
+SURFACE_GRID = 64
+#: a surface node counts under the tool within this fraction of the box's larger horizontal side
+SURFACE_REACH = 0.03
 
 
 class SimDevice(Device):
@@ -48,6 +55,7 @@ class SimDevice(Device):
         self.lo = np.array([-0.02, -0.02, 0.0])
         self.hi = np.array([0.02, 0.02, 0.02])
         self.tool_radius = 0.003
+        self._top: np.ndarray | None = None      # [SURFACE_GRID, SURFACE_GRID] m: the surface's top z
         self.last_force = np.zeros(3)
         self._t0 = 0.0
         self._x = np.zeros(3)
@@ -56,6 +64,32 @@ class SimDevice(Device):
         self.lo = np.asarray(lo, dtype=float).copy()
         self.hi = np.asarray(hi, dtype=float).copy()
         self.tool_radius = float(tool_radius)
+
+    def attach_surface(self, points) -> None:
+        """Tabulate the top of the body's surface (nodes ``points`` [M, 3] m) over the bounding
+        box: per grid cell, the highest node within the reach of the cell's centre (the nearest
+        node's height where none is)."""
+        pts = np.asarray(points, dtype=float).reshape(-1, 3)
+        if len(pts) == 0:
+            self._top = None
+            return
+        ext = np.maximum(self.hi[:2] - self.lo[:2], 1e-12)
+        centres = [self.lo[k] + (np.arange(SURFACE_GRID) + 0.5) * ext[k] / SURFACE_GRID for k in (0, 1)]
+        gx, gy = np.meshgrid(centres[0], centres[1], indexing="ij")                     # [G, G]
+        d2 = (gx[..., None] - pts[:, 0]) ** 2 + (gy[..., None] - pts[:, 1]) ** 2          # [G, G, M] m²
+        reach = SURFACE_REACH * float(ext.max())
+        near = np.where(d2 <= reach * reach, pts[:, 2], -np.inf).max(axis=-1)
+        nearest = pts[np.argmin(d2, axis=-1), 2]
+        self._top = np.where(np.isfinite(near), near, nearest)
+
+    def surface_top(self, x: float, y: float) -> float:
+        """z [m] of the body's top surface under (x, y) (the box's top without a surface)."""
+        if self._top is None:
+            return float(self.hi[2])
+        ext = np.maximum(self.hi[:2] - self.lo[:2], 1e-12)
+        i = min(max(int((x - self.lo[0]) / ext[0] * SURFACE_GRID), 0), SURFACE_GRID - 1)
+        j = min(max(int((y - self.lo[1]) / ext[1] * SURFACE_GRID), 0), SURFACE_GRID - 1)
+        return float(self._top[i, j])
 
     # geometry of the path -----------------------------------------------------------------
     @property
@@ -88,6 +122,8 @@ class SimDevice(Device):
             else:
                 s = 1.0
                 x = c[0] + 0.3 * ext[0] * math.sin(2.0 * math.pi * (t - 0.5 * T) / (2.0 * T))
+        if self._top is not None:          # the surface under the tool, not the box's top face
+            z_rest = self.surface_top(x, y) + self.tool_radius + self.clearance
         out[0], out[1], out[2] = x, y, z_rest - travel * s
         return out
 

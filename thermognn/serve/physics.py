@@ -65,7 +65,10 @@ def load_exported(path: str | Path):
 def model_geometry(buffers: dict, meta: dict) -> dict:
     """What the main and haptic processes need to know about the body (plain Python)."""
     X = buffers["reference_positions"].astype(float)
+    faces = np.asarray(buffers["surface_faces"]).reshape(-1)
+    surface = X[np.unique(faces)] if faces.size else X                      # [M, 3] m
     return {"ok": True, "n_nodes": int(X.shape[0]), "lo": X.min(axis=0).tolist(), "hi": X.max(axis=0).tolist(),
+            "surface": surface.tolist(),
             "dt": float(buffers["dt"]), "n_faces": int(len(buffers["surface_faces"])),
             "scene": meta.get("scene"), "state_layout": meta.get("state_layout"), "step": describe_step(meta.get("step"))}
 
