@@ -10,6 +10,8 @@ also shows come from the machine (e.g. a VM's host), not from the serve code.
 
     .venv/bin/python benchmarks/serve_bench.py --seconds 60            # toy spring body, 500 nodes
     .venv/bin/python benchmarks/serve_bench.py --model runs/block/model.pt --seconds 20
+    .venv/bin/python benchmarks/serve_bench.py --model runs/liver/model.pt --seconds 20 --path palpate \
+        serve.stale_ms=400          # any further arguments are config overrides
 """
 
 from __future__ import annotations
@@ -56,7 +58,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--baseline-seconds", type=float, default=None,
                     help="machine floor run before the session [s] (default: --seconds; 0: skip)")
     ap.add_argument("--json", type=Path, default=None, help="also write the summary here")
-    args = ap.parse_args(argv)
+    args, overrides = ap.parse_known_args(argv)        # the rest: config overrides (serve.stale_ms=400 ...)
 
     from thermognn.core.config import load_config
     from thermognn.serve import serve
@@ -68,7 +70,7 @@ def main(argv: list[str] | None = None) -> dict:
             model = export_spring_model(Path(tmp) / "model.pt", n=tuple(args.grid))
         cfg = load_config([f"paths.exported={model}", f"out={tmp}", f"serve.duration={args.seconds}",
                            "serve.device=sim", f"serve.path={args.path}", "serve.panel=false",
-                           f"serve.pin_cpus={str(args.pin).lower()}"])
+                           f"serve.pin_cpus={str(args.pin).lower()}", *overrides])
         baseline = None
         base_s = args.seconds if args.baseline_seconds is None else args.baseline_seconds
         if base_s > 0:
@@ -88,7 +90,8 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"  worst gap                 : {summary['worst_gap_ms']:.3f} ms ({summary['gaps_over_2ms']} gaps > 2 ms, "
           f"{summary['overruns']} overruns)")
     print(f"  work per tick mean / max  : {summary['tick_work_mean_us']:.1f} / {summary['tick_work_max_us']:.1f} us")
-    print(f"  physics rate              : {summary['physics_rate_hz']:.1f} Hz ({summary['physics_steps']} steps)")
+    print(f"  physics rate              : {summary['physics_rate_hz']:.1f} Hz ({summary['physics_steps']} steps, "
+          f"median step {summary.get('physics_step_ms', float('nan')):.1f} ms)")
     print(f"  max force / max step      : {summary['max_force_N']:.3f} N / {summary['max_force_step_N']:.4f} N")
     if baseline is not None:
         print(f"  machine floor (same pacing, no work, nothing else running): {baseline['seconds']:g} s, "

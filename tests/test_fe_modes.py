@@ -1163,6 +1163,26 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
         assert rel(in_place[0], prior.step(moved, vf, a, prior.gather(f[4:5]), G0[:1], G1, h)[0]) < 1e-12
     prior.forget()
     prior.sparse_cpu = True
+    # a load far beyond the data's (a haptic tool's contact, issue 4's extreme inputs): the Newton
+    # updates that would turn cells inside out are shortened, so the step stays finite with every
+    # cell's J > 0 (where the whole update inverts cells); the data's steps above were taken whole
+    from thermognn.train.prior import DIVERGED
+    kick = 3e3 * prior.gather(f[4:5])
+    min_J = lambda u1: float(torch.linalg.det(prior.cells(u1)).min())  # noqa: E731
+    prior.j_floor = float("-inf")                         # the updates unshortened (NaN still refused)
+    try:
+        whole = prior.step(uf, vf, a, kick, G0[:1], G0[:1], h)[0]
+        assert not min_J(whole) > 0.0
+    except RuntimeError as exc:                           # or the second iteration found it non-finite
+        assert DIVERGED in str(exc)
+    prior.j_floor = 0.05
+    for sparse_cpu in (True, False):
+        prior.sparse_cpu = sparse_cpu
+        prior.forget()
+        u1, v1, a1, h1 = prior.step(uf, vf, a, kick, G0[:1], G0[:1], h)
+        assert all(bool(torch.isfinite(x).all()) for x in (u1, v1, a1, h1)) and min_J(u1) > 0.0
+    prior.forget()
+    prior.sparse_cpu = True
     from thermognn.train.prior import DIVERGED
     with pytest.raises(RuntimeError, match="law prior: a non-finite state") as diverged:   # what training catches
         prior.step(uf * float("nan"), vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)

@@ -48,6 +48,12 @@ from .prior import CorotatedNewmarkPrior, FactoredSolve, SparseSolve, _matrix, _
 EIGEN_EPS = 1.0e-6
 #: central-difference step of the tangent ∂P/∂F (F is dimensionless, ~1), as the numpy Ogden law's
 FD_STEP = 1.0e-6
+#: the smallest cell volume ratio J a Newton update may leave (or half the smallest one it starts
+#: from, if less): below it the update is halved (``admissible``), so that a sudden load (a haptic
+#: tool's contact) cannot turn a cell inside out in one iteration; the data's cells stay far above
+J_FLOOR = 0.05
+#: halvings of an update at most
+MAX_HALVINGS = 12
 
 
 def _eye(F: Tensor) -> Tensor:
@@ -159,6 +165,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         # S_iso's weight in a relaxing step: g∞ + Σ ḡ_i w_i (1 elastic)
         self.iso_weight = 1.0 - self._shrink()
         self.fd_step = FD_STEP
+        self.j_floor, self.max_halvings = J_FLOOR, MAX_HALVINGS
         # the nine unit directions E_kl, ±FD_STEP: [18, 1, 1, 3, 3] (F [B, T, 3, 3] + each)
         steps = torch.zeros(18, 1, 1, 3, 3, dtype=dtype)
         for k in range(3):
@@ -195,6 +202,26 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     def cells(self, u: Tensor) -> Tensor:
         """The cells' deformation gradients F [B, T, 3, 3] at free-DOF displacements u [B, n] m."""
         return self.deformation_gradients(self.positions(u))
+
+    def admissible(self, base: Tensor, du: Tensor) -> Tensor:
+        """base − s du [B, n] m with, per sample, the largest s of 1, 1/2, 1/4, ... (``MAX_HALVINGS``)
+        that leaves every cell's J = det F above min(``J_FLOOR``, half the smallest J at base),
+        and s = 0 where none does: a Newton update (or the predictor's Δt v) that would crush or
+        invert a cell is shortened, one that would not (every step of the data) is taken whole, to
+        the bit. s carries no gradient."""
+        with torch.no_grad():
+            floor = torch.clamp(0.5 * torch.linalg.det(self.cells(base)).amin(1), max=self.j_floor)    # [B]
+            s = torch.ones(base.shape[0], 1, dtype=base.dtype, device=base.device)
+            for k in range(self.max_halvings + 1):
+                J = torch.linalg.det(self.cells(base - s * du)).amin(1)                           # [B]
+                short = ~(J > floor)                                                                # NaN too
+                if not bool(short.any()):
+                    break
+                if k == self.max_halvings:        # still crushing after every halving: no update at all
+                    s = torch.where(short.unsqueeze(1), torch.zeros_like(s), s)
+                else:
+                    s = torch.where(short.unsqueeze(1), 0.5 * s, s)
+        return base - s * du
 
     def assemble(self, P: Tensor) -> Tensor:
         """Σ_e V_e P_e Grad φ_a over the free DOFs [B, n] N of the cells' P [B, T, 3, 3] Pa."""
@@ -264,7 +291,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         extra = self.history_stress(S_iso0, h0)
         # f_int(u1; h0) + c f_el(u1) in one law evaluation: P = F ((1 + c) S_vol + (w_iso + c) S_iso + extra)
         w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
-        u1 = u0 + self.dt * v0                                                              # the FE's predictor
+        u1 = self.admissible(u0, -self.dt * v0)                 # the FE's predictor u0 + Δt v0 (shortened if it crushes)
         a1 = self.c0 * u1 - predictor
         v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
         F = self.cells(u1)
@@ -295,7 +322,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                 1, self.pair_slot, pairs)                                                   # [B, nnz] N/m
             lus = sparse_factors(values, self.pattern)
             self._start_memo = (key, stamp, start, lus)
-        return u1 - FactoredSolve.apply(residual, lus), predictor, S_iso0, extra, damping0
+        return self.admissible(u1, FactoredSolve.apply(residual, lus)), predictor, S_iso0, extra, damping0
 
     @torch.jit.unused
     def _forget_eager(self) -> None:
@@ -328,7 +355,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             residual = internal - loads
             if not bool(torch.isfinite(residual).all()):
                 raise RuntimeError("law prior: a non-finite state (a cell inverted, or the remainders diverged)")
-            return u1 - self.solve(pairs, residual), predictor, S_iso0, extra, damping0
+            return self.admissible(u1, self.solve(pairs, residual)), predictor, S_iso0, extra, damping0
         if not (self.memo_key.shape == key.shape and bool(torch.equal(self.memo_key, key))):
             predictor, S_iso0, extra, damping0, u1, internal, pairs = self.step_start(u0, v0, a0, h0)
             if not bool(torch.isfinite(internal).all()):
@@ -356,7 +383,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         extra_kept: Optional[Tensor] = None
         if self.n_terms > 0:
             extra_kept = self.memo_extra
-        return self.memo_u1 - du, self.memo_predictor, self.memo_S_iso0, extra_kept, self.memo_damping0
+        return self.admissible(self.memo_u1, du), self.memo_predictor, self.memo_S_iso0, extra_kept, self.memo_damping0
 
     def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
              G1: Tensor, h0: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -376,8 +403,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                         - fixed)                                                           # [B, n] N
             if not bool(torch.isfinite(residual).all()):        # a cell inverted, or the remainders blew up
                 raise RuntimeError("law prior: a non-finite state (a cell inverted, or the remainders diverged)")
-            u1 = u1 - self.solve(self.tangent_pairs(F.detach(), w_iso, w_vol,
-                                                    None if extra is None else extra.detach()), residual)
+            u1 = self.admissible(u1, self.solve(self.tangent_pairs(F.detach(), w_iso, w_vol,
+                                                                   None if extra is None else extra.detach()),
+                                                residual))
         a1 = self.c0 * u1 - predictor
         v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
         return u1, v1, a1, self.relax_from(S_iso0, u1, h0)
