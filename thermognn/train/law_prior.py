@@ -28,6 +28,12 @@ complex-step derivative). The tangent ∂P/∂F per cell is by central differenc
 Ogden law's) and is held fixed in back-propagation: a rollout's gradients pass through each
 iteration's residual and linear solve, not through its matrix (exact for a converged step's
 dependence on the load and the remainders).
+
+Two things make the step cheaper or safer without changing a step of the data (docs/accuracy.md,
+session 51): a model step's two prior steps from the same start share the first iteration's start
+and tangent factors (``first_iteration``), and an update that would crush or invert a cell
+(J below min(0.05, half its start's)) is halved until it does not (``admissible``), so loads far
+beyond the data's (a haptic tool's contact) give finite states.
 """
 
 from __future__ import annotations
@@ -279,12 +285,12 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         """What a step's first Newton iteration takes from the step's start (u0, v0, a0 [B, n],
         h0) alone, not from its loads or remainders: (predictor [B, n], S_iso,0 [B, T, 3, 3] Pa,
         the history's stress ``extra`` [B, T, 3, 3] Pa (None elastic), c f_el(u0) [B, n] N, the
-        FE's predictor u0 + Δt v0 [B, n] m, the residual there without the loads and remainders
-        [B, n] N, M (a + αM v) + f_int + c f_el − c f_el(u0), and the tangent's pairs there
-        [B, k] N/m).
+        FE's predictor u0 + Δt v0 [B, n] m (shortened by ``admissible`` where it would crush a
+        cell), the residual there without the loads and remainders [B, n] N,
+        M (a + αM v) + f_int + c f_el − c f_el(u0), and the tangent's pairs there [B, k] N/m).
         A model step with the network's remainders steps the prior twice from the same start
-        (``LinearPriorModel.advance``): with one Newton iteration everything but one solve is
-        shared (``_eager_first_iteration`` keeps it, with the sparse factors, on the CPU)."""
+        (``LinearPriorModel.advance``): with one Newton iteration all of it is shared but one
+        back-substitution (``first_iteration`` keeps it with the tangent's factors)."""
         predictor = self.c0 * (u0 + self.dt * v0) + self.c1 * a0                          # a1 = c0 u1 − predictor
         F0 = self.cells(u0)
         S_iso0, S_vol0 = self.pk2(F0)
