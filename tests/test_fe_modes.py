@@ -1131,6 +1131,7 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
     prior = make(6)
     U, V, Sig = _prior_rollout(prior, u, v, f, G0, None)
     assert rel(U, u) < 1e-12 and rel(V, v) < 1e-12 and rel(Sig, sigma) < 1e-12
+    assert int(prior.shortened) == 0                      # the data's steps are taken whole
     G, H = prior.remainders(u, v, sigma, f)
     assert float(G.abs().max()) < 1e-10 * float(f.abs().max()) and float(H.abs().max()) < 1e-12 * float(sigma.abs().max())
     # the CPU's sparse LU and the dense solve (TorchScript, GPU) step alike
@@ -1179,8 +1180,12 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
     for sparse_cpu in (True, False):
         prior.sparse_cpu = sparse_cpu
         prior.forget()
+        prior.shortened.zero_()
         u1, v1, a1, h1 = prior.step(uf, vf, a, kick, G0[:1], G0[:1], h)
         assert all(bool(torch.isfinite(x).all()) for x in (u1, v1, a1, h1)) and min_J(u1) > 0.0
+        assert int(prior.shortened) > 0                   # counted, for evaluate to name the rollout
+        from thermognn.train.evaluation import shortened_sentence
+        assert "traj_9 (3)" in shortened_sentence(["traj_8", "traj_9"], [0, 3]) and not shortened_sentence(["a"], [0])
     prior.forget()
     prior.sparse_cpu = True
     from thermognn.train.prior import DIVERGED

@@ -169,21 +169,45 @@ def rest_growth_factors(model, graph: Graph, rest: TrajectoryTensors, dt: float,
     return {size: float(g) for size, g in zip(sizes, growth.detach())}
 
 
+def shortened_updates(model) -> torch.Tensor | None:
+    """The law prior's count of shortened Newton updates (``HyperelasticNewmarkPrior.admissible``:
+    where the budget would have crushed a cell), a 0-dim tensor to read and zero; None for
+    other models."""
+    prior = getattr(model, "prior", None)
+    return prior.shortened if isinstance(prior, HyperelasticNewmarkPrior) else None
+
+
+def shortened_sentence(names: list[str], counts: list[int]) -> str:
+    """"the law prior shortened Newton updates on traj_136 (41), ...: ..." for the rollouts in
+    which it did, else ""."""
+    cases = [f"{n} ({c})" for n, c in zip(names, counts) if c]
+    if not cases:
+        return ""
+    return ("the law prior shortened Newton updates that would have crushed or inverted a cell on "
+            + ", ".join(cases) + ": its iteration budget does not hold those steps, and their rollouts "
+            "are not the law's")
+
+
 def _rollouts(model, data: LoadedData, trajs: list[TrajectoryTensors]):
-    """Roll out each trajectory; returns predictions, per-step and per-trajectory RRMSE and the
-    mean wall time per step [ms]."""
-    preds, per_step, per_traj = [], [], []
+    """Roll out each trajectory; returns predictions, per-step and per-trajectory RRMSE, the
+    mean wall time per step [ms] and, per trajectory, how many updates the law prior shortened
+    (:func:`shortened_updates`; zeros for other models)."""
+    preds, per_step, per_traj, shortened = [], [], [], []
     elapsed, steps = 0.0, 0
+    counter = shortened_updates(model)
     for t in trajs:
+        if counter is not None:
+            counter.zero_()
         t0 = time.perf_counter()
         pred = rollout(model, data.graph, t.z[0], t.force, data.dt)
         elapsed += time.perf_counter() - t0
+        shortened.append(int(counter) if counter is not None else 0)
         steps += pred.shape[0] - 1
         ps = rrmse_per_step(pred, t.z, data.layout)
         preds.append(pred)
         per_step.append(ps)
         per_traj.append(trajectory_rrmse(ps))
-    return preds, per_step, per_traj, 1e3 * elapsed / max(steps, 1)
+    return preds, per_step, per_traj, 1e3 * elapsed / max(steps, 1), shortened
 
 
 def _mean_groups(per_traj: list[dict[str, float]], groups: list[str]) -> dict[str, float]:
@@ -504,7 +528,8 @@ def evaluate(cfg) -> dict:
     hyperelastic scenes the linearly implicit FE model's "newton1_fe_<group>", "newton1_fe_whole_<group>",
     "newton1_fe_ms_per_step" (``linear_baseline(newton=1)``), and for
     datasets that record their FE solve's cost "fe_ms_per_step", "fe_iterations_per_step"
-    (``Dataset.fe_cost``)}."""
+    (``Dataset.fe_cost``), and for a law prior whose rollouts shortened Newton updates
+    "shortened_updates" (their number over the test rollouts, :func:`shortened_updates`)}."""
     torch.set_num_threads(int(OmegaConf.select(cfg, "train.threads", default=2)))
     ckpt_path = project_path(cfg.paths.checkpoint)
     ckpt = load_checkpoint(ckpt_path)
@@ -531,8 +556,8 @@ def evaluate(cfg) -> dict:
     groups = data.layout.names
     test = data.of("test")
     train_trajs = [data.trajectories[n] for n in train_names]
-    preds, per_step, per_traj, ms = _rollouts(model, data, test)
-    preds_train, _, per_traj_train, _ = _rollouts(model, data, train_trajs)
+    preds, per_step, per_traj, ms, shortened = _rollouts(model, data, test)
+    preds_train, _, per_traj_train, _, _ = _rollouts(model, data, train_trajs)
     mean_test, mean_train = _mean_groups(per_traj, groups), _mean_groups(per_traj_train, groups)
     whole_traj = [trajectory_error(p, t.z, data.layout) for p, t in zip(preds, test)]
     whole_traj_train = [trajectory_error(p, t.z, data.layout) for p, t in zip(preds_train, train_trajs)]
@@ -728,6 +753,9 @@ def evaluate(cfg) -> dict:
         print(f"evaluate: at {load:g} N peak load ({int(e['trajectories'])} test trajectories): per snapshot "
               + ", ".join(f"{g} {_fmt(e[g])}" for g in groups) + "; whole rollout "
               + ", ".join(f"{g} {_fmt(e['whole_' + g])}" for g in groups))
+    if any(shortened):
+        mean_test["shortened_updates"] = float(sum(shortened))
+        print(f"evaluate: {shortened_sentence([t.name for t in test], shortened)} (test)")
     if worst:
         print("evaluate: largest whole-rollout test errors: " + "; ".join(
             f"{test[k].name} ({where(k)}): " + ", ".join(f"{g} {_fmt(whole_traj[k][g])}" for g in groups)

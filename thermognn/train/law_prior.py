@@ -186,6 +186,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                      "memo_internal", "memo_lu"):
             self.register_buffer(name, torch.zeros(0, dtype=dtype), persistent=False)
         self.register_buffer("memo_pivots", torch.zeros(0, dtype=torch.int32), persistent=False)
+        # how many updates ``admissible`` has shortened (samples x updates), since it was last zeroed:
+        # where the budget does not hold a step (evaluate names such rollouts)
+        self.register_buffer("shortened", torch.zeros((), dtype=torch.int64), persistent=False)
 
     # --- the law per cell -----------------------------------------------------------------------
     def pk2(self, F: Tensor) -> Tuple[Tensor, Tensor]:
@@ -227,6 +230,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                     s = torch.where(short.unsqueeze(1), torch.zeros_like(s), s)
                 else:
                     s = torch.where(short.unsqueeze(1), 0.5 * s, s)
+            self.shortened.add_((s < 1.0).sum())
         return base - s * du
 
     def assemble(self, P: Tensor) -> Tensor:
