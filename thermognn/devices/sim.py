@@ -3,8 +3,8 @@
 Paths (option ``path``), placed on the model's reference bounding box (``attach_scene``), all
 starting ``clearance`` above the body's top surface under the tool and pressing ``depth`` into it:
 that surface is the highest surface node within ``SURFACE_REACH`` of the tool's (x, y) once
-``attach_surface`` has given the surface (serve does; the liver's top under its bounding box's
-centre lies 2 cm below the box), else the box's top face (z = max):
+``attach_surface`` has given the surface (serve does; under the liver's palpate points it lies
+3-122 mm below the box's top), else the box's top face (z = max):
 
     press     up and down at the centre of the top face, period ``period`` [s]
     palpate   one press per point of a 3x3 grid over the top face
@@ -75,12 +75,14 @@ class SimDevice(Device):
             return
         ext = np.maximum(self.hi[:2] - self.lo[:2], 1e-12)
         centres = [self.lo[k] + (np.arange(SURFACE_GRID) + 0.5) * ext[k] / SURFACE_GRID for k in (0, 1)]
-        gx, gy = np.meshgrid(centres[0], centres[1], indexing="ij")                     # [G, G]
-        d2 = (gx[..., None] - pts[:, 0]) ** 2 + (gy[..., None] - pts[:, 1]) ** 2          # [G, G, M] m²
         reach = SURFACE_REACH * float(ext.max())
-        near = np.where(d2 <= reach * reach, pts[:, 2], -np.inf).max(axis=-1)
-        nearest = pts[np.argmin(d2, axis=-1), 2]
-        self._top = np.where(np.isfinite(near), near, nearest)
+        top = np.empty((SURFACE_GRID, SURFACE_GRID))
+        dy2 = (centres[1][:, None] - pts[:, 1]) ** 2                                     # [G, M] m²
+        for i, x in enumerate(centres[0]):                   # a row at a time: [G, M], not [G, G, M]
+            d2 = (x - pts[:, 0]) ** 2 + dy2
+            near = np.where(d2 <= reach * reach, pts[:, 2], -np.inf).max(axis=-1)
+            top[i] = np.where(np.isfinite(near), near, pts[np.argmin(d2, axis=-1), 2])
+        self._top = top
 
     def surface_top(self, x: float, y: float) -> float:
         """z [m] of the body's top surface under (x, y) (the box's top without a surface)."""

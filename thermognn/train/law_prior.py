@@ -253,20 +253,33 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             Ke = Ke * self.cell_volume.view(1, -1, 1, 1, 1, 1)                             # [B, T, 4, 3, 4, 3]
             return Ke.reshape(B, T * 144).index_select(1, self.pair_keep)
 
+    def sparse_values(self, pairs: Tensor) -> Tensor:
+        """The step matrix c0 m_f M + K_T [B, nnz] N/m in ``pattern``'s slots, of K_T's pairs [B, k]."""
+        return (self.c0 * self.mass_factor * self.mass_values).expand(pairs.shape[0], -1).index_add(
+            1, self.pair_slot, pairs)
+
+    def dense_system(self, pairs: Tensor) -> Tensor:
+        """The step matrix c0 m_f M + K_T [B, n, n] N/m, dense, of K_T's pairs [B, k]."""
+        B, n = pairs.shape[0], self.n_free
+        K = pairs.new_zeros(B, n * n).index_add(1, self.pair_flat, pairs).reshape(B, n, n)
+        return self.c0 * self.mass_factor * self.mass_dense + K
+
     @torch.jit.unused
     def law_solve(self, pairs: Tensor, b: Tensor) -> Tensor:
         """u [B, n] solving (c0 m_f M + K_T) u = b [B, n] N, K_T's pairs [B, k] N/m, by sparse LU."""
-        values = (self.c0 * self.mass_factor * self.mass_values).expand(pairs.shape[0], -1).index_add(
-            1, self.pair_slot, pairs)                                                        # [B, nnz] N/m
-        return SparseSolve.apply(values, b, self.pattern)
+        return SparseSolve.apply(self.sparse_values(pairs), b, self.pattern)
 
     def solve(self, pairs: Tensor, b: Tensor) -> Tensor:
         """``law_solve``, dense (batched on a GPU; in TorchScript) off the CPU path."""
         if not torch.jit.is_scripting() and self.sparse_cpu and b.device.type == "cpu":
             return self.law_solve(pairs, b)
-        B, n = b.shape[0], self.n_free
-        K = pairs.new_zeros(B, n * n).index_add(1, self.pair_flat, pairs).reshape(B, n, n)
-        return solve_each(self.c0 * self.mass_factor * self.mass_dense + K, b)
+        return solve_each(self.dense_system(pairs), b)
+
+    def require_finite(self, residual: Tensor) -> None:
+        """Raise where a residual [B, n] N is not finite (a cell inverted, or the remainders blew
+        up): the message training and validation catch (``prior.DIVERGED``)."""
+        if not bool(torch.isfinite(residual).all()):
+            raise RuntimeError("law prior: a non-finite state (a cell inverted, or the remainders diverged)")
 
     # --- the step -------------------------------------------------------------------------------
     def elastic_force(self, u: Tensor) -> Tensor:
@@ -323,14 +336,11 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         start = memo[2] if kept else self.step_start(u0, v0, a0, h0)
         predictor, S_iso0, extra, damping0, u1, internal, pairs = start
         residual = internal - loads
-        if not bool(torch.isfinite(residual).all()):
-            raise RuntimeError("law prior: a non-finite state (a cell inverted, or the remainders diverged)")
+        self.require_finite(residual)
         if kept:
             lus = memo[3]
         else:
-            values = (self.c0 * self.mass_factor * self.mass_values).expand(pairs.shape[0], -1).index_add(
-                1, self.pair_slot, pairs)                                                   # [B, nnz] N/m
-            lus = sparse_factors(values, self.pattern)
+            lus = sparse_factors(self.sparse_values(pairs), self.pattern)
             self._start_memo = (key, stamp, start, lus)
         return self.admissible(u1, FactoredSolve.apply(residual, lus)), predictor, S_iso0, extra, damping0
 
@@ -359,24 +369,21 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         path (TorchScript, GPU) by value where no gradient is taken (serve)."""
         if not torch.jit.is_scripting() and self.sparse_cpu and u0.device.type == "cpu":
             return self._eager_first_iteration(u0, v0, a0, h0, loads)
-        key = torch.cat([u0.reshape(-1), v0.reshape(-1), a0.reshape(-1), h0.reshape(-1)])
-        if key.requires_grad or loads.requires_grad:          # training: one solve, differentiable
+        if u0.requires_grad or v0.requires_grad or a0.requires_grad or h0.requires_grad or loads.requires_grad:
+            # training: one solve, differentiable
             predictor, S_iso0, extra, damping0, u1, internal, pairs = self.step_start(u0, v0, a0, h0)
             residual = internal - loads
-            if not bool(torch.isfinite(residual).all()):
-                raise RuntimeError("law prior: a non-finite state (a cell inverted, or the remainders diverged)")
+            self.require_finite(residual)
             return self.admissible(u1, self.solve(pairs, residual)), predictor, S_iso0, extra, damping0
+        key = torch.cat([u0.reshape(-1), v0.reshape(-1), a0.reshape(-1), h0.reshape(-1)])
         if not (self.memo_key.shape == key.shape and bool(torch.equal(self.memo_key, key))):
             predictor, S_iso0, extra, damping0, u1, internal, pairs = self.step_start(u0, v0, a0, h0)
-            if not bool(torch.isfinite(internal).all()):
-                raise RuntimeError("law prior: a non-finite state (a cell inverted, or the remainders diverged)")
-            B, n = u0.shape[0], self.n_free
-            K = pairs.new_zeros(B, n * n).index_add(1, self.pair_flat, pairs).reshape(B, n, n)
-            A = self.c0 * self.mass_factor * self.mass_dense + K                           # [B, n, n] N/m
+            self.require_finite(internal)
+            A = self.dense_system(pairs)                                                    # [B, n, n] N/m
             if A.device.type == "cpu":                  # one at a time (solve_each: batched CPU LU fails)
                 lus: List[Tensor] = []
                 pivots: List[Tensor] = []
-                for i in range(B):
+                for i in range(A.shape[0]):
                     lu, piv = torch.linalg.lu_factor(A[i])
                     lus.append(lu)
                     pivots.append(piv)
@@ -387,8 +394,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             self.memo_extra = extra if extra is not None else key.new_zeros(0)
             self.memo_damping0, self.memo_u1, self.memo_internal = damping0, u1, internal
         residual = self.memo_internal - loads
-        if not bool(torch.isfinite(residual).all()):
-            raise RuntimeError("law prior: a non-finite state (a cell inverted, or the remainders diverged)")
+        self.require_finite(residual)
         du = torch.linalg.lu_solve(self.memo_lu, self.memo_pivots, residual.unsqueeze(-1)).squeeze(-1)
         extra_kept: Optional[Tensor] = None
         if self.n_terms > 0:
@@ -411,8 +417,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             F = self.cells(u1)
             residual = (self.mass(a1 + self.alpha_m * v1) + self.assemble(self.pk1(F, w_iso, w_vol, extra))
                         - fixed)                                                           # [B, n] N
-            if not bool(torch.isfinite(residual).all()):        # a cell inverted, or the remainders blew up
-                raise RuntimeError("law prior: a non-finite state (a cell inverted, or the remainders diverged)")
+            self.require_finite(residual)
             u1 = self.admissible(u1, self.solve(self.tangent_pairs(F.detach(), w_iso, w_vol,
                                                                    None if extra is None else extra.detach()),
                                                 residual))

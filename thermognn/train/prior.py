@@ -338,6 +338,24 @@ class SparsePattern:
         return sparse.csc_matrix((values, self.indices, self.indptr), shape=(self.n, self.n))
 
 
+def sparse_factors(values: Tensor, pattern: SparsePattern) -> list:
+    """One sparse LU (scipy's SuperLU) per sample of the matrices ``values`` [B, nnz] (detached:
+    their gradient is not taken) in ``pattern``, for :func:`lu_solves` to solve with as often as
+    a step needs."""
+    from scipy.sparse.linalg import splu
+
+    V = values.detach().cpu().numpy()
+    return [splu(pattern.matrix(V[i]), permc_spec="COLAMD") for i in range(V.shape[0])]
+
+
+def lu_solves(lus: list, b: Tensor, transposed: bool = False) -> Tensor:
+    """x [B, n] with A_i x_i = b_i (or A_iᵀ x_i = b_i, ``transposed``) by the factors ``lus`` of
+    :func:`sparse_factors`; b [B, n] detached."""
+    rhs = b.detach().cpu().numpy()
+    return torch.as_tensor(np.stack([lu.solve(np.ascontiguousarray(rhs[i]), trans="T" if transposed else "N")
+                                     for i, lu in enumerate(lus)]), dtype=b.dtype)
+
+
 class SparseSolve(torch.autograd.Function):
     """x [B, n] with A_i x_i = b_i, A_i the matrices of ``values`` [B, nnz] in a ``SparsePattern``:
     one sparse LU (scipy's SuperLU) per sample, kept for the backward pass, which solves with
@@ -345,11 +363,8 @@ class SparseSolve(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, values: Tensor, b: Tensor, pattern: SparsePattern) -> Tensor:
-        from scipy.sparse.linalg import splu
-
-        V, rhs = values.detach().cpu().numpy(), b.detach().cpu().numpy()
-        lus = [splu(pattern.matrix(V[i]), permc_spec="COLAMD") for i in range(V.shape[0])]
-        x = torch.as_tensor(np.stack([lu.solve(rhs[i]) for i, lu in enumerate(lus)]), dtype=b.dtype)
+        lus = sparse_factors(values, pattern)
+        x = lu_solves(lus, b)
         ctx.lus, ctx.pattern = lus, pattern
         ctx.save_for_backward(x)
         return x
@@ -358,23 +373,11 @@ class SparseSolve(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_x: Tensor):
         (x,) = ctx.saved_tensors
-        g = grad_x.detach().cpu().numpy()
-        grad_b = torch.as_tensor(np.stack([lu.solve(np.ascontiguousarray(g[i]), trans="T")
-                                           for i, lu in enumerate(ctx.lus)]), dtype=grad_x.dtype)
+        grad_b = lu_solves(ctx.lus, grad_x, transposed=True)
         grad_values = None
         if ctx.needs_input_grad[0]:
             grad_values = -grad_b[:, ctx.pattern.rows] * x[:, ctx.pattern.cols]        # [B, nnz]
         return grad_values, grad_b, None
-
-
-def sparse_factors(values: Tensor, pattern: SparsePattern) -> list:
-    """One sparse LU (scipy's SuperLU) per sample of the matrices ``values`` [B, nnz] (detached:
-    their gradient is not taken) in ``pattern``, for :class:`FactoredSolve` to solve with as often
-    as a step needs."""
-    from scipy.sparse.linalg import splu
-
-    V = values.detach().cpu().numpy()
-    return [splu(pattern.matrix(V[i]), permc_spec="COLAMD") for i in range(V.shape[0])]
 
 
 class FactoredSolve(torch.autograd.Function):
@@ -383,16 +386,13 @@ class FactoredSolve(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, b: Tensor, lus: list) -> Tensor:
-        rhs = b.detach().cpu().numpy()
         ctx.lus = lus
-        return torch.as_tensor(np.stack([lu.solve(rhs[i]) for i, lu in enumerate(lus)]), dtype=b.dtype)
+        return lu_solves(lus, b)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_x: Tensor):
-        g = grad_x.detach().cpu().numpy()
-        return torch.as_tensor(np.stack([lu.solve(np.ascontiguousarray(g[i]), trans="T")
-                                         for i, lu in enumerate(ctx.lus)]), dtype=grad_x.dtype), None
+        return lu_solves(ctx.lus, grad_x, transposed=True), None
 
 
 def solve_each(A: Tensor, b: Tensor) -> Tensor:
