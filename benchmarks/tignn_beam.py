@@ -47,6 +47,9 @@ def main(argv: list[str]) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--eval-only", action="store_true")
     parser.add_argument("--out", default="runs/tignn_beam")
+    parser.add_argument("--stress-readout", type=int, default=0, metavar="HOPS",
+                        help="attach a stress readout of this reach (hops), fitted to the training split, to a "
+                             "checkpoint trained without one (model.stress_readout fits it during training)")
     args, overrides = parser.parse_known_args(argv)
 
     from thermognn.core.config import load_config
@@ -69,8 +72,19 @@ def main(argv: list[str]) -> None:
 
     torch.set_num_threads(2)
     ckpt, stepped = with_rollout(load_checkpoint(cfg.paths.checkpoint), cfg)     # rollout.* may restep it
+    dtype = torch.float64 if ckpt["dtype"] == "float64" else torch.float32
+    data = load_data(dataset, cfg.train.split, int(cfg.seed), dtype,
+                     parts=("train", "test") if args.stress_readout else ("test",))
     model = model_from_checkpoint(ckpt).eval()
-    data = load_data(dataset, cfg.train.split, int(cfg.seed), next(model.parameters()).dtype, parts=("test",))
+    if args.stress_readout:          # fitted here to the model's own rollouts of the training split
+        from thermognn.train.stress_readout import fit_readout_to_rollouts, with_stress_readout
+
+        readout, fit = fit_readout_to_rollouts(      # rolled out as the reference metric rolls out
+            model, data, data.of("train"), args.stress_readout,
+            roll=lambda m, t: rollout_gt_clamped(m, data.graph, t.z, t.force, data.dt))
+        print(f"stress readout attached: {fit}")
+        ckpt = with_stress_readout(ckpt, readout, args.stress_readout)
+        model = model_from_checkpoint(ckpt).eval()
     def test_error(exact_kinematics: bool) -> dict:
         """Reference metric on the test split with the checkpoint's weights, stepping q from the
         network's dq/dt (learned) or from v by the trapezoidal rule (exact)."""
@@ -78,6 +92,9 @@ def main(argv: list[str]) -> None:
         errs = []
         for t in data.of("test"):
             pred = rollout_gt_clamped(model, data.graph, t.z, t.force, data.dt)
+            if model.use_readout:         # the stress reported: read off the free nodes' positions
+                free = (data.graph.node_type != 1).unsqueeze(1)
+                pred = torch.stack([torch.where(free, model.read_stress(z, data.graph.ref_pos), z) for z in pred])
             errs.append(trajectory_rrmse(rrmse_per_step(pred, t.z, data.layout)))
         model.exact_kinematics = own
         return {k: float(np.mean([e[k] for e in errs])) for k in data.layout.names}
@@ -88,14 +105,17 @@ def main(argv: list[str]) -> None:
     t = data.of("test")[0]
     z, f, dt_t = t.z[0], t.force[1], torch.tensor(data.dt, dtype=t.z.dtype)
     g = data.graph
+    def one_step():               # a step as reported: with a stress readout, σ read off the positions too
+        out = model.step(z, f, g.edge_index, g.node_type, g.ref_pos, dt_t)
+        return model.read_stress(out, g.ref_pos) if model.use_readout else out
     for _ in range(3):
-        model.step(z, f, g.edge_index, g.node_type, g.ref_pos, dt_t)
+        one_step()
     n, t1 = 20, time.perf_counter()
     for _ in range(n):
-        model.step(z, f, g.edge_index, g.node_type, g.ref_pos, dt_t)
+        one_step()
     ms = (time.perf_counter() - t1) / n * 1e3
 
-    params = parameter_count(model)
+    params = parameter_count(model) + (model.readout.fitted_weights() if model.use_readout else 0)
     print(f"\nTIGNN beam, reference test split {data.split['test']}, clamped nodes imposed from ground truth")
     print(f"{'':12s} {'q':>9s} {'v':>9s} {'sigma':>9s} {'params':>9s} {'ms/step':>8s}")
     print(f"{'published':12s} {REFERENCE['q']:9.2e} {REFERENCE['v']:9.2e} {REFERENCE['sigma']:9.2e} "

@@ -48,6 +48,7 @@ def test_contract_buffers_methods_and_metadata(exported):
     assert torch.equal(z1[clamped, :3], m.reference_positions[clamped])
     e, s = m.energy_entropy(m.z0)
     assert e.dim() == 0 and s.dim() == 0
+    assert torch.equal(m.report(z1), z1)                 # no stress readout: the state as stepped
 
 
 def test_parity_with_eager_model(exported):

@@ -9,6 +9,8 @@ Contract (docs/stages.md, "Exported model"), in the model's dtype::
              node_type [N] int64, surface_faces [F, 3] int64, dt (0-dim) [s]
 
     begin(z [N, D], f [N, 3]) -> the state ``forward`` steps (here z itself)
+    report(z [N, D]) -> z as reported: with ``model.stress_readout`` the stress read off the
+                        positions (the stepped state keeps the network's σ); else z
 
 A model trained with ``model.prior=linear`` exports as :class:`ExportedLinearPrior`: the same
 contract on its *carried* state [N, D + 6 (+ 9 T)], the physical state with Newmark's acceleration a
@@ -62,6 +64,14 @@ class ExportedTIGNN(nn.Module):
         energy, entropy = self.core.energy_entropy(z, self.edge_index, self.node_type, self.reference_positions, f)
         return energy.detach(), entropy.detach()
 
+    @torch.jit.export
+    def report(self, z: Tensor) -> Tensor:
+        """The state z [N, D] as the model reports it: with ``model.stress_readout`` its stress read
+        off the positions (the state ``forward`` steps keeps the network's own σ), else z itself."""
+        if self.core.use_readout:
+            return self.core.read_stress(z, self.reference_positions)
+        return z
+
 
 class ExportedLinearPrior(nn.Module):
     """The linearised FE Newmark step with the network's remainders (``model.prior=linear``),
@@ -105,3 +115,8 @@ class ExportedLinearPrior(nn.Module):
         v = P.gather(x[:, :, 3:6])
         energy = 0.5 * (P.stiffness(u) * u).sum() + 0.5 * (P.mass(v) * v).sum()
         return energy.detach(), torch.zeros_like(energy)
+
+    @torch.jit.export
+    def report(self, z: Tensor) -> Tensor:
+        """The state as the model reports it: z itself (the prior's stress is the state's)."""
+        return z

@@ -253,6 +253,8 @@ def stability_probe_sizes(value) -> tuple[float, ...]:
 
 #: hyperparameters that change how the model steps but not its weights
 STEP_ONLY = ("integrator", "implicit_iterations", "exact_kinematics")
+#: what training fits anew at its end: a fine-tune may start from a checkpoint with or without it
+REFITTED = ("stress_readout",)
 
 
 def warm_start(model: TIGNN, path: Path, ds, hparams: dict) -> dict:
@@ -264,15 +266,16 @@ def warm_start(model: TIGNN, path: Path, ds, hparams: dict) -> dict:
     check_fingerprint(src["fingerprint"], ds, path, hint="train.init must come from this dataset")
     grown = grown_blocks(src["hparams"], hparams)     # more processor blocks here: a grown model
     changed = sorted(k for k in set(hparams) | set(src["hparams"])
-                     if k not in STEP_ONLY and src["hparams"].get(k) != hparams.get(k)
+                     if k not in STEP_ONLY + REFITTED and src["hparams"].get(k) != hparams.get(k)
                      and not (grown and k == "message_passing"))
     if changed:
         raise ConfigError(f"train.init = '{path}': its model differs from this run's in "
                           + ", ".join(f"{k} ({src['hparams'].get(k)} there, {hparams.get(k)} here)" for k in changed))
+    state = {k: v for k, v in src["state_dict"].items() if not k.startswith("readout.")}   # refitted
     if grown:
-        load_grown(model, src["state_dict"], grown)
+        load_grown(model, state, grown)
     else:
-        model.load_state_dict(src["state_dict"])
+        model.load_state_dict(state)
     return {k: v.clone() for k, v in src["stats"].items()}
 
 
@@ -366,6 +369,11 @@ def print_rrmse_table(title: str, rows: dict[str, dict[str, float]]) -> None:
     Console().print(table)
 
 
+def readout_hops(cfg) -> int:
+    """``model.stress_readout``: the stress readout's reach in hops (0 or absent: off)."""
+    return int(_sel(cfg, "model.stress_readout", 0) or 0)
+
+
 def train(cfg) -> Path:
     """Train on ``cfg.paths.dataset``; write the best checkpoint ``cfg.paths.checkpoint`` and
     ``<out>/metrics.csv``; resume from ``model.last.ckpt`` when present and compatible. It is also
@@ -413,8 +421,19 @@ def _train_here(cfg) -> Path:
     from .evaluation import linear_validation_error     # (evaluation imports this module)
     train_trajs, val_trajs = data.of("train"), data.of("val")
     if prior == "linear":                                # the linearised FE step + learned remainders
+        if readout_hops(cfg):
+            raise ConfigError("model.stress_readout: an option of the network stepping the whole state; "
+                              "model.prior=linear takes its stress from the prior (leave it 0)")
         return train_linear_prior(cfg, data, hparams, dtype_name, structure, ckpt_path, out_dir, dist, phases)
 
+    if readout_hops(cfg) and "sigma" not in data.layout.names:
+        raise ConfigError(f"model.stress_readout = {readout_hops(cfg)}: the dataset's state "
+                          f"{data.layout.names} has no stress (sigma) to read")
+    if readout_hops(cfg):                        # refused now rather than after training
+        from .stress_readout import check_determined
+
+        check_determined(data.graph.ref_pos.cpu().numpy(), data.graph.edge_index.cpu().numpy(),
+                         sum(t.z.shape[0] for t in train_trajs), readout_hops(cfg), str(data.path))
     torch.manual_seed(seed)
     model = build_model(hparams, dtype)
     if _sel(tc, "init", None):                 # warm start (fine-tuning): weights and statistics
@@ -612,6 +631,15 @@ def _train_here(cfg) -> Path:
     if dist.main:
         if not ckpt_path.exists():  # e.g. resumed a finished run whose best file was deleted
             raise DataError(f"{ckpt_path}: no best checkpoint written (delete {last} and retrain)")
+        if readout_hops(cfg):            # the stress read off the best model's own positions
+            from .stress_readout import fit_readout_to_rollouts, with_stress_readout
+
+            best = model_from_checkpoint(load_checkpoint(ckpt_path), ds)
+            readout, fit = fit_readout_to_rollouts(best, data, train_trajs, readout_hops(cfg))
+            save_checkpoint(with_stress_readout(load_checkpoint(ckpt_path), readout, readout_hops(cfg)), ckpt_path)
+            print(f"stress readout: {fit['hops']} hops, {fit['classes']} neighbourhood shapes, {fit['weights']} "
+                  f"weights, fitted to the model's {len(train_trajs)} training rollouts (relative L2 of sigma "
+                  f"{fit['fit_error']:.4f})")
         best = model_from_checkpoint(load_checkpoint(ckpt_path), ds)
         mean = rollout_errors(best, data.graph, data.of("test"), ds.layout, ds.dt)[0]
         print_rrmse_table(f"test rollout RRMSE ({len(data.split['test'])} trajectories)", {"test": mean})

@@ -52,12 +52,13 @@ from __future__ import annotations
 
 import inspect
 import re
-from typing import Dict, List, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 import torch
 from torch import Tensor, nn
 
 from ..core.errors import ConfigError
+from .stress_readout import StressReadout
 
 NODE_TYPES = 3  # free, clamped, loadable surface
 CLAMPED = 1
@@ -184,7 +185,7 @@ class TIGNN(nn.Module):
                  hamiltonian: bool = False, port: bool = True, reference_edges: bool = True,
                  balanced: bool = False, integrator: str = "euler", implicit_iterations: int = 3,
                  velocity_edges: bool = False, edge_operators: bool = False,
-                 exact_kinematics: bool = False) -> None:
+                 exact_kinematics: bool = False, stress_readout: Optional[Dict[str, Any]] = None) -> None:
         super().__init__()
         if aggregation not in AGGREGATIONS:
             raise ValueError(f"aggregation '{aggregation}', expected sum or mean")
@@ -234,6 +235,14 @@ class TIGNN(nn.Module):
         for c in velocity_columns:
             imposed[c] = True
         self.register_buffer("imposed_columns", imposed)
+        # the stress a rollout reports, read off the positions (``model.stress_readout``; fitted
+        # after training by ``fit_readout_to_rollouts``, loaded with the checkpoint): shape from the spec
+        spec = stress_readout or {"nodes": 0, "width": 0, "classes": 0, "columns": []}
+        self.use_readout = stress_readout is not None
+        self.readout = StressReadout(int(spec["nodes"]), int(spec["width"]), int(spec["classes"]),
+                                     [int(c) for c in spec["columns"]])
+        columns = [int(c) for c in spec["columns"]] or [0]
+        self.readout_first, self.readout_end = columns[0], columns[-1] + 1     # contiguous stress columns
 
     def set_stats(self, stats: Dict[str, Tensor]) -> None:
         """Copy normalisation statistics (keys as the buffers: z_mean, z_std, ...) into the buffers."""
@@ -377,6 +386,14 @@ class TIGNN(nn.Module):
             v1 = z_next[:, self.v_col: self.v_col + 3]
             z_next = torch.cat([z[:, :3] + 0.5 * dt * (v0 + v1), z_next[:, 3:]], 1)
         return self.impose(z_next, node_type, ref_pos)
+
+    @torch.jit.export
+    def read_stress(self, z: Tensor, ref_pos: Tensor) -> Tensor:
+        """z [N, D] with its stress columns read off its positions by the stress readout,
+        σ = readout(q - X) (``model.stress_readout``): the stress a rollout reports. The state the
+        network steps keeps its own σ (fed back, the readout's made v worse: TIGNN beam, session 52)."""
+        sigma = self.readout(z[:, :3] - ref_pos)                              # [N, S]
+        return torch.cat([z[:, :self.readout_first], sigma, z[:, self.readout_end:]], 1)
 
     @torch.jit.export
     def energy_power(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor,

@@ -1,0 +1,160 @@
+"""The stress readout (``model.stress_readout``): a linear stencil of the displacements, fitted by
+least squares, exact on a stress that is such a stencil; TorchScript; clear errors."""
+
+import numpy as np
+import pytest
+import torch
+
+from thermognn.core.errors import DataError
+from thermognn.train.model import TIGNN
+from thermognn.train.stress_readout import fit_stress_readout, readout_spec, stencils, with_stress_readout
+
+LAM, MU, H = 2.0e5, 1.0e5, 0.01                # Lamé constants [Pa], grid spacing [m]
+
+
+def _grid(nx=7, ny=4, nz=4):
+    """A structured grid of nx x ny x nz nodes (spacing H) and its grid-line edges (both ways)."""
+    idx = np.array([(i, j, k) for i in range(nx) for j in range(ny) for k in range(nz)])
+    number = {tuple(p): n for n, p in enumerate(idx)}
+    edges = [(number[tuple(p)], number[tuple(p + d)]) for p in idx for d in np.eye(3, dtype=int)
+             if tuple(p + d) in number]
+    e = torch.tensor(edges).T
+    return torch.tensor(idx * H, dtype=torch.float64), torch.cat([e, e.flip(0)], 1), idx
+
+
+def _linear_elastic_stress(u, idx):
+    """σ = λ tr(ε) I + 2 μ ε [Pa] (s11 s22 s33 s12 s13 s23) of the nodal displacement u [N, 3], with
+    ε from the grid's finite differences (central inside, one-sided at faces): a 1-hop stencil."""
+    shape = tuple(idx.max(0) + 1)
+    g = np.zeros(shape + (3,))
+    g[tuple(idx.T)] = u
+    grad = np.stack([np.gradient(g, H, axis=a) for a in range(3)], -1)[tuple(idx.T)]  # [N, 3, 3] du_i/dx_a
+    eps = 0.5 * (grad + grad.transpose(0, 2, 1))
+    s = LAM * np.trace(eps, axis1=1, axis2=2)[:, None, None] * np.eye(3) + 2 * MU * eps
+    return np.stack([s[:, 0, 0], s[:, 1, 1], s[:, 2, 2], s[:, 0, 1], s[:, 0, 2], s[:, 1, 2]], 1)
+
+
+def _snapshots(ref, idx, count, seed):
+    """States z [count, N, 12]: random smooth displacements, zero velocity, their linear stress."""
+    rng = np.random.default_rng(seed)
+    X = ref.numpy()
+    z = np.zeros((count, len(X), 12))
+    for s in range(count):
+        a, k = rng.normal(size=(3, 4)) * 1e-3, rng.normal(size=(4, 3)) * 30
+        u = np.stack([np.sin(X @ k[m]) for m in range(4)], 1) @ a.T          # [N, 3] smooth fields
+        z[s, :, :3], z[s, :, 6:] = X + u, _linear_elastic_stress(u, idx)
+    return torch.tensor(z)
+
+
+def test_readout_recovers_a_linear_stencil_stress_on_unseen_fields():
+    """Fitted on some displacement fields, the readout gives a stencil stress of other fields
+    to the ridge (4e-8 here), face, edge and corner nodes included; u = 0 gives σ = 0."""
+    ref, ei, idx = _grid()
+    train = _snapshots(ref, idx, 60, seed=0)
+    readout, fit = fit_stress_readout(ref, ei, [train], list(range(6, 12)), hops=1)
+    assert fit["fit_error"] < 1e-9
+    # 7 x 4 x 4 grid, one hop: 3 x 3 x 3 = 27 classes of neighbourhood shape
+    assert fit["classes"] == 27 and fit["weights"] == readout.fitted_weights() > 0
+    test = _snapshots(ref, idx, 5, seed=1).double()
+    for z in test:
+        sigma = readout.double()(z[:, :3] - ref)
+        assert torch.allclose(sigma, z[:, 6:], rtol=0, atol=1e-6 * z[:, 6:].abs().max())   # the ridge: 4e-8
+    assert torch.equal(readout(torch.zeros_like(ref)), torch.zeros(len(ref), 6, dtype=torch.float64))
+
+
+def test_stencils_are_the_nodes_within_hops_and_shapes_repeat():
+    ref, ei, idx = _grid()
+    near, classes = stencils(ref.numpy(), ei.numpy(), 2)
+    middle = np.flatnonzero((idx == [3, 1, 1]).all(1))[0]
+    assert len(near[middle]) == 25 - 2                      # L1 distance <= 2 on the grid: 25, 2 beyond its faces
+    # nodes at the same place relative to the boundary share their shape; others do not
+    a, b = (np.flatnonzero((idx == p).all(1))[0] for p in ([3, 0, 0], [4, 0, 0]))
+    c = np.flatnonzero((idx == [0, 0, 0]).all(1))[0]
+    assert classes[a] == classes[b] != classes[c]
+    assert all(np.abs(idx[j] - idx[c]).sum() <= 2 for j in near[c])
+
+
+def test_a_model_with_a_readout_reports_the_stress_off_its_positions_and_scripts():
+    """TIGNN with ``stress_readout``: its steps are the network's (the state keeps its own σ), a
+    rollout reports σ = readout(q - X) at every snapshot; the scripted model reads the same; a
+    checkpoint's weights round-trip, and a model without a readout keeps none in its weights."""
+    from types import SimpleNamespace
+
+    from thermognn.train.rollout import rollout
+
+    ref, ei, idx = _grid(5, 3, 3)
+    train = _snapshots(ref, idx, 40, seed=2)
+    readout, _ = fit_stress_readout(ref, ei, [train], list(range(6, 12)), hops=1)
+    torch.manual_seed(0)
+    plain = TIGNN(12, [3, 4, 5], hidden=16, message_passing=2, exact_kinematics=True).double()
+    ckpt = {"hparams": {"dim": 12, "velocity_columns": [3, 4, 5], "hidden": 16, "message_passing": 2,
+                        "exact_kinematics": True}, "state_dict": plain.state_dict()}
+    ckpt = with_stress_readout(ckpt, readout, 1)
+    assert ckpt["hparams"]["stress_readout"] == readout_spec(readout, 1)
+    model = TIGNN(**ckpt["hparams"]).double()
+    model.load_state_dict(ckpt["state_dict"])
+    nt = torch.zeros(len(ref), dtype=torch.long)
+    nt[idx[:, 0] == 0] = 1                                              # clamped face
+    f = torch.zeros(3, len(ref), 3, dtype=torch.float64)
+    f[1:, :, 2] = 1.0
+    graph = SimpleNamespace(edge_index=ei, node_type=nt, ref_pos=ref)
+    z0, dt = train[7].clone(), torch.tensor(1e-3, dtype=torch.float64)
+    assert torch.equal(model.step(z0, f[1], ei, nt, ref, dt), plain.step(z0, f[1], ei, nt, ref, dt))
+    reported, own = rollout(model, graph, z0, f, 1e-3), rollout(plain, graph, z0, f, 1e-3)
+    assert torch.equal(reported[:, :, :6], own[:, :, :6])                 # q, v: the network's
+    for z in reported:
+        assert torch.allclose(z[:, 6:], model.readout(z[:, :3] - ref), rtol=1e-12, atol=0)
+    assert not torch.allclose(reported[1:, :, 6:], own[1:, :, 6:])
+    scripted = torch.jit.script(model)
+    assert torch.allclose(scripted.read_stress(reported[2], ref), reported[2], rtol=1e-12, atol=1e-12)
+    assert set(plain.state_dict()) == {k for k in ckpt["state_dict"] if not k.startswith("readout.")}
+
+
+def test_readout_errors_name_the_problem():
+    ref, ei, idx = _grid()
+    train = _snapshots(ref, idx, 60, seed=0)
+    with pytest.raises(DataError, match="stress_readout = 0"):
+        fit_stress_readout(ref, ei, [train], list(range(6, 12)), hops=0, source="d.h5")
+    with pytest.raises(DataError, match=r"d\.h5: model\.stress_readout = 3: .* equations for .* weights"):
+        fit_stress_readout(ref, ei, [train[:2]], list(range(6, 12)), hops=3, source="d.h5")
+    stressed = train.clone()
+    stressed[0, :, :3] = ref
+    stressed[0, :, 6:] = 1.0                                             # stress at u = 0
+    with pytest.raises(DataError, match="not zero where the displacement is"):
+        fit_stress_readout(ref, ei, [stressed], list(range(6, 12)), hops=1, source="d.h5")
+
+
+def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
+    """``model.stress_readout``: after training, the readout is fitted to the best model's training
+    rollouts and saved with it; evaluate-style rollouts report its stress; export scripts it; a
+    fine-tune from that checkpoint starts (the readout is refitted); bad uses are refused."""
+    from thermognn.core.config import load_config
+    from thermognn.core.errors import ConfigError
+    from thermognn.export import export
+    from thermognn.train import train
+    from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint
+    from thermognn.train.synthetic import write_oscillator_dataset
+
+    write_oscillator_dataset(tmp_path / "few.h5", n_trajectories=6, steps=8)
+    with pytest.raises(DataError, match=r"few\.h5: model\.stress_readout = 1: 1 node\(s\) .* 36 equations for 45"):
+        train(load_config([f"out={tmp_path / 'few'}", "model.stress_readout=1", f"paths.dataset={tmp_path / 'few.h5'}"]))
+    assert not (tmp_path / "few" / "model.ckpt").exists()              # refused before training
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=12, steps=8)
+    small = ["train.threads=1", "model.hidden=16", "model.message_passing=2", "train.batch_size=4",
+             "train.val_every=1", "train.tensorboard=false", "model.kinematics=exact"]
+    cfg = load_config([f"out={tmp_path}", *small, "train.epochs=2", "model.stress_readout=1"])
+    ckpt = load_checkpoint(train(cfg))
+    spec = ckpt["hparams"]["stress_readout"]
+    assert spec["hops"] == 1 and spec["columns"] == [6, 7, 8, 9, 10, 11]
+    model = model_from_checkpoint(ckpt)
+    assert model.use_readout and model.readout.fitted_weights() > 0
+    scripted = torch.jit.load(str(export(cfg)))
+    z = ckpt["state_dict"]["z_mean"] + torch.randn(model.readout.nodes, 12) * 1e-3
+    assert torch.allclose(scripted.report(z), model.read_stress(z, scripted.reference_positions))
+    assert not torch.allclose(scripted.report(z)[:, 6:], z[:, 6:])
+    again = load_config([f"out={tmp_path / 'ft'}", *small, "train.epochs=1", "model.stress_readout=1",
+                         f"train.init={tmp_path / 'model.ckpt'}", f"paths.dataset={tmp_path / 'dataset.h5'}"])
+    assert load_checkpoint(train(again))["hparams"]["stress_readout"]["hops"] == 1
+    with pytest.raises(ConfigError, match="model.stress_readout: .* model.prior=linear"):
+        train(load_config([f"out={tmp_path / 'lp'}", "model=linear_prior", "model.stress_readout=1",
+                           f"paths.dataset={tmp_path / 'dataset.h5'}"]))
