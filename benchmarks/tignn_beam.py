@@ -55,7 +55,7 @@ def main(argv: list[str]) -> None:
     from thermognn.core.config import load_config
     from thermognn.core.state import describe_step
     from thermognn.train import train
-    from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint, with_rollout
+    from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype, with_rollout
     from thermognn.train.data import load_data
     from thermognn.train.model import parameter_count, step_settings
     from thermognn.train.rollout import rrmse_per_step, trajectory_rrmse
@@ -72,8 +72,7 @@ def main(argv: list[str]) -> None:
 
     torch.set_num_threads(2)
     ckpt, stepped = with_rollout(load_checkpoint(cfg.paths.checkpoint), cfg)     # rollout.* may restep it
-    dtype = torch.float64 if ckpt["dtype"] == "float64" else torch.float32
-    data = load_data(dataset, cfg.train.split, int(cfg.seed), dtype,
+    data = load_data(dataset, cfg.train.split, int(cfg.seed), torch_dtype(ckpt["dtype"]),
                      parts=("train", "test") if args.stress_readout else ("test",))
     model = model_from_checkpoint(ckpt).eval()
     if args.stress_readout:          # fitted here to the model's own rollouts of the training split

@@ -57,10 +57,11 @@ def on_cpu(obj):
 
 def save_checkpoint(ckpt: dict, path: str | Path) -> Path:
     """Write atomically (a crash never leaves a half-written checkpoint), with CPU tensors only:
-    a model trained on a GPU (``train.device``) loads on a machine without one."""
+    a model trained on a GPU (``train.device``) loads on a machine without one. The ``_path`` that
+    ``load_checkpoint`` adds is not written."""
     path = Path(path)
     with atomic_path(path) as tmp:
-        torch.save(on_cpu(ckpt), tmp)
+        torch.save(on_cpu({k: v for k, v in ckpt.items() if k != "_path"}), tmp)
     return path
 
 

@@ -420,20 +420,21 @@ def _train_here(cfg) -> Path:
     hparams = hyperparameters(cfg.model, ds.layout.dim, velocity_columns(ds.layout), structure == "hamiltonian")
     from .evaluation import linear_validation_error     # (evaluation imports this module)
     train_trajs, val_trajs = data.of("train"), data.of("val")
+    hops = readout_hops(cfg)                             # model.stress_readout
     if prior == "linear":                                # the linearised FE step + learned remainders
-        if readout_hops(cfg):
+        if hops:
             raise ConfigError("model.stress_readout: an option of the network stepping the whole state; "
                               "model.prior=linear takes its stress from the prior (leave it 0)")
         return train_linear_prior(cfg, data, hparams, dtype_name, structure, ckpt_path, out_dir, dist, phases)
 
-    if readout_hops(cfg) and "sigma" not in data.layout.names:
-        raise ConfigError(f"model.stress_readout = {readout_hops(cfg)}: the dataset's state "
-                          f"{data.layout.names} has no stress (sigma) to read")
-    if readout_hops(cfg):                        # refused now rather than after training
+    if hops:                                     # refused now rather than after training
         from .stress_readout import check_determined
 
+        if "sigma" not in data.layout.names:
+            raise ConfigError(f"model.stress_readout = {hops}: the dataset's state "
+                              f"{data.layout.names} has no stress (sigma) to read")
         check_determined(data.graph.ref_pos.cpu().numpy(), data.graph.edge_index.cpu().numpy(),
-                         sum(t.z.shape[0] for t in train_trajs), readout_hops(cfg), str(data.path))
+                         sum(t.z.shape[0] for t in train_trajs), hops, str(data.path))
     torch.manual_seed(seed)
     model = build_model(hparams, dtype)
     if _sel(tc, "init", None):                 # warm start (fine-tuning): weights and statistics
@@ -631,16 +632,17 @@ def _train_here(cfg) -> Path:
     if dist.main:
         if not ckpt_path.exists():  # e.g. resumed a finished run whose best file was deleted
             raise DataError(f"{ckpt_path}: no best checkpoint written (delete {last} and retrain)")
-        if readout_hops(cfg):            # the stress read off the best model's own positions
+        ckpt = load_checkpoint(ckpt_path)
+        if hops:                         # the stress read off the best model's own positions
             from .stress_readout import fit_readout_to_rollouts, with_stress_readout
 
-            best = model_from_checkpoint(load_checkpoint(ckpt_path), ds)
-            readout, fit = fit_readout_to_rollouts(best, data, train_trajs, readout_hops(cfg))
-            save_checkpoint(with_stress_readout(load_checkpoint(ckpt_path), readout, readout_hops(cfg)), ckpt_path)
+            readout, fit = fit_readout_to_rollouts(model_from_checkpoint(ckpt, ds), data, train_trajs, hops)
+            ckpt = with_stress_readout(ckpt, readout, hops)
+            save_checkpoint(ckpt, ckpt_path)
             print(f"stress readout: {fit['hops']} hops, {fit['classes']} neighbourhood shapes, {fit['weights']} "
                   f"weights, fitted to the model's {len(train_trajs)} training rollouts (relative L2 of sigma "
                   f"{fit['fit_error']:.4f})")
-        best = model_from_checkpoint(load_checkpoint(ckpt_path), ds)
+        best = model_from_checkpoint(ckpt, ds)
         mean = rollout_errors(best, data.graph, data.of("test"), ds.layout, ds.dt)[0]
         print_rrmse_table(f"test rollout RRMSE ({len(data.split['test'])} trajectories)", {"test": mean})
     return ckpt_path
