@@ -50,6 +50,9 @@ def main(argv: list[str]) -> None:
     parser.add_argument("--stress-readout", type=int, default=0, metavar="HOPS",
                         help="attach a stress readout of this reach (hops), fitted to the training split, to a "
                              "checkpoint trained without one (model.stress_readout fits it during training)")
+    parser.add_argument("--symmetric", action="store_true",
+                        help="with --stress-readout: mirror-image weights for mirror-image neighbourhoods "
+                             "(model.stress_readout_symmetric; 6x fewer weights on the beam)")
     args, overrides = parser.parse_known_args(argv)
 
     from thermognn.core.config import load_config
@@ -80,7 +83,7 @@ def main(argv: list[str]) -> None:
 
         readout, fit = fit_readout_to_rollouts(      # rolled out as the reference metric rolls out
             model, data, data.of("train"), args.stress_readout,
-            roll=lambda m, t: rollout_gt_clamped(m, data.graph, t.z, t.force, data.dt))
+            roll=lambda m, t: rollout_gt_clamped(m, data.graph, t.z, t.force, data.dt), symmetric=args.symmetric)
         print(f"stress readout attached: {fit}")
         ckpt = with_stress_readout(ckpt, readout, args.stress_readout)
         model = model_from_checkpoint(ckpt).eval()

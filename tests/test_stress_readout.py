@@ -7,7 +7,8 @@ import torch
 
 from thermognn.core.errors import DataError
 from thermognn.train.model import TIGNN
-from thermognn.train.stress_readout import fit_stress_readout, readout_spec, stencils, with_stress_readout
+from thermognn.train.stress_readout import (fit_stress_readout, mesh_symmetries, readout_spec, stencils,
+                                            stress_action, with_stress_readout)
 
 LAM, MU, H = 2.0e5, 1.0e5, 0.01                # Lamé constants [Pa], grid spacing [m]
 
@@ -72,6 +73,54 @@ def test_stencils_are_the_nodes_within_hops_and_shapes_repeat():
     c = np.flatnonzero((idx == [0, 0, 0]).all(1))[0]
     assert classes[a] == classes[b] != classes[c]
     assert all(np.abs(idx[j] - idx[c]).sum() <= 2 for j in near[c])
+
+
+def test_mesh_symmetries_are_the_reflections_and_swaps_that_keep_the_mesh():
+    """A 7 x 4 x 4 grid: mirrors in x, y, z and the y-z swap (16); its x = 0 face clamped, 8 (no
+    x mirror); each maps nodes onto nodes about the box's centre, the identity first."""
+    ref, ei, idx = _grid()
+    X, e = ref.numpy(), ei.numpy()
+    assert len(mesh_symmetries(X, e)) == 16
+    clamped = (idx[:, 0] == 0).astype(np.int64)
+    found = mesh_symmetries(X, e, clamped)
+    assert len(found) == 8 and np.array_equal(found[0][0], np.eye(3))
+    c = 0.5 * (X.min(0) + X.max(0))
+    for R, p in found:
+        assert R[0, 0] == 1 and np.allclose(X[p], c + (X - c) @ R.T) and np.array_equal(clamped[p], clamped)
+    swap = np.array([[1.0, 0, 0], [0, 0, 1], [0, 1, 0]])
+    sigma = np.array([1.0, 2, 3, 4, 5, 6])                               # s11 s22 s33 s12 s13 s23
+    assert np.allclose(stress_action(swap) @ sigma, [1, 3, 2, 5, 4, 6])
+    assert np.allclose(stress_action(np.diag([1.0, -1, 1])) @ sigma, [1, 2, 3, -4, 5, -6])
+
+
+def test_a_symmetric_readout_is_equivariant_with_fewer_weights():
+    """``symmetric``: fitted in every mirror frame, the weights of mirror-image shapes are mirror
+    images, so the readout of a mirrored displacement is the mirrored stress, for any field, to
+    round-off; it still recovers the (equivariant) stencil stress, from 864 independent weights
+    instead of 2430 (one shape per orbit: a corner, an edge and an interior node of the square
+    cross-section, at the two end faces and in between)."""
+    ref, ei, idx = _grid()
+    nt = torch.from_numpy((idx[:, 0] == 0).astype(np.int64))
+    train = _snapshots(ref, idx, 60, seed=0)
+    plain, _ = fit_stress_readout(ref, ei, [train], list(range(6, 12)), hops=1)
+    readout, fit = fit_stress_readout(ref, ei, [train], list(range(6, 12)), hops=1, symmetric=True, node_type=nt)
+    assert fit["symmetries"] == 8 and fit["weights"] == readout.fitted_weights() < plain.fitted_weights()
+    # 1-hop stencil sizes of (corner, edge, interior) cross-section nodes: 5, 6, 7 inside, 4, 5, 6 at an end
+    assert fit["classes"] == 27 and fit["weights"] == 3 * 6 * (5 + 6 + 7 + 2 * (4 + 5 + 6)) == 864
+    assert plain.fitted_weights() == 3 * 6 * (4 * 5 + 4 * 6 + 7 + 2 * (4 * 4 + 4 * 5 + 6)) == 2430
+    u = torch.randn(len(ref), 3, dtype=torch.float64) * 1e-3             # any field, smooth or not
+    for R, p in mesh_symmetries(ref.numpy(), ei.numpy(), nt.numpy()):
+        mirrored_u = torch.empty_like(u)
+        mirrored_u[torch.from_numpy(p)] = u @ torch.from_numpy(R).T
+        expected = torch.empty(len(ref), 6, dtype=torch.float64)
+        expected[torch.from_numpy(p)] = readout(u) @ torch.from_numpy(stress_action(R)).T
+        assert torch.allclose(readout(mirrored_u), expected, rtol=0, atol=1e-9 * expected.abs().max())
+    for z in _snapshots(ref, idx, 3, seed=1):
+        assert torch.allclose(readout(z[:, :3] - ref), z[:, 6:], rtol=0, atol=1e-6 * z[:, 6:].abs().max())
+    spec = readout_spec(readout, 1)
+    assert TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, stress_readout=spec).readout.fitted_weights() == fit["weights"]
+    with pytest.raises(DataError, match=r"d\.h5: model\.stress_readout_symmetric needs the 6 stress components"):
+        fit_stress_readout(ref, ei, [train[..., :9]], [6, 7, 8], hops=1, source="d.h5", symmetric=True)
 
 
 def test_a_model_with_a_readout_reports_the_stress_off_its_positions_and_scripts():
@@ -155,6 +204,14 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
     again = load_config([f"out={tmp_path / 'ft'}", *small, "train.epochs=1", "model.stress_readout=1",
                          f"train.init={tmp_path / 'model.ckpt'}", f"paths.dataset={tmp_path / 'dataset.h5'}"])
     assert load_checkpoint(train(again))["hparams"]["stress_readout"]["hops"] == 1
+    mirrored = load_config([f"out={tmp_path / 'sym'}", *small, "train.epochs=1", "model.stress_readout=1",
+                            "model.stress_readout_symmetric=true", f"train.init={tmp_path / 'model.ckpt'}",
+                            f"paths.dataset={tmp_path / 'dataset.h5'}"])
+    spec = load_checkpoint(train(mirrored))["hparams"]["stress_readout"]
+    assert 0 < spec["independent"] <= model.readout.fitted_weights()
+    with pytest.raises(ConfigError, match="model.stress_readout_symmetric = true: .* set model.stress_readout"):
+        train(load_config([f"out={tmp_path / 'ns'}", "model.stress_readout_symmetric=true",
+                           f"paths.dataset={tmp_path / 'dataset.h5'}"]))
     with pytest.raises(ConfigError, match="model.stress_readout: .* model.prior=linear"):
         train(load_config([f"out={tmp_path / 'lp'}", "model=linear_prior", "model.stress_readout=1",
                            f"paths.dataset={tmp_path / 'dataset.h5'}"]))

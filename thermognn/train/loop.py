@@ -421,6 +421,9 @@ def _train_here(cfg) -> Path:
     from .evaluation import linear_validation_error     # (evaluation imports this module)
     train_trajs, val_trajs = data.of("train"), data.of("val")
     hops = readout_hops(cfg)                             # model.stress_readout
+    if bool(_sel(cfg, "model.stress_readout_symmetric", False)) and not hops:
+        raise ConfigError("model.stress_readout_symmetric = true: ties the weights of a stress readout; "
+                          "set model.stress_readout to its reach in hops (>= 1)")
     if prior == "linear":                                # the linearised FE step + learned remainders
         if hops:
             raise ConfigError("model.stress_readout: an option of the network stepping the whole state; "
@@ -636,11 +639,12 @@ def _train_here(cfg) -> Path:
         if hops:                         # the stress read off the best model's own positions
             from .stress_readout import fit_readout_to_rollouts, with_stress_readout
 
-            readout, fit = fit_readout_to_rollouts(model_from_checkpoint(ckpt, ds), data, train_trajs, hops)
+            readout, fit = fit_readout_to_rollouts(model_from_checkpoint(ckpt, ds), data, train_trajs, hops,
+                                                   symmetric=bool(_sel(cfg, "model.stress_readout_symmetric", False)))
             ckpt = with_stress_readout(ckpt, readout, hops)
             save_checkpoint(ckpt, ckpt_path)
             print(f"stress readout: {fit['hops']} hops, {fit['classes']} neighbourhood shapes, {fit['weights']} "
-                  f"weights, fitted to the model's {len(train_trajs)} training rollouts (relative L2 of sigma "
+                  f"weights ({fit['symmetries']} mesh symmetries), fitted to the model's {len(train_trajs)} training rollouts (relative L2 of sigma "
                   f"{fit['fit_error']:.4f})")
         best = model_from_checkpoint(ckpt, ds)
         mean = rollout_errors(best, data.graph, data.of("test"), ds.layout, ds.dt)[0]

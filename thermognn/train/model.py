@@ -240,7 +240,7 @@ class TIGNN(nn.Module):
         spec = stress_readout or {"nodes": 0, "width": 0, "classes": 0, "columns": []}
         self.use_readout = stress_readout is not None
         self.readout = StressReadout(int(spec["nodes"]), int(spec["width"]), int(spec["classes"]),
-                                     [int(c) for c in spec["columns"]])
+                                     [int(c) for c in spec["columns"]], int(spec.get("independent", 0)))
         columns = [int(c) for c in spec["columns"]] or [0]
         self.readout_first, self.readout_end = columns[0], columns[-1] + 1     # contiguous stress columns
 

@@ -16,6 +16,15 @@ A mesh whose neighbourhoods do not repeat has as many classes as nodes, and the 
 (it would interpolate, not learn). With u = 0 the readout gives σ = 0: the unloaded body is
 stress-free, as the data's first state must be (the fit checks).
 
+With ``symmetric`` (``model.stress_readout_symmetric``) the weights of mirror-image neighbourhoods
+are mirror images: an isotropic solid on a mesh that a reflection or an axis swap g = (R, p)
+maps onto itself (nodes X_p(i) = c + R (X_i - c) about the bounding box's centre c, edges onto
+edges, clamped nodes onto clamped) has an equivariant stress, σ_p(i)(R u_p⁻¹) = R σ_i(u) Rᵀ. The
+fit sees every training snapshot in each of these frames (``mirrored``), which makes its weights
+equivariant exactly, and one neighbourhood shape per orbit of shapes (``shape_orbits``) holds the
+readout's independent weights: the TIGNN beam's 6 x 6 cross-section has 8 such g, and its 3-hop
+readout 30,636 weights instead of 182,880.
+
 The readout is fitted after training to the network's own rollouts of the training trajectories
 (``fit_readout_to_rollouts``: predicted positions against the data's stress), and a rollout reports
 its stress in place of the network's integrated σ (``rollout``; the state stepped keeps the
@@ -27,6 +36,7 @@ positions the stencil amplifies a rollout's small nodal errors; fitted to the ro
 
 from __future__ import annotations
 
+import itertools
 from typing import Dict, List, Sequence
 
 import numpy as np
@@ -35,6 +45,9 @@ from torch import Tensor, nn
 
 from ..core.errors import DataError
 
+
+#: the stress columns' order (Voigt: s11 s22 s33 s12 s13 s23), the project's convention
+VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
 #: ridge of the least-squares fit, relative to the equations' count in columns scaled to O(1):
 #: keeps the weights of nearly collinear stencil displacements finite (TIGNN beam: with 0, weights of
@@ -52,9 +65,10 @@ class StressReadout(nn.Module):
         weight      [C, 3 K, S]  per class: stencil displacement (K nodes x 3, node-major) -> σ
     """
 
-    def __init__(self, nodes: int, width: int, classes: int, columns: List[int]) -> None:
+    def __init__(self, nodes: int, width: int, classes: int, columns: List[int], independent: int = 0) -> None:
         super().__init__()
         self.nodes = int(nodes)
+        self.independent = int(independent)      # weights that determine the rest (symmetric fit), 0: all
         self.columns: List[int] = [int(c) for c in columns]
         kept = self.nodes > 0            # an empty readout (off) is not part of the checkpoint
         self.register_buffer("stencil", torch.full((self.nodes, int(width)), self.nodes, dtype=torch.long), kept)
@@ -69,7 +83,10 @@ class StressReadout(nn.Module):
         return torch.bmm(near.unsqueeze(1), w).squeeze(1)                                  # [N, S]
 
     def fitted_weights(self) -> int:
-        """How many weights the fit set (the padding's excluded): the readout's parameter count."""
+        """How many weights the fit set (the padding's excluded): the readout's parameter count. With
+        symmetric weights, those of one neighbourhood shape per orbit (the others are their mirror images)."""
+        if self.independent > 0:
+            return self.independent
         real = (self.stencil < self.nodes).sum(1)                                       # [N] stencil sizes
         per_class = torch.zeros(self.weight.shape[0], dtype=torch.long).scatter_reduce(
             0, self.node_class, real, "amax", include_self=True)
@@ -98,6 +115,72 @@ def stencils(ref_pos: np.ndarray, edge_index: np.ndarray, hops: int) -> tuple[li
     return out, classes
 
 
+def mesh_symmetries(ref_pos: np.ndarray, edge_index: np.ndarray,
+                    node_type: np.ndarray | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The reflections and axis swaps that map the mesh onto itself: each (R [3, 3], a signed
+    permutation matrix, and p [N], the node each node goes to: X[p[i]] = c + R (X[i] - c) about the
+    bounding box's centre c, to 1e-6 of the mean edge length), taking edges onto edges and each
+    node's type (free, clamped, ...) onto the same. The identity comes first."""
+    X = np.asarray(ref_pos, dtype=np.float64)
+    e = np.asarray(edge_index)
+    h = float(np.mean(np.linalg.norm(X[e[0]] - X[e[1]], axis=1)))
+    c = 0.5 * (X.min(0) + X.max(0))
+    key = lambda y: tuple(np.round(y / h * 1e6).astype(np.int64))                  # noqa: E731
+    number = {key(x): i for i, x in enumerate(X - c)}
+    edges = set(zip(e[0].tolist(), e[1].tolist()))
+    found = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            R = np.zeros((3, 3))
+            R[np.arange(3), perm] = signs
+            p = [number.get(key(y)) for y in (X - c) @ R.T]
+            if any(j is None for j in p):
+                continue
+            p = np.array(p)
+            if node_type is not None and (np.asarray(node_type)[p] != np.asarray(node_type)).any():
+                continue
+            if all((int(p[a]), int(p[b])) in edges for a, b in zip(e[0], e[1])):
+                found.append((R, p))
+    return sorted(found, key=lambda g: not np.array_equal(g[0], np.eye(3)))
+
+
+def stress_action(R: np.ndarray) -> np.ndarray:
+    """Q [6, 6] with voigt(R σ Rᵀ) = Q voigt(σ) (``VOIGT`` order) for an orthogonal R [3, 3]."""
+    Q = np.zeros((6, 6))
+    for a, (i, j) in enumerate(VOIGT):
+        for b, (k, l) in enumerate(VOIGT):
+            Q[a, b] = R[i, k] * R[j, l] + (R[i, l] * R[j, k] if k != l else 0.0)
+    return Q
+
+
+def mirrored(u: np.ndarray, sigma: np.ndarray, symmetries) -> tuple[np.ndarray, np.ndarray]:
+    """The snapshots u [S, N, 3] (m) and σ [S, N, 6] (Pa, ``VOIGT``) seen in every frame g = (R, p)
+    of ``symmetries``: u'[p[j]] = R u[j], σ'[p[i]] = R σ[i] Rᵀ. Returns [S |G|, N, 3], [S |G|, N, 6]."""
+    us, ss = [], []
+    for R, p in symmetries:
+        back = np.argsort(p)                                   # the node each node comes from
+        us.append(u[:, back] @ R.T)
+        ss.append(sigma[:, back] @ stress_action(R).T)
+    return np.concatenate(us), np.concatenate(ss)
+
+
+def shape_orbits(classes: np.ndarray, symmetries) -> np.ndarray:
+    """The orbit of each neighbourhood shape under ``symmetries`` [C]: the smallest shape that one
+    of them, or a chain of them, maps it to (the shapes of one orbit have mirror-image weights)."""
+    root = list(range(int(classes.max()) + 1))
+
+    def find(a: int) -> int:
+        while root[a] != a:
+            a = root[a]
+        return a
+
+    for _, p in symmetries:
+        for a, b in set(zip(classes.tolist(), classes[p].tolist())):     # node i's shape, its image's
+            ra, rb = find(a), find(b)
+            root[max(ra, rb)] = min(ra, rb)          # roots stay their set's smallest shape
+    return np.array([find(a) for a in range(len(root))])
+
+
 def check_determined(ref_pos: np.ndarray, edge_index: np.ndarray, snapshots: int, hops: int,
                      source: str = "dataset") -> tuple[list[list[int]], np.ndarray]:
     """``stencils`` of ``hops``, after checking that ``snapshots`` states give every neighbourhood
@@ -117,12 +200,15 @@ def check_determined(ref_pos: np.ndarray, edge_index: np.ndarray, snapshots: int
 
 
 def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequence[Tensor],
-                       columns: Sequence[int], hops: int, source: str = "dataset") -> tuple[StressReadout, Dict]:
+                       columns: Sequence[int], hops: int, source: str = "dataset", symmetric: bool = False,
+                       node_type: Tensor | None = None) -> tuple[StressReadout, Dict]:
     """Least-squares fit of the readout to the states z [T, N, D] of ``trajectories`` (the training
-    split): σ = z[..., columns] against u = z[..., :3] - X. Returns the readout and a report
-    {"hops", "classes", "weights", "fit_error"} (fit_error: relative L2 over the fitted snapshots).
-    Raises DataError (naming ``source``) where the fit is underdetermined or the data's
-    stress-free state is not at u = 0."""
+    split): σ = z[..., columns] against u = z[..., :3] - X. ``symmetric``: mirror-image shapes get
+    mirror-image weights (the snapshots fitted in every frame of ``mesh_symmetries``, which
+    ``node_type`` [N] constrains; needs the 6 stress components). Returns the readout and a report
+    {"hops", "classes", "weights", "symmetries", "fit_error"} (weights: the independent ones;
+    fit_error: relative L2 over the fitted snapshots). Raises DataError (naming ``source``) where
+    the fit is underdetermined or the data's stress-free state is not at u = 0."""
     X = ref_pos.detach().cpu().double().numpy()
     z = np.concatenate([t.detach().cpu().double().numpy() for t in trajectories])        # [S, N, D]
     cols = [int(c) for c in columns]
@@ -132,23 +218,34 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
         raise DataError(f"{source}: the stress is not zero where the displacement is (u = 0): "
                         "model.stress_readout needs a stress-free reference state")
     reach = float(np.abs(u).max())                                                      # [m]
-    stencil, classes = check_determined(X, edge_index.detach().cpu().numpy(), len(z), hops, source)
+    edges = edge_index.detach().cpu().numpy()
+    stencil, classes = check_determined(X, edges, len(z), hops, source)
+    symmetries = [(np.eye(3), np.arange(len(X)))]
+    if symmetric:
+        if len(cols) != 6:
+            raise DataError(f"{source}: model.stress_readout_symmetric needs the 6 stress components "
+                            f"(s11 s22 s33 s12 s13 s23), the state has {len(cols)}")
+        symmetries = mesh_symmetries(X, edges, None if node_type is None else node_type.detach().cpu().numpy())
+        u, sigma = mirrored(u, sigma, symmetries)                          # [S |G|, N, 3], [S |G|, N, 6]
+        rest = np.tile(rest, len(symmetries))
     n, width = len(X), max(len(s) for s in stencil)
-    readout = StressReadout(n, width, int(classes.max()) + 1, cols)
+    sizes = np.array([len(stencil[np.flatnonzero(classes == c)[0]]) for c in range(int(classes.max()) + 1)])
+    independent = int(sizes[np.unique(shape_orbits(classes, symmetries))].sum()) * 3 * len(cols)
+    readout = StressReadout(n, width, int(classes.max()) + 1, cols, independent if symmetric else 0)
     weight = np.zeros(tuple(readout.weight.shape))
     predicted = np.zeros_like(sigma)
     for c in range(weight.shape[0]):
         nodes = np.flatnonzero(classes == c)
         st = np.array([stencil[i] for i in nodes])                                       # [m, k]
-        a = u[:, st].reshape(len(z) * len(nodes), -1)                                    # [S m, 3 k]
-        b = sigma[:, nodes].reshape(len(z) * len(nodes), -1)                             # [S m, C]
+        a = u[:, st].reshape(len(u) * len(nodes), -1)                                    # [S m, 3 k]
+        b = sigma[:, nodes].reshape(len(u) * len(nodes), -1)                             # [S m, C]
         scale = np.abs(a).max(0)                                                         # columns to O(1)
         still = scale <= 1e-9 * reach                                    # clamped: round-off, weight 0
         scale[still] = 1.0
         an = np.where(still, 0.0, a / scale)
         w = np.linalg.solve(an.T @ an + RIDGE * len(an) * np.eye(an.shape[1]), an.T @ b)
         weight[c, : a.shape[1]] = np.where(still[:, None], 0.0, w / scale[:, None])
-        predicted[:, nodes] = (a @ weight[c, : a.shape[1]]).reshape(len(z), len(nodes), -1)
+        predicted[:, nodes] = (a @ weight[c, : a.shape[1]]).reshape(len(u), len(nodes), -1)
     with torch.no_grad():
         readout.stencil.copy_(torch.tensor([s + [n] * (width - len(s)) for s in stencil]))
         readout.node_class.copy_(torch.from_numpy(classes))
@@ -156,14 +253,15 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     moving = ~rest
     err = float(np.mean([np.linalg.norm(p - s) / np.linalg.norm(s)
                          for p, s in zip(predicted[moving], sigma[moving]) if np.linalg.norm(s) > 0]))
-    return readout, {"hops": int(hops), "classes": int(weight.shape[0]),
-                     "weights": readout.fitted_weights(), "fit_error": err}
+    return readout, {"hops": int(hops), "classes": int(weight.shape[0]), "weights": readout.fitted_weights(),
+                     "symmetries": len(symmetries), "fit_error": err}
 
 
 def readout_spec(readout: StressReadout, hops: int) -> Dict:
     """The readout's shape for a checkpoint's hyperparameters (TIGNN's ``stress_readout``)."""
     return {"hops": int(hops), "nodes": readout.nodes, "width": int(readout.stencil.shape[1]),
-            "classes": int(readout.weight.shape[0]), "columns": list(readout.columns)}
+            "classes": int(readout.weight.shape[0]), "columns": list(readout.columns),
+            "independent": readout.independent}
 
 
 def with_stress_readout(ckpt: Dict, readout: StressReadout, hops: int) -> Dict:
@@ -176,7 +274,7 @@ def with_stress_readout(ckpt: Dict, readout: StressReadout, hops: int) -> Dict:
 
 
 def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
-                            roll=None) -> tuple[StressReadout, Dict]:
+                            roll=None, symmetric: bool = False) -> tuple[StressReadout, Dict]:
     """The readout fitted to the trained ``model``'s own rollouts of ``trajectories`` (the training
     split, ``TrajectoryTensors``): its predicted positions against the data's stress at each step.
     Fitted to the true positions instead, the readout's stencil (a strain: differences of nearby
@@ -184,7 +282,8 @@ def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
     positions, 64-87 % on a rollout's 0.6 % off (docs/accuracy.md, session 52). ``roll(model, t)``
     -> [S, N, D] rolls a trajectory out as the evaluation will (default: ``rollout`` from t's first
     state; the TIGNN beam benchmark imposes the clamped nodes' whole true state at every step, and
-    its readout is fitted to such rollouts: 7.1 % against 9.0 % fitted to ``rollout``'s)."""
+    its readout is fitted to such rollouts: 7.1 % against 9.0 % fitted to ``rollout``'s).
+    ``symmetric``: mirror-image weights (``fit_stress_readout``)."""
     from .rollout import rollout
 
     if roll is None:
@@ -204,4 +303,4 @@ def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
     finally:
         model.use_readout = was
     return fit_stress_readout(data.graph.ref_pos, data.graph.edge_index, rolled, columns, hops,
-                              source=str(data.path))
+                              source=str(data.path), symmetric=symmetric, node_type=data.graph.node_type)
