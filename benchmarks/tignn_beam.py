@@ -9,6 +9,7 @@ and the same weights' error with the other kinematics (``model.kinematics``: exa
 
     .venv/bin/python benchmarks/tignn_beam.py train.epochs=20 model.hidden=64
     .venv/bin/python benchmarks/tignn_beam.py --eval-only
+    .venv/bin/python benchmarks/tignn_beam.py --eval-only --stress-readout 3 --symmetric
 
 The published pretrained model, re-run on this machine: q 4.1e-3, v 1.7e-2, sigma 9.5e-2,
 268k parameters, 84 ms per step.

@@ -121,22 +121,22 @@ def mesh_symmetries(ref_pos: np.ndarray, edge_index: np.ndarray,
     permutation matrix, and p [N], the node each node goes to: X[p[i]] = c + R (X[i] - c) about the
     bounding box's centre c, to 1e-6 of the mean edge length), taking edges onto edges and each
     node's type (free, clamped, ...) onto the same. The identity comes first."""
+    from scipy.spatial import cKDTree
+
     X = np.asarray(ref_pos, dtype=np.float64)
     e = np.asarray(edge_index)
     h = float(np.mean(np.linalg.norm(X[e[0]] - X[e[1]], axis=1)))
     c = 0.5 * (X.min(0) + X.max(0))
-    key = lambda y: tuple(np.round(y / h * 1e6).astype(np.int64))                  # noqa: E731
-    number = {key(x): i for i, x in enumerate(X - c)}
+    nodes = cKDTree(X - c)
     edges = set(zip(e[0].tolist(), e[1].tolist()))
     found = []
     for perm in itertools.permutations(range(3)):
         for signs in itertools.product((1.0, -1.0), repeat=3):
             R = np.zeros((3, 3))
             R[np.arange(3), perm] = signs
-            p = [number.get(key(y)) for y in (X - c) @ R.T]
-            if any(j is None for j in p):
+            dist, p = nodes.query((X - c) @ R.T, distance_upper_bound=1e-6 * h)   # [N]: image's node
+            if not np.isfinite(dist).all() or len(np.unique(p)) < len(X):
                 continue
-            p = np.array(p)
             if node_type is not None and (np.asarray(node_type)[p] != np.asarray(node_type)).any():
                 continue
             if all((int(p[a]), int(p[b])) in edges for a, b in zip(e[0], e[1])):
