@@ -55,6 +55,8 @@ def main(argv: list[str]) -> None:
                         help="with --stress-readout: mirror-image weights for mirror-image neighbourhoods "
                              "(model.stress_readout_symmetric; 6x fewer weights on the beam)")
     args, overrides = parser.parse_known_args(argv)
+    if args.symmetric and not args.stress_readout:
+        parser.error("--symmetric ties the weights of a stress readout: give --stress-readout HOPS too")
 
     from thermognn.core.config import load_config
     from thermognn.core.state import describe_step

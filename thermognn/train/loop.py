@@ -421,7 +421,8 @@ def _train_here(cfg) -> Path:
     from .evaluation import linear_validation_error     # (evaluation imports this module)
     train_trajs, val_trajs = data.of("train"), data.of("val")
     hops = readout_hops(cfg)                             # model.stress_readout
-    if bool(_sel(cfg, "model.stress_readout_symmetric", False)) and not hops:
+    mirror_readout = bool(_sel(cfg, "model.stress_readout_symmetric", False))
+    if mirror_readout and not hops:
         raise ConfigError("model.stress_readout_symmetric = true: ties the weights of a stress readout; "
                           "set model.stress_readout to its reach in hops (>= 1)")
     if prior == "linear":                                # the linearised FE step + learned remainders
@@ -640,7 +641,7 @@ def _train_here(cfg) -> Path:
             from .stress_readout import fit_readout_to_rollouts, with_stress_readout
 
             readout, fit = fit_readout_to_rollouts(model_from_checkpoint(ckpt, ds), data, train_trajs, hops,
-                                                   symmetric=bool(_sel(cfg, "model.stress_readout_symmetric", False)))
+                                                   symmetric=mirror_readout)
             ckpt = with_stress_readout(ckpt, readout, hops)
             save_checkpoint(ckpt, ckpt_path)
             print(f"stress readout: {fit['hops']} hops, {fit['classes']} neighbourhood shapes, {fit['weights']} "

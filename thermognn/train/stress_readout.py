@@ -87,10 +87,13 @@ class StressReadout(nn.Module):
         symmetric weights, those of one neighbourhood shape per orbit (the others are their mirror images)."""
         if self.independent > 0:
             return self.independent
+        return int(self.shape_sizes().sum()) * 3 * len(self.columns)
+
+    def shape_sizes(self) -> Tensor:
+        """Each neighbourhood shape's stencil size [C] (nodes, the padding excluded)."""
         real = (self.stencil < self.nodes).sum(1)                                       # [N] stencil sizes
-        per_class = torch.zeros(self.weight.shape[0], dtype=torch.long).scatter_reduce(
+        return torch.zeros(self.weight.shape[0], dtype=torch.long).scatter_reduce(
             0, self.node_class, real, "amax", include_self=True)
-        return int(per_class.sum()) * 3 * len(self.columns)
 
 
 def stencils(ref_pos: np.ndarray, edge_index: np.ndarray, hops: int) -> tuple[list[list[int]], np.ndarray]:
@@ -229,9 +232,7 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
         u, sigma = mirrored(u, sigma, symmetries)                          # [S |G|, N, 3], [S |G|, N, 6]
         rest = np.tile(rest, len(symmetries))
     n, width = len(X), max(len(s) for s in stencil)
-    sizes = np.array([len(stencil[np.flatnonzero(classes == c)[0]]) for c in range(int(classes.max()) + 1)])
-    independent = int(sizes[np.unique(shape_orbits(classes, symmetries))].sum()) * 3 * len(cols)
-    readout = StressReadout(n, width, int(classes.max()) + 1, cols, independent if symmetric else 0)
+    readout = StressReadout(n, width, int(classes.max()) + 1, cols)
     weight = np.zeros(tuple(readout.weight.shape))
     predicted = np.zeros_like(sigma)
     for c in range(weight.shape[0]):
@@ -250,6 +251,9 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
         readout.stencil.copy_(torch.tensor([s + [n] * (width - len(s)) for s in stencil]))
         readout.node_class.copy_(torch.from_numpy(classes))
         readout.weight.copy_(torch.from_numpy(weight))
+    if symmetric:                          # one shape per orbit holds the independent weights
+        orbits = torch.from_numpy(np.unique(shape_orbits(classes, symmetries)))
+        readout.independent = int(readout.shape_sizes()[orbits].sum()) * 3 * len(cols)
     moving = ~rest
     err = float(np.mean([np.linalg.norm(p - s) / np.linalg.norm(s)
                          for p, s in zip(predicted[moving], sigma[moving]) if np.linalg.norm(s) > 0]))
