@@ -54,9 +54,12 @@ def main(argv: list[str]) -> None:
     parser.add_argument("--symmetric", action="store_true",
                         help="with --stress-readout: mirror-image weights for mirror-image neighbourhoods "
                              "(model.stress_readout_symmetric; 6x fewer weights on the beam)")
+    parser.add_argument("--load-hops", type=int, default=0, metavar="HOPS",
+                        help="with --stress-readout: the applied loads within this reach enter the readout too "
+                             "(model.stress_readout_load)")
     args, overrides = parser.parse_known_args(argv)
-    if args.symmetric and not args.stress_readout:
-        parser.error("--symmetric ties the weights of a stress readout: give --stress-readout HOPS too")
+    if (args.symmetric or args.load_hops) and not args.stress_readout:
+        parser.error("--symmetric and --load-hops shape a stress readout: give --stress-readout HOPS too")
 
     from thermognn.core.config import load_config
     from thermognn.core.state import describe_step
@@ -86,9 +89,10 @@ def main(argv: list[str]) -> None:
 
         readout, fit = fit_readout_to_rollouts(      # rolled out as the reference metric rolls out
             model, data, data.of("train"), args.stress_readout,
-            roll=lambda m, t: rollout_gt_clamped(m, data.graph, t.z, t.force, data.dt), symmetric=args.symmetric)
+            roll=lambda m, t: rollout_gt_clamped(m, data.graph, t.z, t.force, data.dt), symmetric=args.symmetric,
+            load_hops=args.load_hops)
         print(f"stress readout attached: {fit}")
-        ckpt = with_stress_readout(ckpt, readout, args.stress_readout)
+        ckpt = with_stress_readout(ckpt, readout, args.stress_readout, args.load_hops)
         model = model_from_checkpoint(ckpt).eval()
     def test_error(exact_kinematics: bool) -> dict:
         """Reference metric on the test split with the checkpoint's weights, stepping q from the
@@ -99,7 +103,8 @@ def main(argv: list[str]) -> None:
             pred = rollout_gt_clamped(model, data.graph, t.z, t.force, data.dt)
             if model.use_readout:         # the stress reported: read off the free nodes' positions
                 free = (data.graph.node_type != 1).unsqueeze(1)
-                pred = torch.stack([torch.where(free, model.read_stress(z, data.graph.ref_pos), z) for z in pred])
+                pred = torch.stack([torch.where(free, model.read_stress(z, data.graph.ref_pos, t.force[s]), z)
+                                    for s, z in enumerate(pred)])
             errs.append(trajectory_rrmse(rrmse_per_step(pred, t.z, data.layout)))
         model.exact_kinematics = own
         return {k: float(np.mean([e[k] for e in errs])) for k in data.layout.names}
@@ -112,7 +117,7 @@ def main(argv: list[str]) -> None:
     g = data.graph
     def one_step():               # a step as reported: with a stress readout, σ read off the positions too
         out = model.step(z, f, g.edge_index, g.node_type, g.ref_pos, dt_t)
-        return model.read_stress(out, g.ref_pos) if model.use_readout else out
+        return model.read_stress(out, g.ref_pos, f) if model.use_readout else out
     for _ in range(3):
         one_step()
     n, t1 = 20, time.perf_counter()

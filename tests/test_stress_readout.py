@@ -1,6 +1,8 @@
 """The stress readout (``model.stress_readout``): a linear stencil of the displacements, fitted by
 least squares, exact on a stress that is such a stencil; TorchScript; clear errors."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
@@ -123,6 +125,64 @@ def test_a_symmetric_readout_is_equivariant_with_fewer_weights():
         fit_stress_readout(ref, ei, [train[..., :9]], [6, 7, 8], hops=1, source="d.h5", symmetric=True)
 
 
+def _side_loads(ref, idx, count, seed):
+    """Point loads f [count, N, 3] (N) on a random half of the side faces' nodes (one boundary
+    coordinate in y or z, x inside) and the traction stress they add there, sym(f n) / A [Pa]
+    (n the outward normal, A = H^2): equivariant under the grid's reflections and swaps."""
+    rng = np.random.default_rng(seed)
+    hi = idx.max(0)
+    on_y, on_z = (idx[:, 1] % hi[1] == 0), (idx[:, 2] % hi[2] == 0)
+    side = np.flatnonzero((on_y ^ on_z) & (idx[:, 0] > 0) & (idx[:, 0] < hi[0]))
+    normal = np.zeros((len(idx), 3))
+    normal[on_y, 1] = np.where(idx[on_y, 1] == 0, -1.0, 1.0)
+    normal[on_z, 2] = np.where(idx[on_z, 2] == 0, -1.0, 1.0)
+    f, extra = np.zeros((count, len(idx), 3)), np.zeros((count, len(idx), 6))
+    for s in range(count):
+        loaded = rng.choice(side, len(side) // 2, replace=False)
+        f[s, loaded] = rng.normal(size=(len(loaded), 3)) * 1e3
+        t = 0.5 * (f[s][:, :, None] * normal[:, None, :] + normal[:, :, None] * f[s][:, None, :]) / H ** 2
+        extra[s] = np.stack([t[:, a, b] for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))], 1)
+    return torch.tensor(f), torch.tensor(extra)
+
+
+def test_a_load_aware_readout_reads_a_surface_loads_traction():
+    """``load_hops`` (``model.stress_readout_load``): the applied loads near each node enter the
+    readout, σ = W u + V f. A stencil stress plus the traction of point loads on the side faces is
+    recovered on unseen fields and loads, which the displacements alone cannot; mirror-symmetric,
+    it is equivariant in u and f together, and it counts only load weights some snapshot loads."""
+    ref, ei, idx = _grid()
+    nt = torch.from_numpy((idx[:, 0] == 0).astype(np.int64))
+    z, (f, extra) = _snapshots(ref, idx, 80, seed=0), _side_loads(ref, idx, 80, seed=0)
+    z[:, :, 6:] += extra
+    blind, blind_fit = fit_stress_readout(ref, ei, [z], list(range(6, 12)), hops=1)
+    assert blind_fit["fit_error"] > 0.05                                       # the displacements cannot read a load
+    readout, fit = fit_stress_readout(ref, ei, [z], list(range(6, 12)), hops=1, forces=[f], load_hops=1)
+    assert fit["load_hops"] == 1 and fit["fit_error"] < 1e-9 and readout.load_width == 7
+    zt, (ft, extra_t) = _snapshots(ref, idx, 4, seed=1), _side_loads(ref, idx, 4, seed=1)
+    zt[:, :, 6:] += extra_t
+    for zs, fs in zip(zt, ft):
+        assert torch.allclose(readout(zs[:, :3] - ref, fs), zs[:, 6:], rtol=0, atol=1e-6 * zs[:, 6:].abs().max())
+    assert torch.equal(readout(torch.zeros_like(ref)), torch.zeros(len(ref), 6, dtype=torch.float64))
+    # load weights: per class, the load columns some snapshot loads (side-face nodes and their neighbours)
+    assert blind.fitted_weights() < fit["weights"] < blind.fitted_weights() + 6 * 3 * 7 * fit["classes"]
+    tied, fit_t = fit_stress_readout(ref, ei, [z], list(range(6, 12)), hops=1, symmetric=True, node_type=nt,
+                                     forces=[f], load_hops=1)
+    assert fit_t["weights"] < fit["weights"]
+    u, load = torch.randn(len(ref), 3, dtype=torch.float64) * 1e-3, ft[0]
+    for R, p in mesh_symmetries(ref.numpy(), ei.numpy(), nt.numpy()):
+        Rt, pt = torch.from_numpy(R), torch.from_numpy(p)
+        mu, mf, expected = torch.empty_like(u), torch.empty_like(load), torch.empty(len(ref), 6, dtype=torch.float64)
+        mu[pt], mf[pt] = u @ Rt.T, load @ Rt.T
+        expected[pt] = tied(u, load) @ torch.from_numpy(stress_action(R)).T
+        assert torch.allclose(tied(mu, mf), expected, rtol=0, atol=1e-9 * expected.abs().max())
+    model = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, stress_readout=readout_spec(readout, 1, 1))
+    model.readout.load_state_dict(readout.state_dict())
+    state = zt[0].clone()
+    assert torch.allclose(model.read_stress(state, ref, ft[0])[:, 6:], zt[0, :, 6:], atol=1e-6 * zt[0, :, 6:].abs().max())
+    with pytest.raises(DataError, match=r"d\.h5: model\.stress_readout_load = 2, expected .* 1 to model\.stress_readout \(1\)"):
+        fit_stress_readout(ref, ei, [z], list(range(6, 12)), hops=1, source="d.h5", forces=[f], load_hops=2)
+
+
 def test_a_model_with_a_readout_reports_the_stress_off_its_positions_and_scripts():
     """TIGNN with ``stress_readout``: its steps are the network's (the state keeps its own σ), a
     rollout reports σ = readout(q - X) at every snapshot; the scripted model reads the same; a
@@ -205,13 +265,39 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
                          f"train.init={tmp_path / 'model.ckpt'}", f"paths.dataset={tmp_path / 'dataset.h5'}"])
     assert load_checkpoint(train(again))["hparams"]["stress_readout"]["hops"] == 1
     mirrored = load_config([f"out={tmp_path / 'sym'}", *small, "train.epochs=1", "model.stress_readout=1",
-                            "model.stress_readout_symmetric=true", f"train.init={tmp_path / 'model.ckpt'}",
-                            f"paths.dataset={tmp_path / 'dataset.h5'}"])
-    spec = load_checkpoint(train(mirrored))["hparams"]["stress_readout"]
-    assert 0 < spec["independent"] <= model.readout.fitted_weights()
+                            "model.stress_readout_symmetric=true", "model.stress_readout_load=1",
+                            f"train.init={tmp_path / 'model.ckpt'}", f"paths.dataset={tmp_path / 'dataset.h5'}"])
+    ckpt = load_checkpoint(train(mirrored))
+    spec = ckpt["hparams"]["stress_readout"]
+    assert 0 < spec["independent"] and spec["load_hops"] == 1 and spec["load_width"] > 0
+    loaded = model_from_checkpoint(ckpt)
+    scripted = torch.jit.load(str(export(mirrored)))
+    f = torch.randn(loaded.readout.nodes, 3, dtype=z.dtype)
+    assert torch.allclose(scripted.report(z, f), loaded.read_stress(z, scripted.reference_positions, f))
+    with pytest.raises(ConfigError, match=r"model.stress_readout_load = 2: .* expected 0 \(off\) or 1 to model.stress_readout \(1\)"):
+        train(load_config([f"out={tmp_path / 'nl'}", "model.stress_readout=1", "model.stress_readout_load=2",
+                           f"paths.dataset={tmp_path / 'dataset.h5'}"]))
     with pytest.raises(ConfigError, match="model.stress_readout_symmetric = true: .* set model.stress_readout"):
         train(load_config([f"out={tmp_path / 'ns'}", "model.stress_readout_symmetric=true",
                            f"paths.dataset={tmp_path / 'dataset.h5'}"]))
     with pytest.raises(ConfigError, match="model.stress_readout: .* model.prior=linear"):
         train(load_config([f"out={tmp_path / 'lp'}", "model=linear_prior", "model.stress_readout=1",
                            f"paths.dataset={tmp_path / 'dataset.h5'}"]))
+
+
+def test_evaluate_finds_test_cases_that_mirror_training_ones():
+    """``repeated_cases``: a test trajectory that is a training one seen in a mirror of the mesh (the
+    TIGNN beam's reference split: all 6) is named with its twin; a new load case is not."""
+    from thermognn.train.evaluation import repeated_cases, repeated_sentence
+
+    ref, ei, idx = _grid()
+    X, clamped = ref.numpy(), (idx[:, 0] == 0).astype(np.int64)
+    R, perm = mesh_symmetries(X, ei.numpy(), clamped)[3]                 # a reflection or swap, not the identity
+    train = [SimpleNamespace(name=f"case_{k}", z=_snapshots(ref, idx, 5, seed=k)) for k in range(3)]
+    twin = train[1].z.clone()
+    twin[:, perm, :3] = ref[perm] + (train[1].z[:, :, :3] - ref) @ torch.from_numpy(R).T
+    test = [SimpleNamespace(name="mirrored", z=twin), SimpleNamespace(name="new", z=_snapshots(ref, idx, 5, seed=9))]
+    found = repeated_cases(X, ei.numpy(), clamped, slice(0, 3), test, train)
+    assert [(a, b) for a, b, _ in found] == [("mirrored", "case_1")] and found[0][2] < 1e-12
+    assert repeated_sentence(found, 2).startswith("1 of 2 test trajectories repeat a training one")
+    assert repeated_cases(X, ei.numpy(), clamped, slice(0, 3), test[1:], train) == []

@@ -25,7 +25,7 @@ Never call it under ``torch.no_grad()``: dE/dz and dS/dz come from autograd.
 
 from __future__ import annotations
 
-from typing import Tuple
+from typing import Optional, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -65,11 +65,12 @@ class ExportedTIGNN(nn.Module):
         return energy.detach(), entropy.detach()
 
     @torch.jit.export
-    def report(self, z: Tensor) -> Tensor:
+    def report(self, z: Tensor, f: Optional[Tensor] = None) -> Tensor:
         """The state z [N, D] as the model reports it: with ``model.stress_readout`` its stress read
-        off the positions (the state ``forward`` steps keeps the network's own σ), else z itself."""
+        off the positions (and, with ``model.stress_readout_load``, the applied load f [N, 3] (N) of
+        that state; None: unloaded), the state ``forward`` steps keeping the network's own σ; else z."""
         if self.core.use_readout:
-            return self.core.read_stress(z, self.reference_positions)
+            return self.core.read_stress(z, self.reference_positions, f)
         return z
 
 
@@ -117,6 +118,6 @@ class ExportedLinearPrior(nn.Module):
         return energy.detach(), torch.zeros_like(energy)
 
     @torch.jit.export
-    def report(self, z: Tensor) -> Tensor:
-        """The state as the model reports it: z itself (the prior's stress is the state's)."""
+    def report(self, z: Tensor, f: Optional[Tensor] = None) -> Tensor:
+        """The state as the model reports it: z itself (the prior's stress is the state's; f unused)."""
         return z

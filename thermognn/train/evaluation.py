@@ -14,7 +14,8 @@ Files written (all atomically)::
                                     (the summary adds the growth factor of a disturbance at rest)
     snapshot_<traj>_<step>.vtu      predicted vs ground truth point data (datasets with tets only)
     summary.md                      the numbers above in one page (and, for datasets made with a list of
-                                    load magnitudes, the test errors at each peak load)
+                                    load magnitudes, the test errors at each peak load; test trajectories
+                                    that repeat training ones up to a mirror of the mesh, named)
 """
 
 from __future__ import annotations
@@ -316,6 +317,55 @@ def hardest(whole: list[dict[str, float]], mean: dict[str, float], groups: list[
     return sorted(range(len(whole)), key=lambda k: -score[k] if math.isfinite(score[k]) else math.inf)
 
 
+#: displacements this close (relative L2 over all steps and nodes) are one load case
+REPEAT_TOL = 1e-6
+
+
+def repeated_cases(ref_pos: np.ndarray, edge_index: np.ndarray, node_type: np.ndarray, positions: slice,
+                   test: list[TrajectoryTensors], train: list[TrajectoryTensors]) -> list[tuple[str, str, float]]:
+    """The test trajectories that repeat a training one up to a symmetry of the mesh (X = ``ref_pos``
+    [N, 3], its ``edge_index`` [2, E] and ``node_type`` [N]; q = z[..., positions]): for each, (its
+    name, the training trajectory's, their distance), where the displacements u = q - X of the two,
+    one seen in a frame of ``mesh_symmetries`` (the reflections and axis swaps that take the mesh's
+    nodes, edges and node types onto themselves; an unstructured mesh has the identity alone), agree
+    to ``REPEAT_TOL`` relative L2 over all steps and nodes. On such test cases the test error
+    measures the fit to training cases, not generalisation to new loads: the TIGNN beam's reference
+    split tests 6 of 6 mirror images of training trajectories, to 6e-15 (docs/accuracy.md, session 54)."""
+    from .stress_readout import mesh_symmetries
+
+    X, q = np.asarray(ref_pos, dtype=np.float64), positions
+    symmetries = mesh_symmetries(X, np.asarray(edge_index), np.asarray(node_type))
+    found = []
+    for length in sorted({t.z.shape[0] for t in test}):
+        pool = [t for t in train if t.z.shape[0] == length]
+        if not pool:
+            continue
+        u_train = np.stack([t.z[:, :, q].detach().cpu().double().numpy() - X for t in pool])   # [M, S, N, 3]
+        size = np.linalg.norm(u_train.reshape(len(pool), -1), axis=1)                          # [M]
+        for t in (t for t in test if t.z.shape[0] == length):
+            u = t.z[:, :, q].detach().cpu().double().numpy() - X                                # [S, N, 3]
+            best, near = np.inf, 0
+            for R, perm in symmetries:
+                image = np.empty_like(u)
+                image[:, perm] = u @ R.T                                      # node i's u lands on perm[i]
+                gap = np.linalg.norm((u_train - image).reshape(len(pool), -1), axis=1) / np.maximum(size, 1e-300)
+                if gap.min() < best:
+                    best, near = float(gap.min()), int(gap.argmin())
+            if best <= REPEAT_TOL:
+                found.append((t.name, pool[near].name, best))
+    return found
+
+
+def repeated_sentence(found: list[tuple[str, str, float]], n_test: int) -> str:
+    """One line on ``repeated_cases``' finding ('' when there is none)."""
+    if not found:
+        return ""
+    return (f"{len(found)} of {n_test} test trajectories repeat a training one up to a symmetry of the mesh "
+            f"(displacements within {max(d for *_, d in found):.1e}): "
+            + ", ".join(f"{a} = {b}" for a, b, _ in found)
+            + "; on these the test error measures the fit to training cases, not generalisation to new loads")
+
+
 def linear_baseline(data: LoadedData, trajs: list[TrajectoryTensors], corotated: bool = False,
                     newton: int = 0) -> dict:
     """The linearised FE model (the dataset's ``/linear`` operators, ``thermognn.core.linear``; no
@@ -529,7 +579,9 @@ def evaluate(cfg) -> dict:
     "newton1_fe_ms_per_step" (``linear_baseline(newton=1)``), and for
     datasets that record their FE solve's cost "fe_ms_per_step", "fe_iterations_per_step"
     (``Dataset.fe_cost``), and for a law prior whose rollouts shortened Newton updates
-    "shortened_updates" (their number over the test rollouts, :func:`shortened_updates`)}."""
+    "shortened_updates" (their number over the test rollouts, :func:`shortened_updates`), and
+    where test trajectories repeat training ones up to a mirror of the mesh "test_repeats_train"
+    (their number, :func:`repeated_cases`)}."""
     torch.set_num_threads(int(OmegaConf.select(cfg, "train.threads", default=2)))
     ckpt_path = project_path(cfg.paths.checkpoint)
     ckpt = load_checkpoint(ckpt_path)
@@ -563,6 +615,12 @@ def evaluate(cfg) -> dict:
     whole_traj_train = [trajectory_error(p, t.z, data.layout) for p, t in zip(preds_train, train_trajs)]
     whole = _mean_groups(whole_traj, groups)
     loads, loads_train = [peak_load(t.force) for t in test], [peak_load(t.force) for t in train_trajs]
+    for n in data.split["train"]:                   # test cases that the training split holds, mirrored
+        data.read(n)
+    repeats = repeated_cases(data.reference_positions(), data.graph.edge_index.cpu().numpy(),
+                             data.graph.node_type.cpu().numpy(), data.layout.slice("q"), test, data.of("train"))
+    if repeats:
+        mean_test["test_repeats_train"] = float(len(repeats))
     by_load = by_peak_load(loads, per_traj, whole_traj, groups)
     linear = linear_baseline(data, test)
     linear_train = linear_baseline(data, train_trajs) if "snapshot" in linear else {}
@@ -756,6 +814,8 @@ def evaluate(cfg) -> dict:
     if any(shortened):
         mean_test["shortened_updates"] = float(sum(shortened))
         print(f"evaluate: {shortened_sentence([t.name for t in test], shortened)} (test)")
+    if repeats:
+        print(f"evaluate: {repeated_sentence(repeats, len(test))}")
     if worst:
         print("evaluate: largest whole-rollout test errors: " + "; ".join(
             f"{test[k].name} ({where(k)}): " + ", ".join(f"{g} {_fmt(whole_traj[k][g])}" for g in groups)
@@ -842,6 +902,8 @@ def evaluate(cfg) -> dict:
                 *(f"| {load:g} | {int(e['trajectories'])} | " + " | ".join(_fmt(e[g]) for g in groups) + " | "
                   + " | ".join(_fmt(e['whole_' + g]) for g in groups) + " |" for load, e in by_load.items()), ""]
                if by_load else []),
+             *([repeated_sentence(repeats, len(test)) + " (`test_repeats_train` in `rrmse.json`).", ""]
+               if repeats else []),
              *([f"The {len(worst)} test trajectories with the largest whole-rollout errors (ranked by the "
                 "mean over the groups of each error relative to the test mean above; all of them in "
                 "`rrmse_per_trajectory.csv`, with the load points):", "",

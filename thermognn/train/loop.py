@@ -425,6 +425,10 @@ def _train_here(cfg) -> Path:
     if mirror_readout and not hops:
         raise ConfigError("model.stress_readout_symmetric = true: ties the weights of a stress readout; "
                           "set model.stress_readout to its reach in hops (>= 1)")
+    load_hops = _sel(cfg, "model.stress_readout_load", 0) or 0
+    if isinstance(load_hops, bool) or not isinstance(load_hops, int) or not 0 <= load_hops <= max(hops, 0):
+        raise ConfigError(f"model.stress_readout_load = {load_hops!r}: the applied loads' reach in a stress "
+                          f"readout, expected 0 (off) or 1 to model.stress_readout ({hops})")
     if prior == "linear":                                # the linearised FE step + learned remainders
         if hops:
             raise ConfigError("model.stress_readout: an option of the network stepping the whole state; "
@@ -641,10 +645,11 @@ def _train_here(cfg) -> Path:
             from .stress_readout import fit_readout_to_rollouts, with_stress_readout
 
             readout, fit = fit_readout_to_rollouts(model_from_checkpoint(ckpt, ds), data, train_trajs, hops,
-                                                   symmetric=mirror_readout)
-            ckpt = with_stress_readout(ckpt, readout, hops)
+                                                   symmetric=mirror_readout, load_hops=load_hops)
+            ckpt = with_stress_readout(ckpt, readout, hops, load_hops)
             save_checkpoint(ckpt, ckpt_path)
-            print(f"stress readout: {fit['hops']} hops, {fit['classes']} neighbourhood shapes, {fit['weights']} "
+            print(f"stress readout: {fit['hops']} hops" + (f", loads within {load_hops}" if load_hops else "")
+                  + f", {fit['classes']} neighbourhood shapes, {fit['weights']} "
                   f"weights ({fit['symmetries']} mesh symmetries), fitted to the model's {len(train_trajs)} training rollouts (relative L2 of sigma "
                   f"{fit['fit_error']:.4f})")
         best = model_from_checkpoint(ckpt, ds)

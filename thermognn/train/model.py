@@ -240,7 +240,8 @@ class TIGNN(nn.Module):
         spec = stress_readout or {"nodes": 0, "width": 0, "classes": 0, "columns": []}
         self.use_readout = stress_readout is not None
         self.readout = StressReadout(int(spec["nodes"]), int(spec["width"]), int(spec["classes"]),
-                                     [int(c) for c in spec["columns"]], int(spec.get("independent", 0)))
+                                     [int(c) for c in spec["columns"]], int(spec.get("independent", 0)),
+                                     int(spec.get("load_width", 0)))
         columns = [int(c) for c in spec["columns"]] or [0]
         self.readout_first, self.readout_end = columns[0], columns[-1] + 1     # contiguous stress columns
 
@@ -388,11 +389,13 @@ class TIGNN(nn.Module):
         return self.impose(z_next, node_type, ref_pos)
 
     @torch.jit.export
-    def read_stress(self, z: Tensor, ref_pos: Tensor) -> Tensor:
+    def read_stress(self, z: Tensor, ref_pos: Tensor, f: Optional[Tensor] = None) -> Tensor:
         """z [N, D] with its stress columns read off its positions by the stress readout,
-        σ = readout(q - X) (``model.stress_readout``): the stress a rollout reports. The state the
-        network steps keeps its own σ (fed back, the readout's made v worse: TIGNN beam, session 52)."""
-        sigma = self.readout(z[:, :3] - ref_pos)                              # [N, S]
+        σ = readout(q - X, f) (``model.stress_readout``; the applied load f [N, 3] (N) of that state
+        enters with ``model.stress_readout_load``, None: unloaded): the stress a rollout reports. The
+        state the network steps keeps its own σ (fed back, the readout's made v worse: TIGNN beam,
+        session 52)."""
+        sigma = self.readout(z[:, :3] - ref_pos, f)                           # [N, S]
         return torch.cat([z[:, :self.readout_first], sigma, z[:, self.readout_end:]], 1)
 
     @torch.jit.export

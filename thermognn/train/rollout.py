@@ -42,7 +42,8 @@ def rollout(model, graph: Graph, z0: Tensor, forces: Tensor, dt: float, steps: i
             f = forces[min(s, forces.shape[0] - 1)]
             out.append(model.step(out[-1], f, graph.edge_index, graph.node_type, graph.ref_pos, dt_t).detach())
     if getattr(model, "use_readout", False):    # the stress reported: read off the positions
-        return torch.stack([model.read_stress(z, graph.ref_pos) for z in out])
+        return torch.stack([model.read_stress(z, graph.ref_pos, forces[min(s, forces.shape[0] - 1)])
+                            for s, z in enumerate(out)])
     return torch.stack(out)
 
 

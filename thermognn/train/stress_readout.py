@@ -25,6 +25,12 @@ equivariant exactly, and one neighbourhood shape per orbit of shapes (``shape_or
 readout's independent weights: the TIGNN beam's 6 x 6 cross-section has 8 such g, and its 3-hop
 readout 30,636 weights instead of 182,880.
 
+With ``load_hops`` (``model.stress_readout_load``) the applied nodal loads within that reach enter
+the stencil too, σ_i = Σ_j W u_j + Σ_j V f_j [N]: the stress at a loaded face carries the load's
+traction, which the displacements near a point load read poorly (TIGNN beam, 3 + 3 hops: σ 7.50 →
+5.55 % on the reference metric, 3,084 more weights; docs/accuracy.md, session 54). A load column
+that no training snapshot loads gets weight 0 and is not counted.
+
 The readout is fitted after training to the network's own rollouts of the training trajectories
 (``fit_readout_to_rollouts``: predicted positions against the data's stress), and a rollout reports
 its stress in place of the network's integrated σ (``rollout``; the state stepped keeps the
@@ -37,7 +43,7 @@ positions the stencil amplifies a rollout's small nodal errors; fitted to the ro
 from __future__ import annotations
 
 import itertools
-from typing import Dict, List, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 import torch
@@ -56,30 +62,46 @@ RIDGE = 1e-12
 
 
 class StressReadout(nn.Module):
-    """σ [N, S] = readout(u [N, 3]) for the mesh it was fitted on (N nodes).
+    """σ [N, S] = readout(u [N, 3], f [N, 3]) for the mesh it was fitted on (N nodes).
 
     Buffers (shapes from ``spec``, filled by ``fit_stress_readout`` or a checkpoint)::
 
-        stencil     [N, K]       node indices of each node's stencil, padded with N (a zero row)
-        node_class  [N]          its neighbourhood-shape class
-        weight      [C, 3 K, S]  per class: stencil displacement (K nodes x 3, node-major) -> σ
+        stencil       [N, K]              node indices of each node's stencil, padded with N (a zero row)
+        load_stencil  [N, Kf]             with a load reach (``model.stress_readout_load``): the nodes
+                                          whose applied load enters, padded likewise (Kf = 0: none)
+        node_class    [N]                 its neighbourhood-shape class
+        weight        [C, 3 K + 3 Kf, S]  per class: stencil displacement (K nodes x 3, node-major),
+                                          then stencil load (Kf x 3) -> σ
     """
 
-    def __init__(self, nodes: int, width: int, classes: int, columns: List[int], independent: int = 0) -> None:
+    def __init__(self, nodes: int, width: int, classes: int, columns: List[int], independent: int = 0,
+                 load_width: int = 0) -> None:
         super().__init__()
         self.nodes = int(nodes)
         self.independent = int(independent)      # weights that determine the rest (symmetric fit), 0: all
         self.columns: List[int] = [int(c) for c in columns]
+        self.load_width = int(load_width)
         kept = self.nodes > 0            # an empty readout (off) is not part of the checkpoint
         self.register_buffer("stencil", torch.full((self.nodes, int(width)), self.nodes, dtype=torch.long), kept)
+        self.register_buffer("load_stencil", torch.full((self.nodes, self.load_width), self.nodes, dtype=torch.long),
+                             kept and self.load_width > 0)       # (checkpoints from before loads load as before)
         self.register_buffer("node_class", torch.zeros(self.nodes, dtype=torch.long), kept)
-        self.register_buffer("weight", torch.zeros(int(classes), 3 * int(width), len(self.columns)), kept)
+        self.register_buffer("weight", torch.zeros(int(classes), 3 * (int(width) + self.load_width),
+                                                   len(self.columns)), kept)
 
-    def forward(self, u: Tensor) -> Tensor:
-        """Stress [N, S] (Pa, the state's stress columns ``columns``) of the displacement u [N, 3] (m)."""
-        padded = torch.cat([u, torch.zeros(1, 3, dtype=u.dtype, device=u.device)], 0)   # [N + 1, 3]
+    def forward(self, u: Tensor, f: Optional[Tensor] = None) -> Tensor:
+        """Stress [N, S] (Pa, the state's stress columns ``columns``) of the displacement u [N, 3] (m)
+        under the applied nodal load f [N, 3] (N; with a load reach; None: unloaded, the part the
+        displacement makes)."""
+        zero = torch.zeros(1, 3, dtype=u.dtype, device=u.device)
+        padded = torch.cat([u, zero], 0)                                                  # [N + 1, 3]
         near = padded.index_select(0, self.stencil.reshape(-1)).reshape(self.nodes, -1)   # [N, 3 K]
-        w = self.weight.index_select(0, self.node_class).to(u.dtype)                      # [N, 3 K, S]
+        if self.load_width > 0:
+            load = torch.zeros_like(u) if f is None else f.to(u.dtype)
+            padded_load = torch.cat([load, zero], 0)                                      # [N + 1, 3]
+            near = torch.cat([near, padded_load.index_select(0, self.load_stencil.reshape(-1))
+                              .reshape(self.nodes, -1)], 1)                                # [N, 3 K + 3 Kf]
+        w = self.weight.index_select(0, self.node_class).to(u.dtype)                      # [N, 3 (K + Kf), S]
         return torch.bmm(near.unsqueeze(1), w).squeeze(1)                                  # [N, S]
 
     def fitted_weights(self) -> int:
@@ -202,27 +224,59 @@ def check_determined(ref_pos: np.ndarray, edge_index: np.ndarray, snapshots: int
     return stencil, classes
 
 
+def load_stencils(ref_pos: np.ndarray, edge_index: np.ndarray, load_hops: int,
+                  classes: np.ndarray) -> tuple[list[list[int]], np.ndarray]:
+    """Each node's load stencil (the nodes within ``load_hops`` edges whose applied load enters its
+    stress, ordered by reference offset) and the neighbourhood-shape classes [N] refined so that
+    nodes of one class share both stencils' shapes (``classes``: the displacement stencil's)."""
+    load, load_classes = stencils(ref_pos, edge_index, int(load_hops))
+    pairs = {}
+    joint = np.array([pairs.setdefault((int(c), int(k)), len(pairs)) for c, k in zip(classes, load_classes)])
+    return load, joint
+
+
+def mirrored_vectors(a: np.ndarray, symmetries) -> np.ndarray:
+    """Nodal vectors a [S, N, 3] (displacements, loads) seen in every frame g = (R, p) of
+    ``symmetries``: a'[p[j]] = R a[j]. Returns [S |G|, N, 3] (frames in ``mirrored``'s order)."""
+    return np.concatenate([a[:, np.argsort(p)] @ R.T for R, p in symmetries])
+
+
 def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequence[Tensor],
                        columns: Sequence[int], hops: int, source: str = "dataset", symmetric: bool = False,
-                       node_type: Tensor | None = None) -> tuple[StressReadout, Dict]:
+                       node_type: Tensor | None = None, forces: Sequence[Tensor] | None = None,
+                       load_hops: int = 0) -> tuple[StressReadout, Dict]:
     """Least-squares fit of the readout to the states z [T, N, D] of ``trajectories`` (the training
-    split): σ = z[..., columns] against u = z[..., :3] - X. ``symmetric``: mirror-image shapes get
-    mirror-image weights (the snapshots fitted in every frame of ``mesh_symmetries``, which
-    ``node_type`` [N] constrains; needs the 6 stress components). Returns the readout and a report
-    {"hops", "classes", "weights", "symmetries", "fit_error"} (weights: the independent ones;
-    fit_error: relative L2 over the fitted snapshots). Raises DataError (naming ``source``) where
-    the fit is underdetermined or the data's stress-free state is not at u = 0."""
+    split): σ = z[..., columns] against u = z[..., :3] - X, and with ``load_hops`` >= 1
+    (``model.stress_readout_load``, at most ``hops``) the applied loads ``forces`` [T, N, 3] (N) of
+    the same snapshots within that reach (a load column no snapshot loads gets weight 0).
+    ``symmetric``: mirror-image shapes get mirror-image weights (the snapshots fitted in every frame
+    of ``mesh_symmetries``, which ``node_type`` [N] constrains; needs the 6 stress components).
+    Returns the readout and a report {"hops", "load_hops", "classes", "weights", "symmetries",
+    "fit_error"} (weights: the independent ones, the load's that a snapshot loads; fit_error:
+    relative L2 over the fitted snapshots). Raises DataError (naming ``source``) where the fit is
+    underdetermined or the data's stress-free state is not at u = 0."""
     X = ref_pos.detach().cpu().double().numpy()
     z = np.concatenate([t.detach().cpu().double().numpy() for t in trajectories])        # [S, N, D]
     cols = [int(c) for c in columns]
     u, sigma = z[:, :, :3] - X, z[:, :, cols]                                             # [S, N, 3], [S, N, C]
-    rest = np.linalg.norm(u, axis=(1, 2)) < 1e-12 * (1.0 + np.abs(X).max())
+    load_hops = int(load_hops or 0)
+    if load_hops and forces is None:
+        raise ValueError("fit_stress_readout: load_hops needs the snapshots' forces")
+    f = (np.concatenate([t.detach().cpu().double().numpy() for t in forces]) if load_hops
+         else np.zeros_like(u))                                                           # [S, N, 3] (N)
+    rest = (np.linalg.norm(u, axis=(1, 2)) < 1e-12 * (1.0 + np.abs(X).max())) & ~np.any(f != 0, axis=(1, 2))
     if rest.any() and np.abs(sigma[rest]).max() > 1e-9 * max(np.abs(sigma).max(), 1e-300):
         raise DataError(f"{source}: the stress is not zero where the displacement is (u = 0): "
                         "model.stress_readout needs a stress-free reference state")
     reach = float(np.abs(u).max())                                                      # [m]
     edges = edge_index.detach().cpu().numpy()
     stencil, classes = check_determined(X, edges, len(z), hops, source)
+    load_stencil: list[list[int]] = [[] for _ in range(len(X))]
+    if load_hops:
+        if not 1 <= load_hops <= hops:
+            raise DataError(f"{source}: model.stress_readout_load = {load_hops}, expected the load's reach "
+                            f"in hops, 1 to model.stress_readout ({hops}), or 0 (off)")
+        load_stencil, classes = load_stencils(X, edges, load_hops, classes)
     symmetries = [(np.eye(3), np.arange(len(X)))]
     if symmetric:
         if len(cols) != 6:
@@ -230,55 +284,69 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
                             f"(s11 s22 s33 s12 s13 s23), the state has {len(cols)}")
         symmetries = mesh_symmetries(X, edges, None if node_type is None else node_type.detach().cpu().numpy())
         u, sigma = mirrored(u, sigma, symmetries)                          # [S |G|, N, 3], [S |G|, N, 6]
+        f = mirrored_vectors(f, symmetries)                                # [S |G|, N, 3]
         rest = np.tile(rest, len(symmetries))
     n, width = len(X), max(len(s) for s in stencil)
-    readout = StressReadout(n, width, int(classes.max()) + 1, cols)
+    load_width = max(len(s) for s in load_stencil)
+    readout = StressReadout(n, width, int(classes.max()) + 1, cols, load_width=load_width)
     weight = np.zeros(tuple(readout.weight.shape))
+    loaded = np.zeros(weight.shape[0], dtype=np.int64)          # per class: load columns some snapshot loads
     predicted = np.zeros_like(sigma)
     for c in range(weight.shape[0]):
         nodes = np.flatnonzero(classes == c)
         st = np.array([stencil[i] for i in nodes])                                       # [m, k]
+        k = st.shape[1]
         a = u[:, st].reshape(len(u) * len(nodes), -1)                                    # [S m, 3 k]
+        if load_hops:
+            a = np.concatenate([a, f[:, np.array([load_stencil[i] for i in nodes])]
+                                .reshape(len(u) * len(nodes), -1)], 1)                   # [S m, 3 k + 3 kf]
         b = sigma[:, nodes].reshape(len(u) * len(nodes), -1)                             # [S m, C]
         scale = np.abs(a).max(0)                                                         # columns to O(1)
-        still = scale <= 1e-9 * reach                                    # clamped: round-off, weight 0
+        still = scale <= 1e-9 * reach                            # clamped: round-off, weight 0
+        still[3 * k:] = scale[3 * k:] == 0.0                     # a load column no snapshot loads: 0
+        loaded[c] = int((~still[3 * k:]).sum())
         scale[still] = 1.0
         an = np.where(still, 0.0, a / scale)
         w = np.linalg.solve(an.T @ an + RIDGE * len(an) * np.eye(an.shape[1]), an.T @ b)
-        weight[c, : a.shape[1]] = np.where(still[:, None], 0.0, w / scale[:, None])
-        predicted[:, nodes] = (a @ weight[c, : a.shape[1]]).reshape(len(u), len(nodes), -1)
+        w = np.where(still[:, None], 0.0, w / scale[:, None])
+        weight[c, :3 * k] = w[:3 * k]
+        weight[c, 3 * width:3 * width + (a.shape[1] - 3 * k)] = w[3 * k:]
+        predicted[:, nodes] = (a @ w).reshape(len(u), len(nodes), -1)
     with torch.no_grad():
         readout.stencil.copy_(torch.tensor([s + [n] * (width - len(s)) for s in stencil]))
+        if load_hops:
+            readout.load_stencil.copy_(torch.tensor([s + [n] * (load_width - len(s)) for s in load_stencil]))
         readout.node_class.copy_(torch.from_numpy(classes))
         readout.weight.copy_(torch.from_numpy(weight))
-    if symmetric:                          # one shape per orbit holds the independent weights
-        orbits = torch.from_numpy(np.unique(shape_orbits(classes, symmetries)))
-        readout.independent = int(readout.shape_sizes()[orbits].sum()) * 3 * len(cols)
+    if symmetric or load_hops:             # one shape per orbit holds the independent weights
+        held = np.unique(shape_orbits(classes, symmetries))
+        readout.independent = (int(readout.shape_sizes()[torch.from_numpy(held)].sum()) * 3
+                               + int(loaded[held].sum())) * len(cols)
     moving = ~rest
     err = float(np.mean([np.linalg.norm(p - s) / np.linalg.norm(s)
                          for p, s in zip(predicted[moving], sigma[moving]) if np.linalg.norm(s) > 0]))
-    return readout, {"hops": int(hops), "classes": int(weight.shape[0]), "weights": readout.fitted_weights(),
-                     "symmetries": len(symmetries), "fit_error": err}
+    return readout, {"hops": int(hops), "load_hops": load_hops, "classes": int(weight.shape[0]),
+                     "weights": readout.fitted_weights(), "symmetries": len(symmetries), "fit_error": err}
 
 
-def readout_spec(readout: StressReadout, hops: int) -> Dict:
+def readout_spec(readout: StressReadout, hops: int, load_hops: int = 0) -> Dict:
     """The readout's shape for a checkpoint's hyperparameters (TIGNN's ``stress_readout``)."""
     return {"hops": int(hops), "nodes": readout.nodes, "width": int(readout.stencil.shape[1]),
             "classes": int(readout.weight.shape[0]), "columns": list(readout.columns),
-            "independent": readout.independent}
+            "independent": readout.independent, "load_hops": int(load_hops), "load_width": readout.load_width}
 
 
-def with_stress_readout(ckpt: Dict, readout: StressReadout, hops: int) -> Dict:
+def with_stress_readout(ckpt: Dict, readout: StressReadout, hops: int, load_hops: int = 0) -> Dict:
     """A TIGNN checkpoint ``ckpt`` with ``readout`` attached (its hyperparameters and weights): the
-    trained network's positions and velocities, the stress read off the positions."""
-    hparams = {**ckpt["hparams"], "stress_readout": readout_spec(readout, hops)}
+    trained network's positions and velocities, the stress read off the positions (and loads)."""
+    hparams = {**ckpt["hparams"], "stress_readout": readout_spec(readout, hops, load_hops)}
     state = {k: v for k, v in ckpt["state_dict"].items() if not k.startswith("readout.")}
     state.update({f"readout.{k}": v.detach().cpu() for k, v in readout.state_dict().items()})
     return {**ckpt, "hparams": hparams, "state_dict": state}
 
 
 def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
-                            roll=None, symmetric: bool = False) -> tuple[StressReadout, Dict]:
+                            roll=None, symmetric: bool = False, load_hops: int = 0) -> tuple[StressReadout, Dict]:
     """The readout fitted to the trained ``model``'s own rollouts of ``trajectories`` (the training
     split, ``TrajectoryTensors``): its predicted positions against the data's stress at each step.
     Fitted to the true positions instead, the readout's stencil (a strain: differences of nearby
@@ -287,7 +355,8 @@ def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
     -> [S, N, D] rolls a trajectory out as the evaluation will (default: ``rollout`` from t's first
     state; the TIGNN beam benchmark imposes the clamped nodes' whole true state at every step, and
     its readout is fitted to such rollouts: 7.1 % against 9.0 % fitted to ``rollout``'s).
-    ``symmetric``: mirror-image weights (``fit_stress_readout``)."""
+    ``symmetric``: mirror-image weights, ``load_hops``: the applied loads within that reach too
+    (``fit_stress_readout``)."""
     from .rollout import rollout
 
     if roll is None:
@@ -307,4 +376,5 @@ def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
     finally:
         model.use_readout = was
     return fit_stress_readout(data.graph.ref_pos, data.graph.edge_index, rolled, columns, hops,
-                              source=str(data.path), symmetric=symmetric, node_type=data.graph.node_type)
+                              source=str(data.path), symmetric=symmetric, node_type=data.graph.node_type,
+                              forces=[t.force for t in trajectories], load_hops=load_hops)
