@@ -149,7 +149,8 @@ def test_a_load_aware_readout_reads_a_surface_loads_traction():
     """``load_hops`` (``model.stress_readout_load``): the applied loads near each node enter the
     readout, σ = W u + V f. A stencil stress plus the traction of point loads on the side faces is
     recovered on unseen fields and loads, which the displacements alone cannot; mirror-symmetric,
-    it is equivariant in u and f together, and it counts only load weights some snapshot loads."""
+    it is equivariant in u and f together, and it counts only load weights some snapshot loads; a load
+    reach beyond the displacements' tells more shapes apart."""
     ref, ei, idx = _grid()
     nt = torch.from_numpy((idx[:, 0] == 0).astype(np.int64))
     z, (f, extra) = _snapshots(ref, idx, 80, seed=0), _side_loads(ref, idx, 80, seed=0)
@@ -179,8 +180,10 @@ def test_a_load_aware_readout_reads_a_surface_loads_traction():
     model.readout.load_state_dict(readout.state_dict())
     state = zt[0].clone()
     assert torch.allclose(model.read_stress(state, ref, ft[0])[:, 6:], zt[0, :, 6:], atol=1e-6 * zt[0, :, 6:].abs().max())
-    with pytest.raises(DataError, match=r"d\.h5: model\.stress_readout_load = 2, expected .* 1 to model\.stress_readout \(1\)"):
-        fit_stress_readout(ref, ei, [z], list(range(6, 12)), hops=1, source="d.h5", forces=[f], load_hops=2)
+    wide, fit_w = fit_stress_readout(ref, ei, [z], list(range(6, 12)), hops=1, forces=[f], load_hops=2)
+    assert fit_w["classes"] > fit["classes"] and fit_w["fit_error"] < 1e-9     # beyond hops: more shapes
+    with pytest.raises(DataError, match=r"d\.h5: model\.stress_readout_load = -1, expected the loads' reach"):
+        fit_stress_readout(ref, ei, [z], list(range(6, 12)), hops=1, source="d.h5", forces=[f], load_hops=-1)
 
 
 def test_a_model_with_a_readout_reports_the_stress_off_its_positions_and_scripts():
@@ -274,8 +277,8 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
     scripted = torch.jit.load(str(export(mirrored)))
     f = torch.randn(loaded.readout.nodes, 3, dtype=z.dtype)
     assert torch.allclose(scripted.report(z, f), loaded.read_stress(z, scripted.reference_positions, f))
-    with pytest.raises(ConfigError, match=r"model.stress_readout_load = 2: .* expected 0 \(off\) or 1 to model.stress_readout \(1\)"):
-        train(load_config([f"out={tmp_path / 'nl'}", "model.stress_readout=1", "model.stress_readout_load=2",
+    with pytest.raises(ConfigError, match=r"model.stress_readout_load = 2: .* expected 0 \(off\) or hops >= 1 with model.stress_readout set"):
+        train(load_config([f"out={tmp_path / 'nl'}", "model.stress_readout_load=2",
                            f"paths.dataset={tmp_path / 'dataset.h5'}"]))
     with pytest.raises(ConfigError, match="model.stress_readout_symmetric = true: .* set model.stress_readout"):
         train(load_config([f"out={tmp_path / 'ns'}", "model.stress_readout_symmetric=true",

@@ -426,9 +426,9 @@ def _train_here(cfg) -> Path:
         raise ConfigError("model.stress_readout_symmetric = true: ties the weights of a stress readout; "
                           "set model.stress_readout to its reach in hops (>= 1)")
     load_hops = _sel(cfg, "model.stress_readout_load", 0) or 0
-    if isinstance(load_hops, bool) or not isinstance(load_hops, int) or not 0 <= load_hops <= max(hops, 0):
+    if isinstance(load_hops, bool) or not isinstance(load_hops, int) or load_hops < 0 or (load_hops and not hops):
         raise ConfigError(f"model.stress_readout_load = {load_hops!r}: the applied loads' reach in a stress "
-                          f"readout, expected 0 (off) or 1 to model.stress_readout ({hops})")
+                          "readout, expected 0 (off) or hops >= 1 with model.stress_readout set")
     if prior == "linear":                                # the linearised FE step + learned remainders
         if hops:
             raise ConfigError("model.stress_readout: an option of the network stepping the whole state; "

@@ -28,8 +28,9 @@ readout 30,636 weights instead of 182,880.
 With ``load_hops`` (``model.stress_readout_load``) the applied nodal loads within that reach enter
 the stencil too, σ_i = Σ_j W u_j + Σ_j V f_j [N]: the stress at a loaded face carries the load's
 traction, which the displacements near a point load read poorly (TIGNN beam, 3 + 3 hops: σ 7.50 →
-5.55 % on the reference metric, 3,084 more weights; docs/accuracy.md, session 54). A load column
-that no training snapshot loads gets weight 0 and is not counted.
+5.55 % on the reference metric, 3,084 more weights; 3 + 4 hops: 5.03 %, 17,172; docs/accuracy.md,
+session 54). A load column that no training snapshot loads gets weight 0 and is not counted; a
+load reach beyond ``hops`` tells nodes apart by both stencils' shapes (more shapes).
 
 The readout is fitted after training to the network's own rollouts of the training trajectories
 (``fit_readout_to_rollouts``: predicted positions against the data's stress), and a rollout reports
@@ -214,14 +215,20 @@ def check_determined(ref_pos: np.ndarray, edge_index: np.ndarray, snapshots: int
     if hops < 1:
         raise DataError(f"{source}: model.stress_readout = {hops}, expected the stencil's reach in hops (>= 1) or 0 (off)")
     stencil, classes = stencils(ref_pos, edge_index, int(hops))
+    _check_rows(stencil, classes, snapshots, f"{source}: model.stress_readout = {hops}")
+    return stencil, classes
+
+
+def _check_rows(stencil: list[list[int]], classes: np.ndarray, snapshots: int, what: str) -> None:
+    """DataError (starting with ``what``) where a shape's nodes give fewer equations than it has
+    displacement weights."""
     for c in range(int(classes.max()) + 1):
         nodes = np.flatnonzero(classes == c)
         rows, cols = snapshots * len(nodes), 3 * len(stencil[nodes[0]])
         if rows < cols:
-            raise DataError(f"{source}: model.stress_readout = {hops}: {len(nodes)} node(s) of one neighbourhood "
-                            f"shape give {rows} equations for {cols} weights (a mesh whose neighbourhoods "
-                            "do not repeat, or too few training snapshots); use fewer hops or 0")
-    return stencil, classes
+            raise DataError(f"{what}: {len(nodes)} node(s) of one neighbourhood shape give {rows} equations "
+                            f"for {cols} weights (a mesh whose neighbourhoods do not repeat, or too few "
+                            "training snapshots); use fewer hops or 0")
 
 
 def load_stencils(ref_pos: np.ndarray, edge_index: np.ndarray, load_hops: int,
@@ -247,8 +254,9 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
                        load_hops: int = 0) -> tuple[StressReadout, Dict]:
     """Least-squares fit of the readout to the states z [T, N, D] of ``trajectories`` (the training
     split): σ = z[..., columns] against u = z[..., :3] - X, and with ``load_hops`` >= 1
-    (``model.stress_readout_load``, at most ``hops``) the applied loads ``forces`` [T, N, 3] (N) of
-    the same snapshots within that reach (a load column no snapshot loads gets weight 0).
+    (``model.stress_readout_load``) the applied loads ``forces`` [T, N, 3] (N) of the same snapshots
+    within that reach (a load column no snapshot loads gets weight 0; a reach beyond ``hops`` tells
+    nodes apart by both stencils' shapes, so there are more shapes, each with its own weights).
     ``symmetric``: mirror-image shapes get mirror-image weights (the snapshots fitted in every frame
     of ``mesh_symmetries``, which ``node_type`` [N] constrains; needs the 6 stress components).
     Returns the readout and a report {"hops", "load_hops", "classes", "weights", "symmetries",
@@ -273,10 +281,11 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     stencil, classes = check_determined(X, edges, len(z), hops, source)
     load_stencil: list[list[int]] = [[] for _ in range(len(X))]
     if load_hops:
-        if not 1 <= load_hops <= hops:
-            raise DataError(f"{source}: model.stress_readout_load = {load_hops}, expected the load's reach "
-                            f"in hops, 1 to model.stress_readout ({hops}), or 0 (off)")
-        load_stencil, classes = load_stencils(X, edges, load_hops, classes)
+        if load_hops < 0:
+            raise DataError(f"{source}: model.stress_readout_load = {load_hops}, expected the loads' reach "
+                            "in hops (>= 1) or 0 (off)")
+        load_stencil, classes = load_stencils(X, edges, load_hops, classes)   # beyond hops: more shapes
+        _check_rows(stencil, classes, len(z), f"{source}: model.stress_readout_load = {load_hops}")
     symmetries = [(np.eye(3), np.arange(len(X)))]
     if symmetric:
         if len(cols) != 6:
