@@ -182,12 +182,8 @@ def stress_action(R: np.ndarray) -> np.ndarray:
 def mirrored(u: np.ndarray, sigma: np.ndarray, symmetries) -> tuple[np.ndarray, np.ndarray]:
     """The snapshots u [S, N, 3] (m) and σ [S, N, 6] (Pa, ``VOIGT``) seen in every frame g = (R, p)
     of ``symmetries``: u'[p[j]] = R u[j], σ'[p[i]] = R σ[i] Rᵀ. Returns [S |G|, N, 3], [S |G|, N, 6]."""
-    us, ss = [], []
-    for R, p in symmetries:
-        back = np.argsort(p)                                   # the node each node comes from
-        us.append(u[:, back] @ R.T)
-        ss.append(sigma[:, back] @ stress_action(R).T)
-    return np.concatenate(us), np.concatenate(ss)
+    ss = [sigma[:, np.argsort(p)] @ stress_action(R).T for R, p in symmetries]   # argsort(p): where from
+    return mirrored_vectors(u, symmetries), np.concatenate(ss)
 
 
 def shape_orbits(classes: np.ndarray, symmetries) -> np.ndarray:
