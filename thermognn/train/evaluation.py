@@ -331,7 +331,7 @@ def repeated_cases(ref_pos: np.ndarray, edge_index: np.ndarray, node_type: np.nd
     to ``REPEAT_TOL`` relative L2 over all steps and nodes. On such test cases the test error
     measures the fit to training cases, not generalisation to new loads: the TIGNN beam's reference
     split tests 6 of 6 mirror images of training trajectories, to 6e-15 (docs/accuracy.md, session 54)."""
-    from .stress_readout import mesh_symmetries
+    from .stress_readout import mesh_symmetries, mirrored_vectors
 
     X, q = np.asarray(ref_pos, dtype=np.float64), positions
     symmetries = mesh_symmetries(X, np.asarray(edge_index), np.asarray(node_type))
@@ -345,9 +345,7 @@ def repeated_cases(ref_pos: np.ndarray, edge_index: np.ndarray, node_type: np.nd
         for t in (t for t in test if t.z.shape[0] == length):
             u = t.z[:, :, q].detach().cpu().double().numpy() - X                                # [S, N, 3]
             best, near = np.inf, 0
-            for R, perm in symmetries:
-                image = np.empty_like(u)
-                image[:, perm] = u @ R.T                                      # node i's u lands on perm[i]
+            for image in mirrored_vectors(u, symmetries).reshape(len(symmetries), *u.shape):   # [S, N, 3] each
                 gap = np.linalg.norm((u_train - image).reshape(len(pool), -1), axis=1) / np.maximum(size, 1e-300)
                 if gap.min() < best:
                     best, near = float(gap.min()), int(gap.argmin())

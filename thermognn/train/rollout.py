@@ -36,14 +36,13 @@ def rollout(model, graph: Graph, z0: Tensor, forces: Tensor, dt: float, steps: i
                 p.requires_grad_(True)
         return pred.detach().to(z0.dtype)
     dt_t = torch.tensor(dt, dtype=z0.dtype)
+    loads = [forces[min(s, forces.shape[0] - 1)] for s in range(steps + 1)]      # each state's load [N, 3]
     out = [model.impose(z0, graph.node_type, graph.ref_pos)]
     with torch.enable_grad():  # the model differentiates E and S: never under no_grad
         for s in range(1, steps + 1):
-            f = forces[min(s, forces.shape[0] - 1)]
-            out.append(model.step(out[-1], f, graph.edge_index, graph.node_type, graph.ref_pos, dt_t).detach())
-    if getattr(model, "use_readout", False):    # the stress reported: read off the positions
-        return torch.stack([model.read_stress(z, graph.ref_pos, forces[min(s, forces.shape[0] - 1)])
-                            for s, z in enumerate(out)])
+            out.append(model.step(out[-1], loads[s], graph.edge_index, graph.node_type, graph.ref_pos, dt_t).detach())
+    if getattr(model, "use_readout", False):    # the stress reported: read off the positions (and loads)
+        return torch.stack([model.read_stress(z, graph.ref_pos, f) for z, f in zip(out, loads)])
     return torch.stack(out)
 
 

@@ -264,6 +264,9 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     cols = [int(c) for c in columns]
     u, sigma = z[:, :, :3] - X, z[:, :, cols]                                             # [S, N, 3], [S, N, C]
     load_hops = int(load_hops or 0)
+    if load_hops < 0:
+        raise DataError(f"{source}: model.stress_readout_load = {load_hops}, expected the loads' reach "
+                        "in hops (>= 1) or 0 (off)")
     if load_hops and forces is None:
         raise ValueError("fit_stress_readout: load_hops needs the snapshots' forces")
     f = (np.concatenate([t.detach().cpu().double().numpy() for t in forces]) if load_hops
@@ -277,9 +280,6 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     stencil, classes = check_determined(X, edges, len(z), hops, source)
     load_stencil: list[list[int]] = [[] for _ in range(len(X))]
     if load_hops:
-        if load_hops < 0:
-            raise DataError(f"{source}: model.stress_readout_load = {load_hops}, expected the loads' reach "
-                            "in hops (>= 1) or 0 (off)")
         load_stencil, classes = load_stencils(X, edges, load_hops, classes)   # beyond hops: more shapes
         _check_rows(stencil, classes, len(z), f"{source}: model.stress_readout_load = {load_hops}")
     symmetries = [(np.eye(3), np.arange(len(X)))]
