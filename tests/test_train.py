@@ -149,7 +149,7 @@ def test_resume_after_interruption_matches_uninterrupted(tmp_path, monkeypatch):
     write_oscillator_dataset(tmp_path / "a" / "dataset.h5", n_trajectories=4, steps=6)
     write_oscillator_dataset(tmp_path / "b" / "dataset.h5", n_trajectories=4, steps=6)
     extra = ("train.epochs=4", "train.noise=0.01", "train.rollout_pairs=2", "train.rest_rollout=4",
-             "train.rest_stability=10")
+             "train.rest_stability=10", "train.symmetry_augment=true")
     ref = train(_cfg(tmp_path / "a", *extra))
 
     real_write = loop._write_metrics
@@ -215,6 +215,42 @@ def test_resume_within_an_epoch_goes_on_at_its_next_batch(tmp_path, monkeypatch,
         assert {k: v for k, v in a.items() if k != "seconds"} == {k: v for k, v in b.items() if k != "seconds"}
     for k, v in ref["state_dict"].items():
         assert torch.equal(v, got["state_dict"][k]), k
+
+
+def test_symmetry_augment_shows_training_pairs_in_the_meshs_mirrors(tmp_path, capsys):
+    """``train.symmetry_augment``: the square box clamped at its base has one mirror besides the
+    identity, the x <-> y swap; the image of an oscillator trajectory is the same oscillator driven
+    sideways (u_y = b Z / H, σ23 = G b / H, the load along y), twice the image is the original, the
+    batches see it, training with it runs, and bad settings are refused in one line."""
+    from thermognn.train.data import make_batch, state_images
+
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=4, steps=6)
+    data = load_data(tmp_path / "dataset.h5", [0.5, 0.25, 0.25], 0, torch.float64)
+    images = state_images(data.graph, data.layout)
+    assert len(images) == 2 and torch.equal(images[0].matrix, torch.eye(12, dtype=torch.float64))
+    swap = images[1]
+    t = data.read(data.split["train"][0])
+    z, f, X = swap.states(t.z), swap.loads(t.force), data.graph.ref_pos.double()
+    H, b = float(X[:, 2].max()), (t.z[:, :, 0] - X[:, 0]) / (X[:, 2] / float(X[:, 2].max())).clamp(min=1e-12)
+    top = X[:, 2] == H
+    assert torch.allclose(z[:, :, 0], X[:, 0].expand_as(z[:, :, 0]), atol=1e-15)            # no motion along x now
+    assert torch.allclose(z[:, top, 1] - X[top, 1], b[:, top], atol=1e-15)                # the shear along y
+    assert torch.allclose(z[:, :, 4], t.z[:, :, 3], atol=1e-15)                            # v_y = the former v_x
+    assert torch.allclose(z[:, :, 6 + 5], t.z[:, :, 6 + 4]) and not z[:, :, 6 + 4].any()  # σ23 = the former σ13
+    assert torch.equal(f[:, :, 1], t.force[:, :, 0]) and not f[:, :, 0].any()
+    assert torch.allclose(swap.states(z), t.z, atol=1e-15) and torch.equal(swap.loads(f), t.force)
+    batch = make_batch([t], [(0, 2), (0, 2)], data.graph, frames=[images[0], swap])
+    n = data.graph.n_nodes
+    assert torch.equal(batch.z[:n], t.z[2]) and torch.allclose(batch.z[n:], z[2]) and torch.equal(batch.f[n:], f[3])
+    capsys.readouterr()
+    ckpt = load_checkpoint(train(_cfg(tmp_path, "train.epochs=2", "train.symmetry_augment=true")))
+    assert "each pair seen in one of the mesh's 2 mirror frames at random" in capsys.readouterr().out
+    assert all(math.isfinite(float(r["loss"])) for r in _rows(tmp_path)) and ckpt["epoch"] == 2
+    with pytest.raises(ConfigError, match=r"train.symmetry_augment = 'yes', expected true .* or false"):
+        train(_cfg(tmp_path / "bad", "train.symmetry_augment=yes", f"paths.dataset={tmp_path / 'dataset.h5'}"))
+    with pytest.raises(ConfigError, match=r"train.symmetry_augment = true: .* model.prior=linear"):
+        train(_cfg(tmp_path / "lp", "model=linear_prior", "train.symmetry_augment=true",
+                   f"paths.dataset={tmp_path / 'dataset.h5'}"))
 
 
 def test_generic_structure_trains(tmp_path):

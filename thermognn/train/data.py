@@ -367,8 +367,74 @@ def rest_rollout_steps(setting, n_rest: int) -> tuple[int, list[int]]:
     return h, [h - 1 - (k * (h - 2)) // max(n_rest - 1, 1) for k in range(n_rest)]
 
 
+@dataclass(frozen=True)
+class StateImage:
+    """One symmetry g = (R, p) of the mesh (``stress_readout.mesh_symmetries``: X[p[i]] = c + R (X[i] - c))
+    acting on the states and loads: the same motion seen in the mirror, node p[i] doing what node i
+    did. For an isotropic solid whose supports and (with ``gravity``) body force the mirror keeps,
+    the image of a trajectory is a trajectory of the same physics (``train.symmetry_augment``).
+
+    source [N] (node k of the image is node source[k] = p⁻¹[k] of the original),
+    matrix [D, D] (block-diagonal: R on q and v, voigt(R σ Rᵀ) on every stress group),
+    shift [D] ((I - R) c on q [m], 0 elsewhere), rotation [3, 3] (R, for the loads)."""
+
+    source: Tensor
+    matrix: Tensor
+    shift: Tensor
+    rotation: Tensor
+
+    def states(self, z: Tensor) -> Tensor:
+        """z [..., N, D] -> its image [..., N, D]: q' = c + R (q - c), v' = R v, σ' = R σ Rᵀ
+        (worked in float64, returned in z's dtype, on z's device)."""
+        m = self.matrix.to(z.device)
+        return (z[..., self.source.to(z.device), :].to(m.dtype) @ m.T + self.shift.to(z.device)).to(z.dtype)
+
+    def loads(self, f: Tensor) -> Tensor:
+        """Nodal loads f [..., N, 3] [N] -> their image R f, moved with their nodes."""
+        r = self.rotation.to(f.device)
+        return (f[..., self.source.to(f.device), :].to(r.dtype) @ r.T).to(f.dtype)
+
+
+#: state groups a mirror acts on as vectors, and as symmetric tensors (Voigt); others are refused
+_VECTOR_GROUPS, _TENSOR_PREFIXES = ("q", "v"), ("sigma", "xi")
+
+
+def state_images(graph: Graph, layout: StateLayout, gravity=None, dtype: torch.dtype = torch.float64,
+                 key: str = "train.symmetry_augment") -> list[StateImage]:
+    """The mesh's symmetries (identity first) as ``StateImage``s on states of ``layout``; with a
+    ``gravity`` vector [m/s²] only those that keep it. Raises ConfigError for a state group it cannot
+    mirror (names ``key``)."""
+    from .stress_readout import mesh_symmetries, stress_action
+
+    X = graph.ref_pos.double().cpu().numpy()
+    c = 0.5 * (X.min(0) + X.max(0))                                      # the symmetries' centre [m]
+    symmetries = mesh_symmetries(X, graph.edge_index.cpu().numpy(), graph.node_type.cpu().numpy())
+    if gravity is not None:
+        g = np.asarray(gravity, dtype=np.float64)
+        symmetries = [(R, p) for R, p in symmetries if np.allclose(R @ g, g)]
+    images = []
+    for R, p in symmetries:
+        A, b, start = np.zeros((layout.dim, layout.dim)), np.zeros(layout.dim), 0
+        for name, width in layout.groups:
+            block = slice(start, start + width)
+            if name in _VECTOR_GROUPS and width == 3:
+                A[block, block] = R
+                if name == "q":
+                    b[block] = c - R @ c
+            elif name.startswith(_TENSOR_PREFIXES) and width == 6:
+                A[block, block] = stress_action(R)
+            else:
+                raise ConfigError(f"{key}: state variable '{name}' ({width} columns) has no known mirror image; "
+                                  f"expected q, v (3) or stresses sigma, xi* (6)")
+            start += width
+        images.append(StateImage(source=torch.as_tensor(np.argsort(p)),
+                                 matrix=torch.as_tensor(A, dtype=dtype), shift=torch.as_tensor(b, dtype=dtype),
+                                 rotation=torch.as_tensor(R, dtype=dtype)))
+    return images
+
+
 def make_batch(trajs: list[TrajectoryTensors], items: list[tuple[int, ...]], graph: Graph,
-               rolled: list[Tensor] | None = None):
+               rolled: list[Tensor] | None = None, frames: list[StateImage] | None = None):
     """Concatenate snapshot pairs into one disjoint graph (a ``torch_geometric.data.Data``, laid
     out as ``Batch.from_data_list`` would, built directly since all snapshots share one mesh).
 
@@ -376,15 +442,22 @@ def make_batch(trajs: list[TrajectoryTensors], items: list[tuple[int, ...]], gra
     ``rolled[i][s]`` [N, D], the model's own rollout of that trajectory, still aiming at the true
     z[s+1] (training on its own drift, ``train.rollout_pairs``).
 
+    With ``frames`` (one ``StateImage`` per item, ``train.symmetry_augment``) each pair is seen in
+    its item's mirror of the mesh.
+
     Fields: z [B*N, D], z_next [B*N, D], f [B*N, 3], pos [B*N, 3] (reference X),
     node_type [B*N], edge_index [2, B*E] (graph b's indices offset by b*N), batch [B*N]."""
     from torch_geometric.data import Data
 
     B, N = len(items), graph.n_nodes
-    z = torch.stack([(rolled[it[0]] if len(it) > 2 and it[2] else trajs[it[0]].z)[it[1]] for it in items])
-    z = z.reshape(B * N, -1)
-    z_next = torch.stack([trajs[it[0]].z[it[1] + 1] for it in items]).reshape(B * N, -1)
-    f = torch.stack([trajs[it[0]].force[it[1] + 1] for it in items]).reshape(B * N, 3)
+    z = torch.stack([(rolled[it[0]] if len(it) > 2 and it[2] else trajs[it[0]].z)[it[1]] for it in items])  # [B, N, D]
+    z_next = torch.stack([trajs[it[0]].z[it[1] + 1] for it in items])                                       # [B, N, D]
+    f = torch.stack([trajs[it[0]].force[it[1] + 1] for it in items])                                        # [B, N, 3]
+    if frames is not None:
+        z = torch.stack([g.states(z[b]) for b, g in enumerate(frames)])
+        z_next = torch.stack([g.states(z_next[b]) for b, g in enumerate(frames)])
+        f = torch.stack([g.loads(f[b]) for b, g in enumerate(frames)])
+    z, z_next, f = z.reshape(B * N, -1), z_next.reshape(B * N, -1), f.reshape(B * N, 3)
     batched = graph.copies(B)
     return Data(z=z, z_next=z_next, f=f, pos=batched.ref_pos, node_type=batched.node_type,
                 edge_index=batched.edge_index, batch=torch.arange(B).repeat_interleave(N), num_nodes=B * N)

@@ -21,7 +21,7 @@ from thermognn.core.state import is_reversible
 from .checkpoint import (FORMAT, last_path, load_checkpoint, model_from_checkpoint, save_checkpoint,
                          torch_dtype)
 from .data import (LoadedData, check_fingerprint, compute_stats, fingerprint, load_data, make_batch,
-                   rest_rollout_steps, rest_samples, rest_trajectory, samples,
+                   rest_rollout_steps, rest_samples, rest_trajectory, samples, state_images,
                    velocity_columns)
 from .device import cpu_randn, training_device
 from .hybrid import prior_kind, train_linear_prior, training_phases
@@ -285,7 +285,7 @@ RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy
 #: later training terms, part of the identity only when on: a run interrupted before they existed resumes
 #: (with the value that leaves them as they were before: off, or the former fixed behaviour)
 OPTIONAL_RESUME_KEYS = {"rest_rollout": 0, "rest_stability": 0, "rest_stability_probe": STABILITY_PROBE,
-                        "rest_stability_every": 1}
+                        "rest_stability_every": 1, "symmetry_augment": False}
 #: settings of the rest-stability penalty, which matter only while it is on
 STABILITY_SETTINGS = ("rest_stability_probe", "rest_stability_every")
 
@@ -369,6 +369,26 @@ def print_rrmse_table(title: str, rows: dict[str, dict[str, float]]) -> None:
     Console().print(table)
 
 
+def training_images(data: LoadedData, where: str) -> list:
+    """``train.symmetry_augment``: the mesh's mirror frames that keep the supports, the node types and
+    (with ``gravity``, the scene's ``gravity`` vector from the dataset's configuration) the body force;
+    prints a line where the mesh has no symmetry but the identity (the option then changes nothing)."""
+    import yaml
+
+    gravity = None
+    if "gravity" in data.dataset.effects:
+        stored = yaml.safe_load(data.dataset.config_yaml or "") or {}
+        gravity = (stored.get("scene") or {}).get("gravity", stored.get("gravity"))
+        if gravity is None:
+            raise ConfigError(f"train.symmetry_augment = true: {where} has gravity but its stored configuration "
+                              "names no scene.gravity vector, so no mirror is known to keep it")
+    images = state_images(data.graph, data.layout, gravity)
+    if len(images) == 1:
+        print(f"train.symmetry_augment: the mesh of {where} has no mirror symmetry"
+              + (" that keeps gravity" if gravity is not None else "") + "; training as without it")
+    return images
+
+
 def readout_hops(cfg) -> int:
     """``model.stress_readout``: the stress readout's reach in hops (0 or absent: off)."""
     return int(_sel(cfg, "model.stress_readout", 0) or 0)
@@ -429,7 +449,14 @@ def _train_here(cfg) -> Path:
     if isinstance(load_hops, bool) or not isinstance(load_hops, int) or load_hops < 0 or (load_hops and not hops):
         raise ConfigError(f"model.stress_readout_load = {load_hops!r}: the applied loads' reach in a stress "
                           "readout, expected 0 (off) or hops >= 1 with model.stress_readout set")
+    augment = _sel(tc, "symmetry_augment", False)
+    if not isinstance(augment, bool):
+        raise ConfigError(f"train.symmetry_augment = {augment!r}, expected true (each training pair seen in a "
+                          "random mirror of the mesh) or false")
     if prior == "linear":                                # the linearised FE step + learned remainders
+        if augment:
+            raise ConfigError("train.symmetry_augment = true: an option of the network stepping the whole "
+                              "state; model.prior=linear steps its prior's FE operators (leave it false)")
         if hops:
             raise ConfigError("model.stress_readout: an option of the network stepping the whole state; "
                               "model.prior=linear takes its stress from the prior (leave it 0)")
@@ -517,6 +544,7 @@ def _train_here(cfg) -> Path:
         direction = cpu_randn((n_dirs, *rest.z.shape[1:]), torch.Generator().manual_seed(seed), rest.z)
     if direction is not None:                        # (a checkpoint's is on the CPU)
         direction = direction.to(rest.z.device)
+    images = training_images(data, str(_sel(cfg, "paths.dataset", ""))) if augment else None
     rollout_from = int(_sel(tc, "rollout_pairs", 0))
     rolled: list[torch.Tensor] | None = None
     batch_size = max(1, int(tc.batch_size))
@@ -529,7 +557,9 @@ def _train_here(cfg) -> Path:
               f"trajectories, {len(pairs)} steps ({n_rest} at rest"
               + (f", {len(rest_steps)} more from its own {rest_horizon}-step rollout at rest" if rest_horizon else "")
               + f"), structure {structure}, "
-              f"{parameter_count(model)} parameters" + linear_validation_error(data, val_trajs))
+              f"{parameter_count(model)} parameters" + linear_validation_error(data, val_trajs)
+              + (f"; each pair seen in one of the mesh's {len(images)} mirror frames at random"
+                 if images is not None else ""))
 
     def resume_state(epoch_done: int, val: float, **extra) -> dict:
         """``model.last.ckpt``'s contents: everything a resumed run needs to go on exactly."""
@@ -575,9 +605,14 @@ def _train_here(cfg) -> Path:
             n_use = len(perm) // dist.world * dist.world if dist.world > 1 else len(perm)
             mine = perm[dist.rank:n_use:dist.world]
             nb = -(-len(mine) // batch_size)
+            # each item's mirror frame this epoch, from (seed, epoch) alone: a resumed epoch draws the same
+            frame = (torch.randint(len(images), (len(items),), generator=torch.Generator().manual_seed(
+                seed * 100_003 + epoch)).tolist() if images is not None else None)
             saves.start()
             for b in range(n_batches * batch_size, len(mine), batch_size):
-                batch = make_batch(batch_trajs, [items[i] for i in mine[b:b + batch_size]], data.graph, rolled)
+                chosen = mine[b:b + batch_size]
+                batch = make_batch(batch_trajs, [items[i] for i in chosen], data.graph, rolled,
+                                   [images[frame[i]] for i in chosen] if frame is not None else None)
                 loss, dl, dg = step_loss(model, batch, ds.dt, noise, gen, lam_d, lam_g)
                 if lam_s > 0 and n_batches % probe_every == 0:   # a disturbance at rest must not grow
                     growth, direction = rest_growth(model, rest, data.graph, ds.dt, direction, probe_sizes)
