@@ -277,6 +277,17 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
     scripted = torch.jit.load(str(export(mirrored)))
     f = torch.randn(loaded.readout.nodes, 3, dtype=z.dtype)
     assert torch.allclose(scripted.report(z, f), loaded.read_stress(z, scripted.reference_positions, f))
+    refit = load_config([f"out={tmp_path / 'refit'}", *small, "train.epochs=0", "model.stress_readout=2",
+                         "model.stress_readout_symmetric=true", f"train.init={tmp_path / 'model.ckpt'}",
+                         f"paths.dataset={tmp_path / 'dataset.h5'}"])
+    refitted = load_checkpoint(train(refit))                       # no training: the readout alone, anew
+    init = load_checkpoint(tmp_path / "model.ckpt")
+    assert refitted["epoch"] == 0 and refitted["hparams"]["stress_readout"]["hops"] == 2
+    assert all(torch.equal(v, init["state_dict"][k]) for k, v in refitted["state_dict"].items() if not k.startswith("readout."))
+    assert not (tmp_path / "refit" / "metrics.csv").exists()
+    with pytest.raises(ConfigError, match=r"train.epochs = 0, expected >= 1 \(or 0 with train.init and model.stress_readout"):
+        train(load_config([f"out={tmp_path / 'e0'}", "train.epochs=0", "model.stress_readout=1",
+                           f"paths.dataset={tmp_path / 'dataset.h5'}"]))
     with pytest.raises(ConfigError, match=r"model.stress_readout_load = 2: .* expected 0 \(off\) or hops >= 1 with model.stress_readout set"):
         train(load_config([f"out={tmp_path / 'nl'}", "model.stress_readout_load=2",
                            f"paths.dataset={tmp_path / 'dataset.h5'}"]))

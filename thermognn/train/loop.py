@@ -422,8 +422,9 @@ def _train_here(cfg) -> Path:
     prior = prior_kind(cfg.model)
     if prior == "linear":                    # its three phases (the fit phase's epochs may be 0)
         phases = training_phases(tc)
-    elif epochs < 1:
-        raise ConfigError(f"train.epochs = {epochs}, expected >= 1")
+    elif epochs < 0 or (epochs == 0 and not (_sel(tc, "init", None) and readout_hops(cfg))):
+        raise ConfigError(f"train.epochs = {epochs}, expected >= 1 (or 0 with train.init and "
+                          "model.stress_readout: the init's network as it is, its stress readout fitted anew)")
     ckpt_path = project_path(cfg.paths.checkpoint)
     out_dir = project_path(cfg.out)
     init = _sel(tc, "init", None)            # a fine-tune keeps its init's split (split_names' keep)
@@ -480,7 +481,7 @@ def _train_here(cfg) -> Path:
     base = _base_checkpoint(cfg, data, hparams, dtype_name, structure, stats)
     lr = float(tc.lr)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
-    gamma = float(_sel(tc, "lr_decay", 1.0)) ** (1.0 / epochs)
+    gamma = float(_sel(tc, "lr_decay", 1.0)) ** (1.0 / max(epochs, 1))
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=gamma)
     gen = torch.Generator().manual_seed(seed)            # on the CPU, whatever train.device
     start_epoch, history, best_val, stale = 0, [], math.inf, 0
@@ -489,7 +490,7 @@ def _train_here(cfg) -> Path:
     saves = EpochCheckpoints(_sel(tc, "checkpoint_minutes", 10), dist)
 
     last = last_path(ckpt_path)
-    if bool(_sel(tc, "resume", True)) and last.exists():
+    if bool(_sel(tc, "resume", True)) and last.exists() and epochs > 0:
         state = load_checkpoint(last)
         check_fingerprint(state["fingerprint"], ds, last,
                           hint="delete it or pass train.resume=false to train from scratch")
@@ -569,6 +570,11 @@ def _train_here(cfg) -> Path:
                 "history": history, "best_val": best_val, "stale_rounds": stale,
                 "rest_direction": direction, "identity": training_identity(cfg, hparams, dtype_name), **extra}
 
+    if epochs == 0 and dist.main:                # readout only: the init's network is the best model
+        model.eval()
+        save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": 0,
+                         "val_error": validation_error(model, data.graph, val_trajs, ds.layout, ds.dt)}, ckpt_path)
+        print(f"train.epochs = 0: {tc.init}'s network kept as it is; fitting its stress readout")
     tb = _tensorboard(_sel(tc, "tensorboard", "auto"), out_dir / "tensorboard") if dist.main else None
     stopped = start_epoch >= epochs or (patience > 0 and stale >= patience)
     with _progress(disable=not dist.main) as progress:
