@@ -228,6 +228,8 @@ def test_symmetry_augment_shows_training_pairs_in_the_meshs_mirrors(tmp_path, ca
     data = load_data(tmp_path / "dataset.h5", [0.5, 0.25, 0.25], 0, torch.float64)
     images = state_images(data.graph, data.layout)
     assert len(images) == 2 and torch.equal(images[0].matrix, torch.eye(12, dtype=torch.float64))
+    assert len(state_images(data.graph, data.layout, gravity=[0.0, 0.0, -9.81])) == 2   # the swap keeps g along z
+    assert len(state_images(data.graph, data.layout, gravity=[0.0, -9.81, 0.0])) == 1   # not along y
     swap = images[1]
     t = data.read(data.split["train"][0])
     z, f, X = swap.states(t.z), swap.loads(t.force), data.graph.ref_pos.double()

@@ -545,7 +545,7 @@ def _train_here(cfg) -> Path:
         direction = cpu_randn((n_dirs, *rest.z.shape[1:]), torch.Generator().manual_seed(seed), rest.z)
     if direction is not None:                        # (a checkpoint's is on the CPU)
         direction = direction.to(rest.z.device)
-    images = training_images(data, str(_sel(cfg, "paths.dataset", ""))) if augment else None
+    images = training_images(data, str(data.path)) if augment else None
     rollout_from = int(_sel(tc, "rollout_pairs", 0))
     rolled: list[torch.Tensor] | None = None
     batch_size = max(1, int(tc.batch_size))
