@@ -404,10 +404,10 @@ def state_images(graph: Graph, layout: StateLayout, gravity=None, dtype: torch.d
     """The mesh's symmetries (identity first) as ``StateImage``s on states of ``layout``; with a
     ``gravity`` vector [m/s²] only those that keep it. Raises ConfigError for a state group it cannot
     mirror (names ``key``)."""
-    from .stress_readout import mesh_symmetries, stress_action
+    from .stress_readout import mesh_symmetries, stress_action, symmetry_centre
 
     X = graph.ref_pos.double().cpu().numpy()
-    c = 0.5 * (X.min(0) + X.max(0))                                      # the symmetries' centre [m]
+    c = symmetry_centre(X)                                               # [3] m
     symmetries = mesh_symmetries(X, graph.edge_index.cpu().numpy(), graph.node_type.cpu().numpy())
     if gravity is not None:
         g = np.asarray(gravity, dtype=np.float64)

@@ -373,16 +373,13 @@ def training_images(data: LoadedData, where: str) -> list:
     """``train.symmetry_augment``: the mesh's mirror frames that keep the supports, the node types and
     (with ``gravity``, the scene's ``gravity`` vector from the dataset's configuration) the body force;
     prints a line where the mesh has no symmetry but the identity (the option then changes nothing)."""
-    import yaml
-
     gravity = None
-    if "gravity" in data.dataset.effects:
-        stored = yaml.safe_load(data.dataset.config_yaml or "") or {}
-        gravity = (stored.get("scene") or {}).get("gravity", stored.get("gravity"))
+    if "gravity" in data.dataset.effects:          # read as resolve_structure reads the dataset's config
+        gravity = OmegaConf.select(OmegaConf.create(data.dataset.config_yaml or ""), "scene.gravity", default=None)
         if gravity is None:
             raise ConfigError(f"train.symmetry_augment = true: {where} has gravity but its stored configuration "
                               "names no scene.gravity vector, so no mirror is known to keep it")
-    images = state_images(data.graph, data.layout, gravity)
+    images = state_images(data.graph, data.layout, None if gravity is None else list(gravity))
     if len(images) == 1:
         print(f"train.symmetry_augment: the mesh of {where} has no mirror symmetry"
               + (" that keeps gravity" if gravity is not None else "") + "; training as without it")

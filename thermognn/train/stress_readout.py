@@ -141,18 +141,24 @@ def stencils(ref_pos: np.ndarray, edge_index: np.ndarray, hops: int) -> tuple[li
     return out, classes
 
 
+def symmetry_centre(ref_pos: np.ndarray) -> np.ndarray:
+    """The point c [3] (m) the mesh's reflections and axis swaps act about: its bounding box's centre."""
+    X = np.asarray(ref_pos, dtype=np.float64)
+    return 0.5 * (X.min(0) + X.max(0))
+
+
 def mesh_symmetries(ref_pos: np.ndarray, edge_index: np.ndarray,
                     node_type: np.ndarray | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """The reflections and axis swaps that map the mesh onto itself: each (R [3, 3], a signed
     permutation matrix, and p [N], the node each node goes to: X[p[i]] = c + R (X[i] - c) about the
-    bounding box's centre c, to 1e-6 of the mean edge length), taking edges onto edges and each
+    bounding box's centre c = ``symmetry_centre``, to 1e-6 of the mean edge length), taking edges onto edges and each
     node's type (free, clamped, ...) onto the same. The identity comes first."""
     from scipy.spatial import cKDTree
 
     X = np.asarray(ref_pos, dtype=np.float64)
     e = np.asarray(edge_index)
     h = float(np.mean(np.linalg.norm(X[e[0]] - X[e[1]], axis=1)))
-    c = 0.5 * (X.min(0) + X.max(0))
+    c = symmetry_centre(X)
     nodes = cKDTree(X - c)
     edges = set(zip(e[0].tolist(), e[1].tolist()))
     found = []
