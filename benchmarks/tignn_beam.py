@@ -57,9 +57,12 @@ def main(argv: list[str]) -> None:
     parser.add_argument("--load-hops", type=int, default=0, metavar="HOPS",
                         help="with --stress-readout: the applied loads within this reach enter the readout too "
                              "(model.stress_readout_load)")
+    parser.add_argument("--modes", type=int, default=0, metavar="R",
+                        help="with --stress-readout: project the displacements onto the training split's R "
+                             "leading displacement fields before reading (model.stress_readout_modes)")
     args, overrides = parser.parse_known_args(argv)
-    if (args.symmetric or args.load_hops) and not args.stress_readout:
-        parser.error("--symmetric and --load-hops shape a stress readout: give --stress-readout HOPS too")
+    if (args.symmetric or args.load_hops or args.modes) and not args.stress_readout:
+        parser.error("--symmetric, --load-hops and --modes shape a stress readout: give --stress-readout HOPS too")
 
     from thermognn.core.config import load_config
     from thermognn.core.state import describe_step
@@ -90,7 +93,7 @@ def main(argv: list[str]) -> None:
         readout, fit = fit_readout_to_rollouts(      # rolled out as the reference metric rolls out
             model, data, data.of("train"), args.stress_readout,
             roll=lambda m, t: rollout_gt_clamped(m, data.graph, t.z, t.force, data.dt), symmetric=args.symmetric,
-            load_hops=args.load_hops)
+            load_hops=args.load_hops, modes=args.modes)
         print(f"stress readout attached: {fit}")
         ckpt = with_stress_readout(ckpt, readout, args.stress_readout, args.load_hops)
         model = model_from_checkpoint(ckpt).eval()

@@ -125,6 +125,67 @@ def test_a_symmetric_readout_is_equivariant_with_fewer_weights():
         fit_stress_readout(ref, ei, [train[..., :9]], [6, 7, 8], hops=1, source="d.h5", symmetric=True)
 
 
+def _modal_snapshots(ref, idx, count, seed, fields=4):
+    """States z [count, N, 12] whose displacements are random combinations of ``fields`` fixed
+    smooth fields, zero on the face x = 0 (their span: ``fields`` dimensions), and their stress."""
+    rng = np.random.default_rng(123)
+    X = ref.numpy()
+    k = rng.normal(size=(fields, 3)) * 30
+    base = [(X[:, :1] / X[:, 0].max()) * np.sin((X @ k[m])[:, None] + rng.normal(size=3)) * 1e-3
+            for m in range(fields)]                                                  # [N, 3] each
+    rng = np.random.default_rng(seed)
+    z = np.zeros((count, len(X), 12))
+    for s in range(count):
+        u = sum(c * b for c, b in zip(rng.normal(size=fields), base))
+        z[s, :, :3], z[s, :, 6:] = X + u, _linear_elastic_stress(u, idx)
+    return torch.tensor(z)
+
+
+def test_a_readout_on_displacement_modes_ignores_error_outside_the_training_span():
+    """``modes`` (``model.stress_readout_modes``): u is projected onto the span of the training
+    displacements' leading principal fields before the stencil reads it. Fields in that span read
+    as without it; a perturbation orthogonal to it changes nothing (without it, the stencil
+    amplifies it); mirror-symmetric, the span is closed under the mesh's frames, a degenerate pair
+    is not split, and the basis counts r x the moving components per orbit; scripted it reads the
+    same; a checkpoint's spec rebuilds it."""
+    ref, ei, idx = _grid()
+    train = _modal_snapshots(ref, idx, 30, seed=0)
+    plain, _ = fit_stress_readout(ref, ei, [train], list(range(6, 12)), hops=1)
+    readout, fit = fit_stress_readout(ref, ei, [train], list(range(6, 12)), hops=1, modes=4)
+    basis = readout.modes.double()                                            # [3 N, 4]
+    assert fit["modes"] == 4 and torch.allclose(basis.T @ basis, torch.eye(4, dtype=torch.float64), atol=1e-6)
+    moving = 3 * int((idx[:, 0] > 0).sum())                                   # the face x = 0 never moves
+    assert readout.mode_values == 4 * moving and fit["weights"] == plain.fitted_weights() + 4 * moving
+    test = _modal_snapshots(ref, idx, 3, seed=1)
+    noise = torch.randn(len(ref) * 3, dtype=torch.float64) * 1e-4
+    noise = (noise - basis @ (basis.T @ noise)).reshape(-1, 3)                 # orthogonal to the span
+    for z in test:
+        u, sigma = z[:, :3] - ref, z[:, 6:]
+        tol = 1e-5 * sigma.abs().max()
+        assert torch.allclose(readout(u), sigma, rtol=0, atol=tol)
+        assert torch.allclose(readout(u + noise), sigma, rtol=0, atol=tol)
+        assert not torch.allclose(plain(u + noise), sigma, rtol=0, atol=100 * tol)
+    scripted = torch.jit.script(readout)
+    assert torch.allclose(scripted(test[0, :, :3] - ref), readout(test[0, :, :3] - ref), rtol=1e-12, atol=0)
+    model = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, stress_readout=readout_spec(readout, 1))
+    model.readout.load_state_dict(readout.state_dict())
+    assert model.readout.fitted_weights() == fit["weights"]
+    nt = torch.from_numpy((idx[:, 0] == 0).astype(np.int64))
+    tied, fit_t = fit_stress_readout(ref, ei, [train], list(range(6, 12)), hops=1, symmetric=True, node_type=nt, modes=5)
+    r = fit_t["modes"]
+    assert r >= 5
+    B = tied.modes.double()
+    for R, p in mesh_symmetries(ref.numpy(), ei.numpy(), nt.numpy()):          # the span is closed under the frames
+        image = torch.empty_like(B.reshape(len(ref), 3, r))
+        image[torch.from_numpy(p)] = torch.einsum("ab,nbr->nar", torch.from_numpy(R), B.reshape(len(ref), 3, r))
+        image = image.reshape(-1, r)
+        assert torch.allclose(B @ (B.T @ image), image, atol=1e-6)
+    # a 4 x 4 cross-section: (48 components + 4 + 4 fixed by the two diagonal reflections) / 8 = 7 orbits a layer
+    assert tied.mode_values == r * 7 * 6
+    with pytest.raises(DataError, match=r"d\.h5: model\.stress_readout_modes = 5000, expected between 1 and"):
+        fit_stress_readout(ref, ei, [train], list(range(6, 12)), hops=1, source="d.h5", modes=5000)
+
+
 def _side_loads(ref, idx, count, seed):
     """Point loads f [count, N, 3] (N) on a random half of the side faces' nodes (one boundary
     coordinate in y or z, x inside) and the traction stress they add there, sym(f n) / A [Pa]
@@ -269,10 +330,12 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
     assert load_checkpoint(train(again))["hparams"]["stress_readout"]["hops"] == 1
     mirrored = load_config([f"out={tmp_path / 'sym'}", *small, "train.epochs=1", "model.stress_readout=1",
                             "model.stress_readout_symmetric=true", "model.stress_readout_load=1",
+                            "model.stress_readout_modes=3",
                             f"train.init={tmp_path / 'model.ckpt'}", f"paths.dataset={tmp_path / 'dataset.h5'}"])
     ckpt = load_checkpoint(train(mirrored))
     spec = ckpt["hparams"]["stress_readout"]
     assert 0 < spec["independent"] and spec["load_hops"] == 1 and spec["load_width"] > 0
+    assert spec["modes"] >= 3 and spec["mode_values"] > 0 and ckpt["state_dict"]["readout.modes"].shape[1] == spec["modes"]
     loaded = model_from_checkpoint(ckpt)
     scripted = torch.jit.load(str(export(mirrored)))
     f = torch.randn(loaded.readout.nodes, 3, dtype=z.dtype)
@@ -290,6 +353,9 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
                            f"paths.dataset={tmp_path / 'dataset.h5'}"]))
     with pytest.raises(ConfigError, match=r"model.stress_readout_load = 2: .* expected 0 \(off\) or hops >= 1 with model.stress_readout set"):
         train(load_config([f"out={tmp_path / 'nl'}", "model.stress_readout_load=2",
+                           f"paths.dataset={tmp_path / 'dataset.h5'}"]))
+    with pytest.raises(ConfigError, match=r"model.stress_readout_modes = 4: .* expected 0 \(off\) or >= 1 with model.stress_readout set"):
+        train(load_config([f"out={tmp_path / 'nm'}", "model.stress_readout_modes=4",
                            f"paths.dataset={tmp_path / 'dataset.h5'}"]))
     with pytest.raises(ConfigError, match="model.stress_readout_symmetric = true: .* set model.stress_readout"):
         train(load_config([f"out={tmp_path / 'ns'}", "model.stress_readout_symmetric=true",

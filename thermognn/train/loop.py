@@ -447,6 +447,10 @@ def _train_here(cfg) -> Path:
     if isinstance(load_hops, bool) or not isinstance(load_hops, int) or load_hops < 0 or (load_hops and not hops):
         raise ConfigError(f"model.stress_readout_load = {load_hops!r}: the applied loads' reach in a stress "
                           "readout, expected 0 (off) or hops >= 1 with model.stress_readout set")
+    modes = _sel(cfg, "model.stress_readout_modes", 0) or 0
+    if isinstance(modes, bool) or not isinstance(modes, int) or modes < 0 or (modes and not hops):
+        raise ConfigError(f"model.stress_readout_modes = {modes!r}: how many principal displacement fields a "
+                          "stress readout projects onto, expected 0 (off) or >= 1 with model.stress_readout set")
     augment = _sel(tc, "symmetry_augment", False)
     if not isinstance(augment, bool):
         raise ConfigError(f"train.symmetry_augment = {augment!r}, expected true (each training pair seen in a "
@@ -683,10 +687,11 @@ def _train_here(cfg) -> Path:
             from .stress_readout import fit_readout_to_rollouts, with_stress_readout
 
             readout, fit = fit_readout_to_rollouts(model_from_checkpoint(ckpt, ds), data, train_trajs, hops,
-                                                   symmetric=mirror_readout, load_hops=load_hops)
+                                                   symmetric=mirror_readout, load_hops=load_hops, modes=modes)
             ckpt = with_stress_readout(ckpt, readout, hops, load_hops)
             save_checkpoint(ckpt, ckpt_path)
             print(f"stress readout: {fit['hops']} hops" + (f", loads within {load_hops}" if load_hops else "")
+                  + (f", onto {fit['modes']} displacement modes" if fit["modes"] else "")
                   + f", {fit['classes']} neighbourhood shapes, {fit['weights']} "
                   f"weights ({fit['symmetries']} mesh symmetries), fitted to the model's {len(train_trajs)} training rollouts (relative L2 of sigma "
                   f"{fit['fit_error']:.4f})")

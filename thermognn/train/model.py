@@ -241,7 +241,8 @@ class TIGNN(nn.Module):
         self.use_readout = stress_readout is not None
         self.readout = StressReadout(int(spec["nodes"]), int(spec["width"]), int(spec["classes"]),
                                      [int(c) for c in spec["columns"]], int(spec.get("independent", 0)),
-                                     int(spec.get("load_width", 0)))
+                                     int(spec.get("load_width", 0)), int(spec.get("modes", 0)),
+                                     int(spec.get("mode_values", 0)))
         columns = [int(c) for c in spec["columns"]] or [0]
         self.readout_first, self.readout_end = columns[0], columns[-1] + 1     # contiguous stress columns
 

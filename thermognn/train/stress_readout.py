@@ -73,19 +73,26 @@ class StressReadout(nn.Module):
         node_class    [N]                 its neighbourhood-shape class
         weight        [C, 3 K + 3 Kf, S]  per class: stencil displacement (K nodes x 3, node-major),
                                           then stencil load (Kf x 3) -> σ
+        modes         [3 N, r]            with ``model.stress_readout_modes``: an orthonormal basis of the
+                                          training displacements' span (node-major), u projected onto it
+                                          before the stencil reads it (r = 0: none)
     """
 
     def __init__(self, nodes: int, width: int, classes: int, columns: List[int], independent: int = 0,
-                 load_width: int = 0) -> None:
+                 load_width: int = 0, modes: int = 0, mode_values: int = 0) -> None:
         super().__init__()
         self.nodes = int(nodes)
         self.independent = int(independent)      # weights that determine the rest (symmetric fit), 0: all
         self.columns: List[int] = [int(c) for c in columns]
         self.load_width = int(load_width)
+        self.mode_count = int(modes)
+        self.mode_values = int(mode_values)      # the basis's independent values (its parameter count)
         kept = self.nodes > 0            # an empty readout (off) is not part of the checkpoint
         self.register_buffer("stencil", torch.full((self.nodes, int(width)), self.nodes, dtype=torch.long), kept)
         self.register_buffer("load_stencil", torch.full((self.nodes, self.load_width), self.nodes, dtype=torch.long),
                              kept and self.load_width > 0)       # (checkpoints from before loads load as before)
+        self.register_buffer("modes", torch.zeros(3 * self.nodes, self.mode_count),
+                             kept and self.mode_count > 0)       # (checkpoints from before modes load as before)
         self.register_buffer("node_class", torch.zeros(self.nodes, dtype=torch.long), kept)
         self.register_buffer("weight", torch.zeros(int(classes), 3 * (int(width) + self.load_width),
                                                    len(self.columns)), kept)
@@ -95,6 +102,9 @@ class StressReadout(nn.Module):
         under the applied nodal load f [N, 3] (N; with a load reach; None: unloaded, the part the
         displacement makes)."""
         zero = torch.zeros(1, 3, dtype=u.dtype, device=u.device)
+        if self.mode_count > 0:          # u projected onto the training displacements' span
+            basis = self.modes.to(u.dtype)                                                # [3 N, r]
+            u = (basis @ (basis.t() @ u.reshape(-1))).reshape(self.nodes, 3)              # [N, 3]
         padded = torch.cat([u, zero], 0)                                                  # [N + 1, 3]
         near = padded.index_select(0, self.stencil.reshape(-1)).reshape(self.nodes, -1)   # [N, 3 K]
         if self.load_width > 0:
@@ -109,8 +119,8 @@ class StressReadout(nn.Module):
         """How many weights the fit set (the padding's excluded): the readout's parameter count. With
         symmetric weights, those of one neighbourhood shape per orbit (the others are their mirror images)."""
         if self.independent > 0:
-            return self.independent
-        return int(self.shape_sizes().sum()) * 3 * len(self.columns)
+            return self.independent + self.mode_values
+        return int(self.shape_sizes().sum()) * 3 * len(self.columns) + self.mode_values
 
     def shape_sizes(self) -> Tensor:
         """Each neighbourhood shape's stencil size [C] (nodes, the padding excluded)."""
@@ -250,10 +260,55 @@ def mirrored_vectors(a: np.ndarray, symmetries) -> np.ndarray:
     return np.concatenate([a[:, np.argsort(p)] @ R.T for R, p in symmetries])
 
 
+def displacement_modes(fields: np.ndarray, modes: int, symmetries,
+                       source: str = "dataset") -> tuple[np.ndarray, int]:
+    """An orthonormal basis [3 N, r] (node-major) of the span of the leading ``modes`` principal
+    displacement fields of the snapshots ``fields`` [S, N, 3] (m) seen in every frame of
+    ``symmetries`` (their proper orthogonal decomposition, uncentred: u = 0 is the rest state), and
+    its parameter count. A degenerate pair of singular values is never split (r grows by one), so
+    with mirror frames the span is closed under them. The count is r times the displacement
+    components that move, one per orbit under the frames (a mirror-symmetric field is determined
+    by those; the clamped components are zero in every mode).
+
+    Projecting a rollout's displacement onto this span before the stencil reads it removes the
+    part of its error that no training field has: a stencil is a strain, a difference of nearby
+    displacements, and amplifies exactly that short-wave part (TIGNN beam, docs/accuracy.md,
+    session 56)."""
+    snapshots = mirrored_vectors(fields, symmetries).reshape(len(fields) * len(symmetries), -1)   # [S |G|, 3 N]
+    if modes < 1 or modes > min(snapshots.shape):
+        raise DataError(f"{source}: model.stress_readout_modes = {modes}, expected between 1 and "
+                        f"{min(snapshots.shape)} (the training snapshots' count, seen in each mirror frame, "
+                        "and the displacement components') or 0 (off)")
+    _, s, vt = np.linalg.svd(snapshots, full_matrices=False)
+    r = int(modes)
+    while r < len(s) and s[r] >= s[r - 1] * (1.0 - 1e-6):          # do not split a degenerate pair
+        r += 1
+    basis = vt[:r].T                                                                   # [3 N, r]
+    moving = np.abs(snapshots).max(0) > 1e-9 * np.abs(snapshots).max()                 # [3 N]
+    n = fields.shape[1]
+    root = list(range(3 * n))
+
+    def find(a: int) -> int:
+        while root[a] != a:
+            a = root[a]
+        return a
+
+    for R, p in symmetries:           # component c of node i goes to component a of node p[i]
+        a_of = np.argmax(np.abs(R), axis=0)                       # [3]: R[a_of[c], c] = ±1
+        for i in range(n):
+            for c in range(3):
+                x, y = find(3 * i + c), find(3 * int(p[i]) + int(a_of[c]))
+                root[max(x, y)] = min(x, y)
+    orbits = len({find(k) for k in np.flatnonzero(moving)})
+    basis[~moving] = 0.0
+    return basis, r * orbits
+
+
 def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequence[Tensor],
                        columns: Sequence[int], hops: int, source: str = "dataset", symmetric: bool = False,
                        node_type: Tensor | None = None, forces: Sequence[Tensor] | None = None,
-                       load_hops: int = 0) -> tuple[StressReadout, Dict]:
+                       load_hops: int = 0, modes: int = 0,
+                       span: Sequence[Tensor] | None = None) -> tuple[StressReadout, Dict]:
     """Least-squares fit of the readout to the states z [T, N, D] of ``trajectories`` (the training
     split): σ = z[..., columns] against u = z[..., :3] - X, and with ``load_hops`` >= 1
     (``model.stress_readout_load``) the applied loads ``forces`` [T, N, 3] (N) of the same snapshots
@@ -261,7 +316,10 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     nodes apart by both stencils' shapes, so there are more shapes, each with its own weights).
     ``symmetric``: mirror-image shapes get mirror-image weights (the snapshots fitted in every frame
     of ``mesh_symmetries``, which ``node_type`` [N] constrains; needs the 6 stress components).
-    Returns the readout and a report {"hops", "load_hops", "classes", "weights", "symmetries",
+    ``modes`` >= 1 (``model.stress_readout_modes``): u is first projected onto the span of the leading
+    ``modes`` principal displacement fields of ``span`` (states [T, N, D], the training split's true
+    ones; default ``trajectories``), in every frame when ``symmetric`` (``displacement_modes``).
+    Returns the readout and a report {"hops", "load_hops", "modes", "classes", "weights", "symmetries",
     "fit_error"} (weights: the independent ones, the load's that a snapshot loads; fit_error:
     relative L2 over the fitted snapshots). Raises DataError (naming ``source``) where the fit is
     underdetermined or the data's stress-free state is not at u = 0."""
@@ -297,9 +355,15 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
         u, sigma = mirrored(u, sigma, symmetries)                          # [S |G|, N, 3], [S |G|, N, 6]
         f = mirrored_vectors(f, symmetries)                                # [S |G|, N, 3]
         rest = np.tile(rest, len(symmetries))
+    basis, mode_values = np.zeros((3 * len(X), 0)), 0
+    if modes:
+        fields = np.concatenate([t.detach().cpu().double().numpy() for t in (span or trajectories)])[:, :, :3] - X
+        basis, mode_values = displacement_modes(fields, int(modes), symmetries, source)      # [3 N, r]
+        u = ((u.reshape(len(u), -1) @ basis) @ basis.T).reshape(u.shape)                   # [S, N, 3]
     n, width = len(X), max(len(s) for s in stencil)
     load_width = max(len(s) for s in load_stencil)
-    readout = StressReadout(n, width, int(classes.max()) + 1, cols, load_width=load_width)
+    readout = StressReadout(n, width, int(classes.max()) + 1, cols, load_width=load_width,
+                            modes=basis.shape[1], mode_values=mode_values)
     weight = np.zeros(tuple(readout.weight.shape))
     loaded = np.zeros(weight.shape[0], dtype=np.int64)          # per class: load columns some snapshot loads
     predicted = np.zeros_like(sigma)
@@ -329,6 +393,8 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
             readout.load_stencil.copy_(torch.tensor([s + [n] * (load_width - len(s)) for s in load_stencil]))
         readout.node_class.copy_(torch.from_numpy(classes))
         readout.weight.copy_(torch.from_numpy(weight))
+        if basis.shape[1]:
+            readout.modes.copy_(torch.from_numpy(basis))
     if symmetric or load_hops:             # one shape per orbit holds the independent weights
         held = np.unique(shape_orbits(classes, symmetries))
         readout.independent = (int(readout.shape_sizes()[torch.from_numpy(held)].sum()) * 3
@@ -336,7 +402,7 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     moving = ~rest
     err = float(np.mean([np.linalg.norm(p - s) / np.linalg.norm(s)
                          for p, s in zip(predicted[moving], sigma[moving]) if np.linalg.norm(s) > 0]))
-    return readout, {"hops": int(hops), "load_hops": load_hops, "classes": int(weight.shape[0]),
+    return readout, {"hops": int(hops), "load_hops": load_hops, "modes": basis.shape[1], "classes": int(weight.shape[0]),
                      "weights": readout.fitted_weights(), "symmetries": len(symmetries), "fit_error": err}
 
 
@@ -344,7 +410,8 @@ def readout_spec(readout: StressReadout, hops: int, load_hops: int = 0) -> Dict:
     """The readout's shape for a checkpoint's hyperparameters (TIGNN's ``stress_readout``)."""
     return {"hops": int(hops), "nodes": readout.nodes, "width": int(readout.stencil.shape[1]),
             "classes": int(readout.weight.shape[0]), "columns": list(readout.columns),
-            "independent": readout.independent, "load_hops": int(load_hops), "load_width": readout.load_width}
+            "independent": readout.independent, "load_hops": int(load_hops), "load_width": readout.load_width,
+            "modes": readout.mode_count, "mode_values": readout.mode_values}
 
 
 def with_stress_readout(ckpt: Dict, readout: StressReadout, hops: int, load_hops: int = 0) -> Dict:
@@ -357,7 +424,8 @@ def with_stress_readout(ckpt: Dict, readout: StressReadout, hops: int, load_hops
 
 
 def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
-                            roll=None, symmetric: bool = False, load_hops: int = 0) -> tuple[StressReadout, Dict]:
+                            roll=None, symmetric: bool = False, load_hops: int = 0,
+                            modes: int = 0) -> tuple[StressReadout, Dict]:
     """The readout fitted to the trained ``model``'s own rollouts of ``trajectories`` (the training
     split, ``TrajectoryTensors``): its predicted positions against the data's stress at each step.
     Fitted to the true positions instead, the readout's stencil (a strain: differences of nearby
@@ -366,8 +434,9 @@ def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
     -> [S, N, D] rolls a trajectory out as the evaluation will (default: ``rollout`` from t's first
     state; the TIGNN beam benchmark imposes the clamped nodes' whole true state at every step, and
     its readout is fitted to such rollouts: 7.1 % against 9.0 % fitted to ``rollout``'s).
-    ``symmetric``: mirror-image weights, ``load_hops``: the applied loads within that reach too
-    (``fit_stress_readout``)."""
+    ``symmetric``: mirror-image weights, ``load_hops``: the applied loads within that reach too,
+    ``modes``: the rollouts' displacements projected onto the span of the trajectories' own
+    (true) leading displacement fields first (``fit_stress_readout``)."""
     from .rollout import rollout
 
     if roll is None:
@@ -388,4 +457,5 @@ def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
         model.use_readout = was
     return fit_stress_readout(data.graph.ref_pos, data.graph.edge_index, rolled, columns, hops,
                               source=str(data.path), symmetric=symmetric, node_type=data.graph.node_type,
-                              forces=[t.force for t in trajectories], load_hops=load_hops)
+                              forces=[t.force for t in trajectories], load_hops=load_hops,
+                              modes=modes, span=[t.z for t in trajectories])
