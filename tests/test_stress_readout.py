@@ -9,8 +9,8 @@ import torch
 
 from thermognn.core.errors import DataError
 from thermognn.train.model import TIGNN
-from thermognn.train.stress_readout import (fit_stress_readout, mesh_symmetries, readout_spec, stencils,
-                                            stress_action, with_stress_readout)
+from thermognn.train.stress_readout import (fit_stress_readout, mesh_symmetries, outside_modes, readout_spec,
+                                            stencils, stress_action, with_stress_readout)
 
 LAM, MU, H = 2.0e5, 1.0e5, 0.01                # Lamé constants [Pa], grid spacing [m]
 
@@ -167,6 +167,9 @@ def test_a_readout_on_displacement_modes_ignores_error_outside_the_training_span
         assert not torch.allclose(plain(u + noise), sigma, rtol=0, atol=100 * tol)
     scripted = torch.jit.script(readout)
     assert torch.allclose(scripted(test[0, :, :3] - ref), readout(test[0, :, :3] - ref), rtol=1e-12, atol=0)
+    assert outside_modes(readout, test[:, :, :3] - ref) < 1e-6                  # test fields in the span
+    assert outside_modes(readout, noise[None]) == pytest.approx(1.0, abs=1e-6)   # noise all outside it
+    assert outside_modes(plain, test[:, :, :3] - ref) == 0.0                     # no modes
     model = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, stress_readout=readout_spec(readout, 1))
     model.readout.load_state_dict(readout.state_dict())
     assert model.readout.fitted_weights() == fit["weights"]
@@ -304,7 +307,7 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
     from thermognn.core.config import load_config
     from thermognn.core.errors import ConfigError
     from thermognn.export import export
-    from thermognn.train import train
+    from thermognn.train import evaluate, train
     from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint
     from thermognn.train.synthetic import write_oscillator_dataset
 
@@ -340,6 +343,9 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
     scripted = torch.jit.load(str(export(mirrored)))
     f = torch.randn(loaded.readout.nodes, 3, dtype=z.dtype)
     assert torch.allclose(scripted.report(z, f), loaded.read_stress(z, scripted.reference_positions, f))
+    res = evaluate(mirrored)                       # says how far the test displacements lie outside the modes
+    assert 0.0 <= res["readout_modes_miss"] < 1.0 and "readout_modes_miss_train" in res
+    assert "displacement modes" in (tmp_path / "sym" / "eval" / "summary.md").read_text()
     refit = load_config([f"out={tmp_path / 'refit'}", *small, "train.epochs=0", "model.stress_readout=2",
                          "model.stress_readout_symmetric=true", f"train.init={tmp_path / 'model.ckpt'}",
                          f"paths.dataset={tmp_path / 'dataset.h5'}"])

@@ -321,6 +321,14 @@ def hardest(whole: list[dict[str, float]], mean: dict[str, float], groups: list[
 REPEAT_TOL = 1e-6
 
 
+def modes_sentence(modes: int, miss: dict[str, float]) -> str:
+    """One line on how far the test and training displacements lie outside a stress readout's modes."""
+    return (f"the test trajectories' true displacements lie {100 * miss['test']:.3g} % outside the stress "
+            f"readout's {modes} displacement modes (training: {100 * miss['train']:.3g} %); well above the "
+            "training share, the test loads are not combinations of the training ones and the projection "
+            "cuts real deformation (model.stress_readout_modes)")
+
+
 def repeated_cases(ref_pos: np.ndarray, edge_index: np.ndarray, node_type: np.ndarray, positions: slice,
                    test: list[TrajectoryTensors], train: list[TrajectoryTensors]) -> list[tuple[str, str, float]]:
     """The test trajectories that repeat a training one up to a symmetry of the mesh (X = ``ref_pos``
@@ -619,6 +627,15 @@ def evaluate(cfg) -> dict:
                              data.graph.node_type.cpu().numpy(), data.layout.slice("q"), test, data.of("train"))
     if repeats:
         mean_test["test_repeats_train"] = float(len(repeats))
+    span_miss = {}                 # how far the true displacements lie outside the readout's modes
+    if getattr(model, "use_readout", False) and model.readout.mode_count > 0:
+        from .stress_readout import outside_modes
+
+        q, X = data.layout.slice("q"), data.reference_positions()
+        span_miss = {part: outside_modes(model.readout, torch.cat([t.z[:, :, q].double() - torch.as_tensor(X).double()
+                                                                  for t in trajs]))
+                     for part, trajs in (("test", test), ("train", train_trajs))}
+        mean_test["readout_modes_miss"], mean_test["readout_modes_miss_train"] = span_miss["test"], span_miss["train"]
     by_load = by_peak_load(loads, per_traj, whole_traj, groups)
     linear = linear_baseline(data, test)
     linear_train = linear_baseline(data, train_trajs) if "snapshot" in linear else {}
@@ -814,6 +831,8 @@ def evaluate(cfg) -> dict:
         print(f"evaluate: {shortened_sentence([t.name for t in test], shortened)} (test)")
     if repeats:
         print(f"evaluate: {repeated_sentence(repeats, len(test))}")
+    if span_miss:
+        print(f"evaluate: {modes_sentence(model.readout.mode_count, span_miss)}")
     if worst:
         print("evaluate: largest whole-rollout test errors: " + "; ".join(
             f"{test[k].name} ({where(k)}): " + ", ".join(f"{g} {_fmt(whole_traj[k][g])}" for g in groups)
@@ -902,6 +921,8 @@ def evaluate(cfg) -> dict:
                if by_load else []),
              *([repeated_sentence(repeats, len(test)) + " (`test_repeats_train` in `rrmse.json`).", ""]
                if repeats else []),
+             *([modes_sentence(model.readout.mode_count, span_miss) + " (`readout_modes_miss` in `rrmse.json`).", ""]
+               if span_miss else []),
              *([f"The {len(worst)} test trajectories with the largest whole-rollout errors (ranked by the "
                 "mean over the groups of each error relative to the test mean above; all of them in "
                 "`rrmse_per_trajectory.csv`, with the load points):", "",

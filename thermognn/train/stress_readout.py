@@ -304,6 +304,19 @@ def displacement_modes(fields: np.ndarray, modes: int, symmetries,
     return basis, r * orbits
 
 
+def outside_modes(readout: StressReadout, u: Tensor) -> float:
+    """How far the displacements u [S, N, 3] (m) lie outside the span of ``readout``'s displacement
+    modes: ||u - P u|| / ||u|| over all snapshots and nodes (P the projection onto the span; 0: no
+    modes, or inside it). Of a test split's true displacements, well above the training split's: its
+    loads are not combinations of the training loads, and the projection cuts real deformation."""
+    if readout.mode_count == 0:
+        return 0.0
+    basis = readout.modes.detach().cpu().double()                                      # [3 N, r]
+    flat = u.detach().cpu().double().reshape(len(u), -1)                               # [S, 3 N]
+    total = float(flat.norm())
+    return float((flat - (flat @ basis) @ basis.T).norm()) / total if total > 0 else 0.0
+
+
 def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequence[Tensor],
                        columns: Sequence[int], hops: int, source: str = "dataset", symmetric: bool = False,
                        node_type: Tensor | None = None, forces: Sequence[Tensor] | None = None,
