@@ -290,7 +290,7 @@ def displacement_modes(fields: np.ndarray, modes: int, symmetries,
                         "and the displacement components') or 0 (off)")
     _, s, vt = np.linalg.svd(snapshots, full_matrices=False)
     r = int(modes)
-    while r < len(s) and s[r] >= s[r - 1] * (1.0 - 1e-6):          # do not split a degenerate pair
+    while r < len(s) and s[r] >= s[r - 1] * (1.0 - 1e-6) and s[r] > 1e-9 * s[0]:   # do not split a degenerate pair
         r += 1
     basis = vt[:r].T                                                                   # [3 N, r]
     moving = np.abs(snapshots).max(0) > 1e-9 * np.abs(snapshots).max()                 # [3 N]
