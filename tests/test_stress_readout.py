@@ -345,7 +345,8 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
     assert torch.allclose(scripted.report(z, f), loaded.read_stress(z, scripted.reference_positions, f))
     res = evaluate(mirrored)                       # says how far the test displacements lie outside the modes
     assert 0.0 <= res["readout_modes_miss"] < 1.0 and "readout_modes_miss_train" in res
-    assert "displacement modes" in (tmp_path / "sym" / "eval" / "summary.md").read_text()
+    summary = (tmp_path / "sym" / "eval" / "summary.md").read_text()
+    assert "displacement modes" in summary and f"+ {loaded.readout.fitted_weights()} of the stress readout = " in summary
     refit = load_config([f"out={tmp_path / 'refit'}", *small, "train.epochs=0", "model.stress_readout=2",
                          "model.stress_readout_symmetric=true", f"train.init={tmp_path / 'model.ckpt'}",
                          f"paths.dataset={tmp_path / 'dataset.h5'}"])

@@ -881,7 +881,10 @@ def evaluate(cfg) -> dict:
     lines = [f"# Evaluation of `{ckpt_path}`", "",
              f"- dataset: `{ds_path}` (scene `{data.dataset.scene}`, {data.graph.n_nodes} nodes, "
              f"D = {data.layout.dim}, dt = {data.dt} s)",
-             f"- model: {ckpt['structure']}, {ckpt['dtype']}, {parameter_count(model)} parameters, "
+             f"- model: {ckpt['structure']}, {ckpt['dtype']}, {parameter_count(model)} parameters"
+             + (f" + {model.readout.fitted_weights()} of the stress readout = "
+                f"{parameter_count(model) + model.readout.fitted_weights()}" if getattr(model, "use_readout", False) else "")
+             + ", "
              f"trained {ckpt.get('epoch', '?')} epochs (validation error {ckpt.get('val_error', float('nan')):.3e})",
              f"- trajectories: {len(test)} test, {len(train_trajs)} train (of {len(data.split['train'])})"
              + ("; test: the dataset's own test part (`train.eval_split=dataset`)"
