@@ -69,7 +69,7 @@ def main(argv: list[str]) -> None:
     from thermognn.train import train
     from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint, torch_dtype, with_rollout
     from thermognn.train.data import load_data
-    from thermognn.train.model import parameter_count, step_settings
+    from thermognn.train.model import parameter_count, readout_weight_count, step_settings
     from thermognn.train.rollout import rrmse_per_step, trajectory_rrmse
     from thermognn.train.tignn_import import import_tignn
 
@@ -128,7 +128,7 @@ def main(argv: list[str]) -> None:
         one_step()
     ms = (time.perf_counter() - t1) / n * 1e3
 
-    params = parameter_count(model) + (model.readout.fitted_weights() if model.use_readout else 0)
+    params = parameter_count(model) + readout_weight_count(model)
     print(f"\nTIGNN beam, reference test split {data.split['test']}, clamped nodes imposed from ground truth")
     print(f"{'':12s} {'q':>9s} {'v':>9s} {'sigma':>9s} {'params':>9s} {'ms/step':>8s}")
     print(f"{'published':12s} {REFERENCE['q']:9.2e} {REFERENCE['v']:9.2e} {REFERENCE['sigma']:9.2e} "

@@ -45,7 +45,7 @@ from .device import cpu_randn
 from .hybrid import LinearPriorModel
 from .law_prior import HyperelasticNewmarkPrior
 from .prior import CorotatedNewmarkPrior
-from .model import parameter_count
+from .model import parameter_count, readout_weight_count
 from .rollout import one_step_errors, rollout, rrmse_per_step, trajectory_error, trajectory_rrmse
 
 
@@ -631,9 +631,8 @@ def evaluate(cfg) -> dict:
     if getattr(model, "use_readout", False) and model.readout.mode_count > 0:
         from .stress_readout import outside_modes
 
-        q, X = data.layout.slice("q"), data.reference_positions()
-        span_miss = {part: outside_modes(model.readout, torch.cat([t.z[:, :, q].double() - torch.as_tensor(X).double()
-                                                                  for t in trajs]))
+        q, X = data.layout.slice("q"), torch.from_numpy(data.reference_positions())     # [N, 3] float64
+        span_miss = {part: outside_modes(model.readout, torch.cat([t.z[:, :, q].double() - X for t in trajs]))
                      for part, trajs in (("test", test), ("train", train_trajs))}
         mean_test["readout_modes_miss"], mean_test["readout_modes_miss_train"] = span_miss["test"], span_miss["train"]
     by_load = by_peak_load(loads, per_traj, whole_traj, groups)
@@ -882,8 +881,8 @@ def evaluate(cfg) -> dict:
              f"- dataset: `{ds_path}` (scene `{data.dataset.scene}`, {data.graph.n_nodes} nodes, "
              f"D = {data.layout.dim}, dt = {data.dt} s)",
              f"- model: {ckpt['structure']}, {ckpt['dtype']}, {parameter_count(model)} parameters"
-             + (f" + {model.readout.fitted_weights()} of the stress readout = "
-                f"{parameter_count(model) + model.readout.fitted_weights()}" if getattr(model, "use_readout", False) else "")
+             + (f" + {readout_weight_count(model)} of the stress readout = "
+                f"{parameter_count(model) + readout_weight_count(model)}" if readout_weight_count(model) else "")
              + ", "
              f"trained {ckpt.get('epoch', '?')} epochs (validation error {ckpt.get('val_error', float('nan')):.3e})",
              f"- trajectories: {len(test)} test, {len(train_trajs)} train (of {len(data.split['train'])})"

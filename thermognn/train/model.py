@@ -567,3 +567,9 @@ def build_model(hparams: dict, dtype: torch.dtype = torch.float32) -> TIGNN:
 
 def parameter_count(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
+
+
+def readout_weight_count(model: nn.Module) -> int:
+    """The fitted weights of the model's stress readout (``model.stress_readout``; 0 without one):
+    buffers, not parameters, but learned from the data, so they count beside ``parameter_count``."""
+    return model.readout.fitted_weights() if getattr(model, "use_readout", False) else 0

@@ -211,21 +211,27 @@ def mirrored(u: np.ndarray, sigma: np.ndarray, symmetries) -> tuple[np.ndarray, 
     return mirrored_vectors(u, symmetries), np.concatenate(ss)
 
 
-def shape_orbits(classes: np.ndarray, symmetries) -> np.ndarray:
-    """The orbit of each neighbourhood shape under ``symmetries`` [C]: the smallest shape that one
-    of them, or a chain of them, maps it to (the shapes of one orbit have mirror-image weights)."""
-    root = list(range(int(classes.max()) + 1))
+def orbits(size: int, pairs) -> np.ndarray:
+    """The orbit of each of ``size`` items [size] joined by the item ``pairs`` (a, b) (each an item
+    and its image under a symmetry): the smallest item of the set that a chain of pairs links it to."""
+    root = list(range(int(size)))
 
     def find(a: int) -> int:
         while root[a] != a:
             a = root[a]
         return a
 
-    for _, p in symmetries:
-        for a, b in set(zip(classes.tolist(), classes[p].tolist())):     # node i's shape, its image's
-            ra, rb = find(a), find(b)
-            root[max(ra, rb)] = min(ra, rb)          # roots stay their set's smallest shape
+    for a, b in pairs:
+        ra, rb = find(int(a)), find(int(b))
+        root[max(ra, rb)] = min(ra, rb)              # roots stay their set's smallest item
     return np.array([find(a) for a in range(len(root))])
+
+
+def shape_orbits(classes: np.ndarray, symmetries) -> np.ndarray:
+    """The orbit of each neighbourhood shape under ``symmetries`` [C]: the smallest shape that one
+    of them, or a chain of them, maps it to (the shapes of one orbit have mirror-image weights)."""
+    return orbits(int(classes.max()) + 1, {pair for _, p in symmetries                 # node i's shape, its image's
+                                           for pair in zip(classes.tolist(), classes[p].tolist())})
 
 
 def check_determined(ref_pos: np.ndarray, edge_index: np.ndarray, snapshots: int, hops: int,
@@ -295,22 +301,14 @@ def displacement_modes(fields: np.ndarray, modes: int, symmetries,
     basis = vt[:r].T                                                                   # [3 N, r]
     moving = np.abs(snapshots).max(0) > 1e-9 * np.abs(snapshots).max()                 # [3 N]
     n = fields.shape[1]
-    root = list(range(3 * n))
-
-    def find(a: int) -> int:
-        while root[a] != a:
-            a = root[a]
-        return a
-
-    for R, p in symmetries:           # component c of node i goes to component a of node p[i]
+    pairs = []
+    for R, p in symmetries:           # component c of node i goes to component a_of[c] of node p[i]
         a_of = np.argmax(np.abs(R), axis=0)                       # [3]: R[a_of[c], c] = ±1
-        for i in range(n):
-            for c in range(3):
-                x, y = find(3 * i + c), find(3 * int(p[i]) + int(a_of[c]))
-                root[max(x, y)] = min(x, y)
-    orbits = len({find(k) for k in np.flatnonzero(moving)})
+        pairs += zip((3 * np.arange(n)[:, None] + np.arange(3)).ravel(),
+                     (3 * np.asarray(p)[:, None] + a_of).ravel())
+    held = len(np.unique(orbits(3 * n, pairs)[moving]))          # moving components, one per orbit
     basis[~moving] = 0.0
-    return basis, r * orbits
+    return basis, r * held
 
 
 def outside_modes(readout: StressReadout, u: Tensor) -> float:
