@@ -159,8 +159,10 @@ class EpochCheckpoints:
 
 
 def step_loss(model: TIGNN, batch, dt: float, noise: float, generator: torch.Generator,
-              lambda_data: float, lambda_degeneracy: float) -> tuple[torch.Tensor, float, float]:
-    """Loss of one batch: lambda_data MSE(dz/dt, normalised) + lambda_degeneracy degeneracy.
+              lambda_data: float, lambda_degeneracy: float,
+              gradient_weight: float = 0.0) -> tuple[torch.Tensor, float, float]:
+    """Loss of one batch: lambda_data (MSE(dz/dt, normalised) + gradient_weight MSE of its
+    differences across the mesh edges, ``rate_gradient_error``) + lambda_degeneracy degeneracy.
 
     Training noise perturbs the input state of the free entries by ``noise`` times a typical
     step's change of each column (dzdt_std * dt), and the target rate is taken from the perturbed
@@ -175,8 +177,26 @@ def step_loss(model: TIGNN, batch, dt: float, noise: float, generator: torch.Gen
     dzdt_n, _, _, _, _, deg = model.rates(at, batch.f, batch.edge_index, batch.node_type, batch.pos, True)
     target = (z_next - z) / dt / model.dzdt_std
     data_loss = ((dzdt_n - target).pow(2) * free).sum() / free.sum().clamp(min=1.0)
+    if gradient_weight > 0:
+        data_loss = data_loss + gradient_weight * rate_gradient_error(dzdt_n, target, free, batch.edge_index)
     loss = lambda_data * data_loss + lambda_degeneracy * deg
     return loss, float(data_loss.detach()), float(deg.detach())
+
+
+def rate_gradient_error(rate: torch.Tensor, target: torch.Tensor, free: torch.Tensor,
+                        edge_index: torch.Tensor) -> torch.Tensor:
+    """The rate error's differences across the mesh edges (i, j), (e_i - e_j)^2, each column
+    relative to the mean square of the target's own differences there (0-dim; rate, target,
+    free [N, D], edge_index [2, E]). The plain MSE weighs an error by its size at each node; a
+    stress read off the positions (``model.stress_readout``) is a strain, a difference of nearby
+    displacements, so it feels the error's variation from node to node, which this term weighs
+    (``train.rate_gradient_weight``: a Sobolev loss on the step)."""
+    src, dst = edge_index[0], edge_index[1]
+    err = (rate - target) * free                                                     # [N, D]
+    diff = (err[src] - err[dst]).pow(2)                                              # [E, D]
+    scale = (target[src] - target[dst]).pow(2).mean(0).detach().clamp(min=1e-30)     # [D]
+    counted = ((free[src] + free[dst]) > 0).to(rate.dtype)                           # [E, D]
+    return (diff / scale * counted).sum() / counted.sum().clamp(min=1.0)
 
 
 #: largest deviation of a rollout-pair input from the truth, in typical steps' changes per column
@@ -285,7 +305,7 @@ RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy
 #: later training terms, part of the identity only when on: a run interrupted before they existed resumes
 #: (with the value that leaves them as they were before: off, or the former fixed behaviour)
 OPTIONAL_RESUME_KEYS = {"rest_rollout": 0, "rest_stability": 0, "rest_stability_probe": STABILITY_PROBE,
-                        "rest_stability_every": 1, "symmetry_augment": False}
+                        "rest_stability_every": 1, "symmetry_augment": False, "rate_gradient_weight": 0.0}
 #: settings of the rest-stability penalty, which matter only while it is on
 STABILITY_SETTINGS = ("rest_stability_probe", "rest_stability_every")
 
@@ -552,6 +572,9 @@ def _train_here(cfg) -> Path:
     batch_size = max(1, int(tc.batch_size))
     noise = float(_sel(tc, "noise", 0.0))
     lam_d, lam_g = float(_sel(tc, "lambda_data", 1.0)), float(_sel(tc, "lambda_degeneracy", 1.0))
+    lam_grad = float(_sel(tc, "rate_gradient_weight", 0.0))
+    if not lam_grad >= 0.0:
+        raise ConfigError(f"train.rate_gradient_weight = {lam_grad}, expected a weight >= 0 (0: off)")
     val_every = max(1, int(_sel(tc, "val_every", 1)))
     patience = int(_sel(tc, "patience", 0))
     if dist.main:
@@ -620,7 +643,7 @@ def _train_here(cfg) -> Path:
                 chosen = mine[b:b + batch_size]
                 batch = make_batch(batch_trajs, [items[i] for i in chosen], data.graph, rolled,
                                    [images[frame[i]] for i in chosen] if frame is not None else None)
-                loss, dl, dg = step_loss(model, batch, ds.dt, noise, gen, lam_d, lam_g)
+                loss, dl, dg = step_loss(model, batch, ds.dt, noise, gen, lam_d, lam_g, lam_grad)
                 if lam_s > 0 and n_batches % probe_every == 0:   # a disturbance at rest must not grow
                     growth, direction = rest_growth(model, rest, data.graph, ds.dt, direction, probe_sizes)
                     loss = loss + lam_s * torch.relu(growth - 1.0).pow(2).sum()
