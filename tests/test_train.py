@@ -991,3 +991,33 @@ def test_training_on_the_gpu_follows_the_cpu(tmp_path):
     # the GPU's run, 2 epochs more on the CPU from its model.last.ckpt
     train(_cfg(tmp_path / "cuda", "train.epochs=6", "train.device=cpu"))
     assert [int(r["epoch"]) for r in _rows(tmp_path / "cuda")] == [1, 2, 3, 4, 5, 6]
+
+
+def test_rate_gradient_term_weighs_the_errors_variation_across_edges(tmp_path):
+    """``train.rate_gradient_weight``: the one-step rate error's differences across the mesh edges,
+    relative to the target's own. An error the same at every node has none (a stress read off the
+    positions, a strain, does not feel it); one alternating from node to node has the largest; edges
+    between imposed (clamped) entries do not count. Training with it runs; bad weights are refused."""
+    from omegaconf import OmegaConf
+
+    from thermognn.train.loop import rate_gradient_error, rate_gradient_weight
+
+    edges = torch.tensor([[0, 1, 1, 2, 2, 3], [1, 0, 2, 1, 3, 2]])           # a chain of 4 nodes
+    target = torch.tensor([[0.0], [1.0], [2.0], [3.0]])                          # differences of 1 on every edge
+    free = torch.ones(4, 1)
+    assert float(rate_gradient_error(target + 0.5, target, free, edges)) == 0.0
+    alternating = target + torch.tensor([[0.1], [-0.1], [0.1], [-0.1]])
+    assert math.isclose(float(rate_gradient_error(alternating, target, free, edges)), 0.2 ** 2, rel_tol=1e-5)
+    clamped = torch.tensor([[0.0], [0.0], [1.0], [1.0]])                        # nodes 0, 1 imposed
+    assert math.isclose(float(rate_gradient_error(alternating, target, clamped, edges)),
+                        (2 * 0.1 ** 2 + 2 * 0.2 ** 2) / 4, rel_tol=1e-5)   # edge 0-1 not counted
+    assert rate_gradient_weight(OmegaConf.create({})) == 0.0
+    for bad in (-1, "much", True):
+        with pytest.raises(ConfigError, match=rf"^train.rate_gradient_weight = {bad!r}, expected a number >= 0"):
+            rate_gradient_weight(OmegaConf.create({"rate_gradient_weight": bad}))
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=4, steps=6)
+    ckpt = load_checkpoint(train(_cfg(tmp_path, "train.epochs=2", "train.rate_gradient_weight=1.0")))
+    assert ckpt["epoch"] == 2 and all(math.isfinite(float(r["loss"])) for r in _rows(tmp_path))
+    with pytest.raises(ConfigError, match=r"train.rate_gradient_weight: .* model.prior=linear"):
+        train(_cfg(tmp_path / "lp", "model=linear_prior", "train.rate_gradient_weight=1.0",
+                   f"paths.dataset={tmp_path / 'dataset.h5'}"))
