@@ -190,7 +190,9 @@ def rate_gradient_error(rate: torch.Tensor, target: torch.Tensor, free: torch.Te
     free [N, D], edge_index [2, E]). The plain MSE weighs an error by its size at each node; a
     stress read off the positions (``model.stress_readout``) is a strain, a difference of nearby
     displacements, so it feels the error's variation from node to node, which this term weighs
-    (``train.rate_gradient_weight``: a Sobolev loss on the step)."""
+    (``train.rate_gradient_weight``: a Sobolev loss on the step). With training noise the target
+    is taken from the perturbed input (``step_loss``), so the term also weighs how well the step
+    takes back a perturbation that varies from node to node."""
     src, dst = edge_index[0], edge_index[1]
     err = (rate - target) * free                                                     # [N, D]
     diff = (err[src] - err[dst]).pow(2)                                              # [E, D]
