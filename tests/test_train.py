@@ -1012,7 +1012,7 @@ def test_rate_gradient_term_weighs_the_errors_variation_across_edges(tmp_path):
     assert math.isclose(float(rate_gradient_error(alternating, target, clamped, edges)),
                         (2 * 0.1 ** 2 + 2 * 0.2 ** 2) / 4, rel_tol=1e-5)   # edge 0-1 not counted
     assert rate_gradient_weight(OmegaConf.create({})) == 0.0
-    for bad in (-1, "much", True):
+    for bad in (-1, "much", True, math.inf):
         with pytest.raises(ConfigError, match=rf"^train.rate_gradient_weight = {bad!r}, expected a number >= 0"):
             rate_gradient_weight(OmegaConf.create({"rate_gradient_weight": bad}))
     write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=4, steps=6)

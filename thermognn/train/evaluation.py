@@ -877,12 +877,13 @@ def evaluate(cfg) -> dict:
                      "tangent a step): what the physics itself gives at about the cost of one linear solve"
                      + blown_clause(implicit) + "." if "snapshot" in implicit
                      else f"Linearly implicit FE baseline: not computed, {implicit['note']}.")
+    parameters, readout_weights = parameter_count(model), readout_weight_count(model)
     lines = [f"# Evaluation of `{ckpt_path}`", "",
              f"- dataset: `{ds_path}` (scene `{data.dataset.scene}`, {data.graph.n_nodes} nodes, "
              f"D = {data.layout.dim}, dt = {data.dt} s)",
-             f"- model: {ckpt['structure']}, {ckpt['dtype']}, {parameter_count(model)} parameters"
-             + (f" + {readout_weight_count(model)} of the stress readout = "
-                f"{parameter_count(model) + readout_weight_count(model)}" if readout_weight_count(model) else "")
+             f"- model: {ckpt['structure']}, {ckpt['dtype']}, {parameters} parameters"
+             + (f" + {readout_weights} of the stress readout = {parameters + readout_weights}"
+                if readout_weights else "")
              + ", "
              f"trained {ckpt.get('epoch', '?')} epochs (validation error {ckpt.get('val_error', float('nan')):.3e})",
              f"- trajectories: {len(test)} test, {len(train_trajs)} train (of {len(data.split['train'])})"

@@ -409,9 +409,10 @@ def training_images(data: LoadedData, where: str) -> list:
 
 
 def rate_gradient_weight(tc) -> float:
-    """``train.rate_gradient_weight`` (0 or absent: off), a ConfigError unless a number >= 0."""
+    """``train.rate_gradient_weight`` (0 or absent: off), a ConfigError unless a finite number >= 0
+    (as ``train.stress_remainder_weight``'s check in ``hybrid.training_phases``)."""
     raw = _sel(tc, "rate_gradient_weight", 0.0)
-    if isinstance(raw, bool) or not isinstance(raw, (int, float)) or not raw >= 0:
+    if isinstance(raw, bool) or not isinstance(raw, (int, float)) or not (math.isfinite(raw) and raw >= 0):
         raise ConfigError(f"train.rate_gradient_weight = {raw!r}, expected a number >= 0 (the weight of the "
                           "rate error's differences across the mesh edges; 0: off)")
     return float(raw)
@@ -486,8 +487,9 @@ def _train_here(cfg) -> Path:
     if not isinstance(augment, bool):
         raise ConfigError(f"train.symmetry_augment = {augment!r}, expected true (each training pair seen in a "
                           "random mirror of the mesh) or false")
+    lam_grad = rate_gradient_weight(tc)
     if prior == "linear":                                # the linearised FE step + learned remainders
-        if rate_gradient_weight(tc) > 0:
+        if lam_grad > 0:
             raise ConfigError("train.rate_gradient_weight: a term of the network's one-step loss; "
                               "model.prior=linear trains on rollouts (leave it 0)")
         if augment:
@@ -586,7 +588,6 @@ def _train_here(cfg) -> Path:
     batch_size = max(1, int(tc.batch_size))
     noise = float(_sel(tc, "noise", 0.0))
     lam_d, lam_g = float(_sel(tc, "lambda_data", 1.0)), float(_sel(tc, "lambda_degeneracy", 1.0))
-    lam_grad = rate_gradient_weight(tc)
     val_every = max(1, int(_sel(tc, "val_every", 1)))
     patience = int(_sel(tc, "patience", 0))
     if dist.main:
