@@ -1021,3 +1021,108 @@ def test_rate_gradient_term_weighs_the_errors_variation_across_edges(tmp_path):
     with pytest.raises(ConfigError, match=r"train.rate_gradient_weight: .* model.prior=linear"):
         train(_cfg(tmp_path / "lp", "model=linear_prior", "train.rate_gradient_weight=1.0",
                    f"paths.dataset={tmp_path / 'dataset.h5'}"))
+
+
+def test_training_windows_roll_the_model_out_and_back_propagate_through_its_steps(tmp_path):
+    """``train.window_steps``: windows tile every trajectory from a random offset to its end; a
+    one-step window's loss is the one-step MSE (no noise); the rates are differentiable in a state
+    that carries a graph only when asked (``through_state``), so the window back-propagates through
+    the model's own earlier steps while one-step training and rollouts cut them off as before;
+    training on windows runs, and bad settings are refused in one line."""
+    from omegaconf import OmegaConf
+
+    from thermognn.train.data import make_batch, make_window_batch, state_images, window_starts
+    from thermognn.train.loop import (edge_step_scale, step_loss, window_column_weights, window_loss,
+                                      window_steps)
+
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=4, steps=6)
+    data = load_data(tmp_path / "dataset.h5", [0.5, 0.25, 0.25], 0, torch.float32)
+    trajs = data.of("train")
+    for w in (1, 2, 4, 6):
+        items = window_starts(trajs, w, torch.Generator().manual_seed(w))
+        for i in range(len(trajs)):
+            starts = [s for j, s in items if j == i]
+            assert 1 <= len(starts) <= -(-6 // w) and starts[0] < w and starts[-1] == 6 - w   # from o to the end
+            assert all(0 < b - a <= w for a, b in zip(starts, starts[1:]))                  # no gaps between
+    ckpt = load_checkpoint(train(_cfg(tmp_path / "a", "train.epochs=1", "model.kinematics=learned",
+                                      f"paths.dataset={tmp_path / 'dataset.h5'}")))
+    model = model_from_checkpoint(ckpt).train()
+    one = make_window_batch(trajs, [(0, 2), (1, 3)], data.graph, 1)
+    pairs = make_batch(trajs, [(0, 2), (1, 3)], data.graph)
+    assert one.z.shape == (2, 2 * data.graph.n_nodes, data.layout.dim)
+    ones = torch.ones(data.layout.dim)
+    scale = edge_step_scale(trajs, data.graph.edge_index, data.dt * model.dzdt_std.detach())
+    _, win, _ = window_loss(model, one, data.dt, ones, scale, 1.0, 1.0)
+    _, mse, _ = step_loss(model, pairs, data.dt, 0.0, torch.Generator(), 1.0, 1.0)
+    assert math.isclose(win, mse, rel_tol=1e-4)
+    z = one.z[0].clone().requires_grad_(True) * 1.0                  # a state carrying a graph
+    for through, reached in ((True, True), (False, False)):
+        rate = model.rates(z, one.f[1], one.edge_index, one.node_type, one.pos, True, through)[0]
+        grad = torch.autograd.grad(rate.sum(), z, allow_unused=True, retain_graph=True)[0]
+        assert (grad is not None and float(grad.abs().sum()) > 0) == reached
+    two = make_window_batch(trajs, [(0, 0)], data.graph, 2)
+    loss, _, _ = window_loss(model, two, data.dt, ones, scale, 1.0, 1.0, gradient_weight=1.0)
+    loss.backward()
+    assert all(p.grad is None or torch.isfinite(p.grad).all() for p in model.parameters())
+    weights = window_column_weights(OmegaConf.create({"window_weights": {"v": 0.5}}), data.layout, ones)
+    assert weights[data.layout.slice("v")].tolist() == [0.5] * 3 and float(weights.sum()) == data.layout.dim - 1.5
+
+    # a fine-tune (from scratch the model's own rollouts run away before it has learned a step)
+    mirror = state_images(data.graph, data.layout, None)[-1]          # a window seen in a mirror, as a pair is
+    seen, seen_pair = (make_window_batch(trajs, [(1, 4)], data.graph, 1, [mirror]),
+                       make_batch(trajs, [(1, 4)], data.graph, frames=[mirror]))
+    assert torch.equal(seen.z[0], seen_pair.z) and torch.equal(seen.z[1], seen_pair.z_next)
+    assert torch.equal(seen.f[1], seen_pair.f)
+    out = train(_cfg(tmp_path / "w", "train.epochs=2", "train.window_steps=3", "train.rate_gradient_weight=0.5",
+                     "model.kinematics=learned", "train.lr=3e-4",
+                     f"train.init={tmp_path / 'a' / 'model.ckpt'}", f"paths.dataset={tmp_path / 'dataset.h5'}"))
+    rows = _rows(tmp_path / "w")
+    assert load_checkpoint(out)["epoch"] == 2 and all(float(r["data_loss"]) < 100 for r in rows), rows
+    assert window_steps(OmegaConf.create({})) == 0
+    for bad in (-1, 2.5, True, "five"):
+        with pytest.raises(ConfigError, match=rf"^train.window_steps = {bad!r}, expected 0"):
+            window_steps(OmegaConf.create({"window_steps": bad}))
+    for bad, says in (({"tau": 1}, r"unknown state group 'tau'"), ({"v": -1}, r"train.window_weights.v = -1"),
+                      ({n: 0 for n in data.layout.names}, r"every group weighs 0"), ([1, 2], r"expected a mapping")):
+        with pytest.raises(ConfigError, match=says):
+            window_column_weights(OmegaConf.create({"window_weights": bad}), data.layout, ones)
+    with pytest.raises(ConfigError, match=r"^train.window_steps = 9: longer than the shortest training trajectory \(6 steps\)"):
+        train(_cfg(tmp_path / "x", "train.window_steps=9", f"paths.dataset={tmp_path / 'dataset.h5'}"))
+    with pytest.raises(ConfigError, match=r"train.window_steps: windows step by the Euler rule"):
+        train(_cfg(tmp_path / "y", "train.window_steps=2", "model.integrator=midpoint",
+                   f"paths.dataset={tmp_path / 'dataset.h5'}"))
+    with pytest.raises(ConfigError, match=r"train.window_steps: .* model.prior=linear"):
+        train(_cfg(tmp_path / "lp", "model=linear_prior", "train.window_steps=2",
+                   f"paths.dataset={tmp_path / 'dataset.h5'}"))
+
+
+def test_training_windows_resume_within_an_epoch_as_if_uninterrupted(tmp_path, monkeypatch):
+    """``train.window_steps`` with ``train.checkpoint_minutes``: an epoch's tiling and mirrors come
+    from (seed, epoch) alone, so a window run interrupted within its second epoch goes on at its
+    next batch and ends with the uninterrupted run's weights and metrics (rest windows included)."""
+    import thermognn.train.loop as loop
+
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=4, steps=6)
+    data = f"paths.dataset={tmp_path / 'dataset.h5'}"
+    train(_cfg(tmp_path / "init", "train.epochs=1", "model.kinematics=learned", data))
+    extra = ("train.epochs=2", "train.window_steps=2", "model.kinematics=learned", "train.lr=3e-4",
+             "train.batch_size=2", "train.val_every=1", "train.rate_gradient_weight=0.5",
+             f"train.init={tmp_path / 'init' / 'model.ckpt'}", data, "train.checkpoint_minutes=1e-9")
+    ref = load_checkpoint(last_path(train(_cfg(tmp_path / "a", *extra))))
+
+    real_save = loop.save_checkpoint
+
+    def interrupt(state, path):                 # KeyboardInterrupt right after epoch 2's first batch
+        real_save(state, path)
+        if "mid_epoch" in state and len(state["history"]) == 1 and state["mid_epoch"]["batch"] == 1:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(loop, "save_checkpoint", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        train(_cfg(tmp_path / "b", *extra))
+    monkeypatch.setattr(loop, "save_checkpoint", real_save)
+    got = load_checkpoint(last_path(train(_cfg(tmp_path / "b", *extra))))
+    for a, b in zip(ref["history"], got["history"]):
+        assert {k: v for k, v in a.items() if k != "seconds"} == {k: v for k, v in b.items() if k != "seconds"}
+    for k in ref["state_dict"]:
+        assert torch.allclose(ref["state_dict"][k], got["state_dict"][k], rtol=1e-5, atol=1e-7), k

@@ -461,3 +461,39 @@ def make_batch(trajs: list[TrajectoryTensors], items: list[tuple[int, ...]], gra
     batched = graph.copies(B)
     return Data(z=z, z_next=z_next, f=f, pos=batched.ref_pos, node_type=batched.node_type,
                 edge_index=batched.edge_index, batch=torch.arange(B).repeat_interleave(N), num_nodes=B * N)
+
+
+def window_starts(trajs: list[TrajectoryTensors], window: int, generator: torch.Generator) -> list[tuple[int, int]]:
+    """``train.window_steps``: (trajectory index, first step s) of the windows z[s] -> z[s + window],
+    ceil(steps / window) per trajectory, from an offset o in [0, window) drawn from ``generator``:
+    s_j = min(o + j window, steps - window), so every epoch covers the trajectory from o to its end
+    (the last window overlapping its neighbour) and every step starts a window in some epoch."""
+    items = []
+    for i, t in enumerate(trajs):
+        steps = t.z.shape[0] - 1
+        offset = int(torch.randint(window, (1,), generator=generator))
+        starts = sorted({min(offset + j * window, steps - window) for j in range(-(-steps // window))})
+        items += [(i, s) for s in starts]
+    return items
+
+
+def make_window_batch(trajs: list[TrajectoryTensors], items: list[tuple[int, int]], graph: Graph, window: int,
+                      frames: list[StateImage] | None = None):
+    """Windows z[s .. s + window] of the items (i, s), stacked as one disjoint graph per time
+    (``make_batch``'s layout), each seen in its item's mirror with ``frames``.
+
+    Fields: z [window+1, B*N, D] (true states), f [window+1, B*N, 3] (f[k] drives z[k-1] -> z[k]),
+    pos [B*N, 3], node_type [B*N], edge_index [2, B*E], batch [B*N]."""
+    from torch_geometric.data import Data
+
+    B, N = len(items), graph.n_nodes
+    z = torch.stack([trajs[i].z[s: s + window + 1] for i, s in items])              # [B, W+1, N, D]
+    f = torch.stack([trajs[i].force[s: s + window + 1] for i, s in items])          # [B, W+1, N, 3]
+    if frames is not None:
+        z = torch.stack([g.states(z[b]) for b, g in enumerate(frames)])
+        f = torch.stack([g.loads(f[b]) for b, g in enumerate(frames)])
+    z = z.transpose(0, 1).reshape(window + 1, B * N, -1)                           # [W+1, B*N, D]
+    f = f.transpose(0, 1).reshape(window + 1, B * N, 3)                            # [W+1, B*N, 3]
+    batched = graph.copies(B)
+    return Data(z=z, f=f, pos=batched.ref_pos, node_type=batched.node_type, edge_index=batched.edge_index,
+                batch=torch.arange(B).repeat_interleave(N), num_nodes=B * N)

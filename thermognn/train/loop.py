@@ -21,8 +21,8 @@ from thermognn.core.state import is_reversible
 from .checkpoint import (FORMAT, last_path, load_checkpoint, model_from_checkpoint, save_checkpoint,
                          torch_dtype)
 from .data import (LoadedData, check_fingerprint, compute_stats, fingerprint, load_data, make_batch,
-                   rest_rollout_steps, rest_samples, rest_trajectory, samples, state_images,
-                   velocity_columns)
+                   make_window_batch, rest_rollout_steps, rest_samples, rest_trajectory, samples, state_images,
+                   velocity_columns, window_starts)
 from .device import cpu_randn, training_device
 from .hybrid import prior_kind, train_linear_prior, training_phases
 from .model import TIGNN, build_model, grown_blocks, hyperparameters, load_grown, parameter_count
@@ -201,6 +201,85 @@ def rate_gradient_error(rate: torch.Tensor, target: torch.Tensor, free: torch.Te
     return (diff / scale * counted).sum() / counted.sum().clamp(min=1.0)
 
 
+def edge_step_scale(trajs: list, edge_index: torch.Tensor, step_change: torch.Tensor) -> torch.Tensor:
+    """The mean square of a true step's change across the mesh edges, per state column, in units
+    of a typical step's change ``step_change`` [D] (dzdt_std * dt), over every training step ([D]):
+    the fixed scale of a training window's edge term (``window_loss``)."""
+    src, dst = edge_index[0], edge_index[1]
+    with torch.no_grad():
+        per = [(lambda d: (d[:, src] - d[:, dst]).pow(2).mean((0, 1)))((t.z[1:] - t.z[:-1]) / step_change)
+               for t in trajs]                                                     # [D] each
+    scale = torch.stack(per).mean(0)
+    # a column whose true steps never vary across the edges (e.g. the same at every node) is
+    # measured against the columns' mean instead of ~0
+    return torch.where(scale > 1e-6 * scale.mean(), scale, scale.mean()).clamp(min=1e-30)
+
+
+def window_loss(model: TIGNN, batch, dt: float, column_weights: torch.Tensor, edge_scale: torch.Tensor,
+                lambda_data: float, lambda_degeneracy: float,
+                gradient_weight: float = 0.0) -> tuple[torch.Tensor, float, float]:
+    """Loss of a batch of training windows (``train.window_steps``, ``make_window_batch``): the
+    model rolls each window out from its true first state, back-propagated through every step,
+    and at each step k its accumulated error e_k = (z_k - z_true_k) / (dt * dzdt_std) [B*N, D]
+    (the one-step MSE's units: at k = 1 it is that MSE) is weighed as
+
+        lambda_data * (mean_k MSE(e_k) + gradient_weight * mean_k (e_k,i - e_k,j)^2 / edge_scale)
+        + lambda_degeneracy * mean_k degeneracy,
+
+    the squares weighted per column by ``column_weights`` [D] (``train.window_weights``) and the
+    edge term over the mesh edges (i, j) relative to a true step's own (``edge_step_scale``, fixed:
+    a window's own scale made windows of slow steps weigh 10-100x). A rollout's error is what the
+    one-step loss only bounds step by step; a stress read off the positions feels its variation
+    across the edges (``rate_gradient_error``)."""
+    Z, F = batch.z, batch.f                                            # [W+1, B*N, D], [W+1, B*N, 3]
+    steps = Z.shape[0] - 1
+    step_change = dt * model.dzdt_std                                  # [D]
+    free = model.free_entries(batch.node_type, Z[0]) * column_weights # [B*N, D]
+    src, dst = batch.edge_index[0], batch.edge_index[1]
+    dt_t = torch.tensor(dt, dtype=Z.dtype, device=Z.device)
+    z, data, deg = Z[0], Z.new_zeros(()), Z.new_zeros(())
+    for k in range(1, steps + 1):
+        rate, _, _, _, _, d = model.rates(z, F[k], batch.edge_index, batch.node_type, batch.pos, True, True)
+        z = model.advance(z, rate, dt_t, batch.node_type, batch.pos)
+        e = (z - Z[k]) / step_change                                   # [B*N, D]
+        data = data + (e.pow(2) * free).sum() / free.sum().clamp(min=1e-30)
+        if gradient_weight > 0:
+            ef = e * free
+            data = data + gradient_weight * ((ef[src] - ef[dst]).pow(2) / edge_scale).mean()
+        deg = deg + d
+    data, deg = data / steps, deg / steps
+    return lambda_data * data + lambda_degeneracy * deg, float(data.detach()), float(deg.detach())
+
+
+def window_steps(tc) -> int:
+    """``train.window_steps``: the length of the training windows (0: one-step pairs)."""
+    w = _sel(tc, "window_steps", 0)
+    if isinstance(w, bool) or not isinstance(w, int) or w < 0:
+        raise ConfigError(f"train.window_steps = {w!r}, expected 0 (one-step pairs) or the steps of each "
+                          "training window (an integer >= 1)")
+    return w
+
+
+def window_column_weights(tc, layout, like: torch.Tensor) -> torch.Tensor:
+    """``train.window_weights``: {state group: weight} -> a weight per state column [D] (groups not
+    named weigh 1), e.g. {sigma: 0.1} where the stress reported is read off the positions."""
+    given = _sel(tc, "window_weights", None) or {}
+    given = OmegaConf.to_container(given) if OmegaConf.is_config(given) else given
+    if not isinstance(given, dict):
+        raise ConfigError(f"train.window_weights = {given!r}, expected a mapping of state groups "
+                          f"{layout.names} to weights >= 0")
+    weights = torch.ones(layout.dim, dtype=like.dtype, device=like.device)
+    for name, w in given.items():
+        if name not in layout.names:
+            raise ConfigError(f"train.window_weights: unknown state group {name!r}, expected some of {layout.names}")
+        if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w) or w < 0:
+            raise ConfigError(f"train.window_weights.{name} = {w!r}, expected a finite number >= 0")
+        weights[layout.slice(name)] = float(w)
+    if float(weights.sum()) == 0.0:
+        raise ConfigError("train.window_weights: every group weighs 0, nothing left to train")
+    return weights
+
+
 #: largest deviation of a rollout-pair input from the truth, in typical steps' changes per column
 ROLLOUT_CLIP = 10.0
 
@@ -307,7 +386,8 @@ RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy
 #: later training terms, part of the identity only when on: a run interrupted before they existed resumes
 #: (with the value that leaves them as they were before: off, or the former fixed behaviour)
 OPTIONAL_RESUME_KEYS = {"rest_rollout": 0, "rest_stability": 0, "rest_stability_probe": STABILITY_PROBE,
-                        "rest_stability_every": 1, "symmetry_augment": False, "rate_gradient_weight": 0.0}
+                        "rest_stability_every": 1, "symmetry_augment": False, "rate_gradient_weight": 0.0,
+                        "window_steps": 0, "window_weights": None}
 #: settings of the rest-stability penalty, which matter only while it is on
 STABILITY_SETTINGS = ("rest_stability_probe", "rest_stability_every")
 
@@ -488,10 +568,14 @@ def _train_here(cfg) -> Path:
         raise ConfigError(f"train.symmetry_augment = {augment!r}, expected true (each training pair seen in a "
                           "random mirror of the mesh) or false")
     lam_grad = rate_gradient_weight(tc)
+    window = window_steps(tc)
     if prior == "linear":                                # the linearised FE step + learned remainders
         if lam_grad > 0:
             raise ConfigError("train.rate_gradient_weight: a term of the network's one-step loss; "
                               "model.prior=linear trains on rollouts (leave it 0)")
+        if window:
+            raise ConfigError("train.window_steps: an option of the network stepping the whole state; "
+                              "model.prior=linear has its own rollout phases (train.rollout_window; leave it 0)")
         if augment:
             raise ConfigError("train.symmetry_augment = true: an option of the network stepping the whole "
                               "state; model.prior=linear steps its prior's FE operators (leave it false)")
@@ -569,6 +653,25 @@ def _train_here(cfg) -> Path:
         raise ConfigError(f"train.rest_stability = {lam_s}, expected 0 (off) or a weight > 0 where there is a "
                           f"rest state (train.rest_samples > 0)")
     probe_sizes = stability_probe_sizes(_sel(tc, "rest_stability_probe", STABILITY_PROBE))
+    column_weights = edge_scale = None
+    if window:                                       # training windows instead of one-step pairs
+        shortest = min(t.z.shape[0] for t in train_trajs) - 1
+        if window > shortest:
+            raise ConfigError(f"train.window_steps = {window}: longer than the shortest training trajectory "
+                              f"({shortest} steps) of {data.path}")
+        if hparams["integrator"] != "euler":
+            raise ConfigError(f"train.window_steps: windows step by the Euler rule; model.integrator = "
+                              f"{hparams['integrator']} (leave window_steps 0)")
+        clashing = [k for k, on in (("rollout_pairs", int(_sel(tc, "rollout_pairs", 0)) > 0),
+                                    ("rest_rollout", bool(rest_horizon)), ("rest_stability", lam_s > 0)) if on]
+        if clashing:
+            raise ConfigError(f"train.window_steps = {window}: the windows are the model's own rollouts; "
+                              f"leave train.{clashing[0]} off")
+        column_weights = window_column_weights(tc, ds.layout, train_trajs[0].z)
+        edge_scale = edge_step_scale(train_trajs, data.graph.edge_index, ds.dt * model.dzdt_std.detach())
+        if rest is not None:                         # the unloaded body held still over a whole window
+            rest = rest_trajectory(train_trajs, ds.effects, velocity_columns(ds.layout), steps=window)
+            batch_trajs = train_trajs + [rest]
     probe_every = _sel(tc, "rest_stability_every", 1)
     if not isinstance(probe_every, int) or isinstance(probe_every, bool) or probe_every < 1:
         raise ConfigError(f"train.rest_stability_every = {probe_every!r}, expected an integer >= 1 "
@@ -597,7 +700,10 @@ def _train_here(cfg) -> Path:
               + f"), structure {structure}, "
               f"{parameter_count(model)} parameters" + linear_validation_error(data, val_trajs)
               + (f"; each pair seen in one of the mesh's {len(images)} mirror frames at random"
-                 if images is not None else ""))
+                 if images is not None else "")
+              + (f"; trained instead on the model's own rollouts over windows of {window} steps from true states, "
+                 f"{len(window_starts(train_trajs, window, torch.Generator().manual_seed(seed))) + n_rest} windows an epoch "
+                 "(train.window_steps; no training noise)" if window else ""))
 
     def resume_state(epoch_done: int, val: float, **extra) -> dict:
         """``model.last.ckpt``'s contents: everything a resumed run needs to go on exactly."""
@@ -620,6 +726,9 @@ def _train_here(cfg) -> Path:
         while not stopped and epoch < epochs:
             t0 = time.perf_counter() - (mid["seconds"] if mid else 0.0)
             items = list(pairs)
+            if window:                                          # this epoch's tiling, from (seed, epoch) alone
+                items = window_starts(train_trajs, window, torch.Generator().manual_seed(seed * 100_019 + epoch))
+                items += [(len(train_trajs), 0)] * n_rest
             rolled = None                                       # refreshed every epoch (resumes exactly)
             drifting = (rollout_from > 0 and epoch + 1 >= rollout_from) or bool(rest_horizon)
             # the weights the epoch's drifted states come from (an interrupted epoch's, kept in its checkpoint)
@@ -654,9 +763,13 @@ def _train_here(cfg) -> Path:
             saves.start()
             for b in range(n_batches * batch_size, len(mine), batch_size):
                 chosen = mine[b:b + batch_size]
-                batch = make_batch(batch_trajs, [items[i] for i in chosen], data.graph, rolled,
-                                   [images[frame[i]] for i in chosen] if frame is not None else None)
-                loss, dl, dg = step_loss(model, batch, ds.dt, noise, gen, lam_d, lam_g, lam_grad)
+                mirrors = [images[frame[i]] for i in chosen] if frame is not None else None
+                if window:
+                    batch = make_window_batch(batch_trajs, [items[i] for i in chosen], data.graph, window, mirrors)
+                    loss, dl, dg = window_loss(model, batch, ds.dt, column_weights, edge_scale, lam_d, lam_g, lam_grad)
+                else:
+                    batch = make_batch(batch_trajs, [items[i] for i in chosen], data.graph, rolled, mirrors)
+                    loss, dl, dg = step_loss(model, batch, ds.dt, noise, gen, lam_d, lam_g, lam_grad)
                 if lam_s > 0 and n_batches % probe_every == 0:   # a disturbance at rest must not grow
                     growth, direction = rest_growth(model, rest, data.graph, ds.dt, direction, probe_sizes)
                     loss = loss + lam_s * torch.relu(growth - 1.0).pow(2).sum()

@@ -307,14 +307,18 @@ class TIGNN(nn.Module):
 
     @torch.jit.export
     def rates(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
-              create_graph: bool) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+              create_graph: bool, through_state: bool = False) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
         """GENERIC rates. Returns (r [N, D] with dz/dt = r * dzdt_std, L [N, D, D], M [N, D, D],
         dE/dw [N, D], dS/dw [N, D], degeneracy loss (0-dim)), w the balanced coordinates (module
         docstring). M and dS/dw are zero for Hamiltonian models. With ``edge_operators`` L is the
         node (diagonal) part of the Poisson operator; the edge coupling (``poisson_apply``) acts
-        besides it and enters the rates and the degeneracy loss."""
+        besides it and enters the rates and the degeneracy loss. With ``through_state`` (and
+        ``create_graph``) the rates stay differentiable in a z that carries a graph, e.g. the
+        model's own previous step in a training window (``train.window_steps``); else z is cut off."""
         D = self.dim
-        zn = ((z - self.z_mean) / self.z_std).detach().requires_grad_(True)
+        zn = (z - self.z_mean) / self.z_std
+        if not (through_state and create_graph and zn.requires_grad):
+            zn = zn.detach().requires_grad_(True)
         fn = (f - self.f_mean) / self.f_std
         out, coupling = self.decode(zn, fn, edge_index, node_type, ref_pos)
         n = zn.shape[0]
