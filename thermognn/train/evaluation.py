@@ -92,7 +92,7 @@ def energy_entropy_along(model, graph: Graph, pred: torch.Tensor, forces: torch.
         for s in range(pred.shape[0]):
             f = forces[min(s, forces.shape[0] - 1)]
             e, s_ = model.energy_entropy(pred[s], g.edge_index, g.node_type, g.ref_pos, f)
-            deg = model.rates(pred[s], f, g.edge_index, g.node_type, g.ref_pos, False)[5]
+            deg = model.rates(pred[s], f, g.edge_index, g.node_type, g.ref_pos, False, False)[5]
             err = 0.0
             if s > 0:
                 e_prev = model.energy_entropy(pred[s - 1], g.edge_index, g.node_type, g.ref_pos, f)[0]

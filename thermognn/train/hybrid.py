@@ -134,7 +134,7 @@ class LinearPriorModel(nn.Module):
         dtype = self.net.z_mean.dtype
         if self.order == 1:
             out = self.net.rates((z.to(dtype) * self.seen).reshape(B * N, D), f.to(dtype).reshape(B * N, 3),
-                                 edge_index, node_type, ref_pos, create_graph)
+                                 edge_index, node_type, ref_pos, create_graph, False)
             return out[0].reshape(B, N, D), out[5]
         rest = self.rest_state()                                          # [1, N, D]
         half = rest + 0.5 * (z.to(torch.float64) - rest)                  # z½ formed in float64: [B, N, D]
@@ -142,7 +142,7 @@ class LinearPriorModel(nn.Module):
         fs = torch.cat([f.to(dtype), 0.5 * f.to(dtype)], 0)
         out = self.net.rates((zs * self.seen).reshape(2 * B * N, D), fs.reshape(2 * B * N, 3),
                              torch.cat([edge_index, edge_index + B * N], 1), torch.cat([node_type, node_type]),
-                             torch.cat([ref_pos, ref_pos]), create_graph)
+                             torch.cat([ref_pos, ref_pos]), create_graph, False)
         if rest_rates is not None:
             r0 = rest_rates                                               # [N, D]
         elif self.anchored and not create_graph:
@@ -161,7 +161,7 @@ class LinearPriorModel(nn.Module):
         dtype = self.net.z_mean.dtype
         return self.net.rates((self.rest_state().to(dtype) * self.seen).reshape(N, D),
                               torch.zeros(N, 3, dtype=dtype, device=self.seen.device),
-                              edge_index[:, :E], node_type[:N], ref_pos[:N], create_graph)[0]
+                              edge_index[:, :E], node_type[:N], ref_pos[:N], create_graph, False)[0]
 
     def rest_rates_once(self, B: int, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                         create_graph: bool) -> Optional[Tensor]:

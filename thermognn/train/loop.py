@@ -174,7 +174,7 @@ def step_loss(model: TIGNN, batch, dt: float, noise: float, generator: torch.Gen
         eps = cpu_randn(z.shape, generator, z) * (noise * dt) * model.dzdt_std
         z = z + eps * free
     at = model.rate_state(z, z_next)                 # z (Euler) or the step's midpoint (midpoint rule)
-    dzdt_n, _, _, _, _, deg = model.rates(at, batch.f, batch.edge_index, batch.node_type, batch.pos, True)
+    dzdt_n, _, _, _, _, deg = model.rates(at, batch.f, batch.edge_index, batch.node_type, batch.pos, True, False)
     target = (z_next - z) / dt / model.dzdt_std
     data_loss = ((dzdt_n - target).pow(2) * free).sum() / free.sum().clamp(min=1.0)
     if gradient_weight > 0:
@@ -330,7 +330,7 @@ def rest_growth(model: TIGNN, rest, graph, dt: float, directions: torch.Tensor, 
     dt_t = torch.tensor(dt, dtype=z0.dtype)
     copies = graph.copies(k + 1)
     z = torch.cat([z0.unsqueeze(0), z0 + d * scale]).reshape((k + 1) * n, -1)    # [(K+1) N, D]
-    r = model.rates(z, f.repeat(k + 1, 1), copies.edge_index, copies.node_type, copies.ref_pos, create_graph)[0]
+    r = model.rates(z, f.repeat(k + 1, 1), copies.edge_index, copies.node_type, copies.ref_pos, create_graph, False)[0]
     stepped = model.advance(z, r, dt_t, copies.node_type, copies.ref_pos).view(k + 1, n, -1)
     jd = (stepped[1:] - stepped[:1]) / scale * free                     # [K, N, D], typical steps
     norm = jd.flatten(1).norm(dim=1)                                    # [K]

@@ -373,11 +373,11 @@ class TIGNN(nn.Module):
         """One step z_n -> z_{n+1} [N, D] in SI units, driven by the force f [N, 3] at t_{n+1}
         (``integrator``: euler, or midpoint by fixed-point sweeps from the Euler predictor)."""
         z0 = z.detach()
-        rate = self.rates(z0, f, edge_index, node_type, ref_pos, False)[0].detach()
+        rate = self.rates(z0, f, edge_index, node_type, ref_pos, False, False)[0].detach()
         z_next = self.advance(z0, rate, dt, node_type, ref_pos)
         if self.integrator == "midpoint":
             for _ in range(self.implicit_iterations):
-                rate = self.rates(self.rate_state(z0, z_next), f, edge_index, node_type, ref_pos, False)[0].detach()
+                rate = self.rates(self.rate_state(z0, z_next), f, edge_index, node_type, ref_pos, False, False)[0].detach()
                 z_next = self.advance(z0, rate, dt, node_type, ref_pos)
         return z_next
 
@@ -419,7 +419,7 @@ class TIGNN(nn.Module):
         energy = out[:, D * D].sum()
         g = torch.autograd.grad([energy], [zn])[0]
         assert g is not None
-        rate = self.rates(z, f, edge_index, node_type, ref_pos, False)[0].detach()
+        rate = self.rates(z, f, edge_index, node_type, ref_pos, False, False)[0].detach()
         if self.exact_kinematics:                               # dq/dt = v on the free nodes
             v = z[:, self.v_col: self.v_col + 3] / self.dzdt_std[:3]
             rate = torch.cat([v * self.free_entries(node_type, z)[:, :3], rate[:, 3:]], 1)
