@@ -206,9 +206,11 @@ def edge_step_scale(trajs: list, edge_index: torch.Tensor, step_change: torch.Te
     of a typical step's change ``step_change`` [D] (dzdt_std * dt), over every training step ([D]):
     the fixed scale of a training window's edge term (``window_loss``)."""
     src, dst = edge_index[0], edge_index[1]
+    per = []
     with torch.no_grad():
-        per = [(lambda d: (d[:, src] - d[:, dst]).pow(2).mean((0, 1)))((t.z[1:] - t.z[:-1]) / step_change)
-               for t in trajs]                                                     # [D] each
+        for t in trajs:
+            change = (t.z[1:] - t.z[:-1]) / step_change                            # [S, N, D]
+            per.append((change[:, src] - change[:, dst]).pow(2).mean((0, 1)))     # [D]
     scale = torch.stack(per).mean(0)
     # a column whose true steps never vary across the edges (e.g. the same at every node) is
     # measured against the columns' mean instead of ~0
