@@ -993,6 +993,27 @@ def test_training_on_the_gpu_follows_the_cpu(tmp_path):
     assert [int(r["epoch"]) for r in _rows(tmp_path / "cuda")] == [1, 2, 3, 4, 5, 6]
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (train.device=cuda)")
+def test_training_windows_in_the_mirrors_on_the_gpu_follow_the_cpu(tmp_path):
+    """``train.window_steps`` and ``train.symmetry_augment`` draw their tilings and mirror frames
+    from CPU generators whatever ``train.device`` (a CPU generator cannot fill a GPU tensor), so the
+    same fine-tune on the GPU and on the CPU sees the same windows in the same mirrors: its losses
+    and validation errors agree to float32 round-off."""
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=6, steps=6)
+    data = f"paths.dataset={tmp_path / 'dataset.h5'}"
+    init = train(_cfg(tmp_path / "init", "train.epochs=1", data))
+    rows = {}
+    for dev in ("cpu", "cuda"):
+        train(_cfg(tmp_path / dev, "train.epochs=2", "train.window_steps=3", "train.symmetry_augment=true",
+                   "train.batch_size=2", f"train.init={init}", f"train.device={dev}", data))
+        rows[dev] = _rows(tmp_path / dev)
+    assert len(rows["cuda"]) == 2
+    for a, b in zip(rows["cpu"], rows["cuda"], strict=True):
+        for key in ("loss", "val_error"):
+            if a[key]:
+                assert float(b[key]) == pytest.approx(float(a[key]), rel=1e-2), (key, a, b)
+
+
 def test_rate_gradient_term_weighs_the_errors_variation_across_edges(tmp_path):
     """``train.rate_gradient_weight``: the one-step rate error's differences across the mesh edges,
     relative to the target's own. An error the same at every node has none (a stress read off the

@@ -471,7 +471,7 @@ def window_starts(trajs: list[TrajectoryTensors], window: int, generator: torch.
     items = []
     for i, t in enumerate(trajs):
         steps = t.z.shape[0] - 1
-        offset = int(torch.randint(window, (1,), generator=generator))
+        offset = int(torch.randint(window, (1,), generator=generator, device="cpu"))   # a CPU generator, whatever train.device
         starts = sorted({min(offset + j * window, steps - window) for j in range(-(-steps // window))})
         items += [(i, s) for s in starts]
     return items

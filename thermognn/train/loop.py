@@ -761,7 +761,7 @@ def _train_here(cfg) -> Path:
             nb = -(-len(mine) // batch_size)
             # each item's mirror frame this epoch, from (seed, epoch) alone: a resumed epoch draws the same
             frame = (torch.randint(len(images), (len(items),), generator=torch.Generator().manual_seed(
-                seed * 100_003 + epoch)).tolist() if images is not None else None)
+                seed * 100_003 + epoch), device="cpu").tolist() if images is not None else None)
             saves.start()
             for b in range(n_batches * batch_size, len(mine), batch_size):
                 chosen = mine[b:b + batch_size]
