@@ -1117,6 +1117,68 @@ def test_training_windows_roll_the_model_out_and_back_propagate_through_its_step
                    f"paths.dataset={tmp_path / 'dataset.h5'}"))
 
 
+def test_window_readout_term_weighs_the_stress_read_off_the_predicted_positions(tmp_path, capsys):
+    """``train.window_readout_weight``: along each window the init's stress readout (fixed) reads the
+    stress off the predicted positions and loads, and its error against the true stress, in a
+    typical step's change, adds weight x its mean square over the free stress entries to the data
+    term, as a rollout of the window computes it; its gradient reaches the network through the
+    positions; a fine-tune with it runs and refits the readout; bad settings are refused in one line."""
+    from thermognn.train.data import make_window_batch
+    from thermognn.train.loop import edge_step_scale, window_loss
+
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=12, steps=8)
+    data_arg = f"paths.dataset={tmp_path / 'dataset.h5'}"
+    small = ("model.hidden=16", "model.message_passing=2", "model.kinematics=exact", "model.stress_readout=1", data_arg)
+    init = train(_cfg(tmp_path / "init", "train.epochs=1", *small))
+    model = model_from_checkpoint(load_checkpoint(init)).train()
+    readout = model.readout
+    data = load_data(tmp_path / "dataset.h5", [0.8, 0.1, 0.1], 0, torch.float32)
+    trajs = data.of("train")
+    ones = torch.ones(data.layout.dim)
+    scale = edge_step_scale(trajs, data.graph.edge_index, data.dt * model.dzdt_std.detach())
+    items, W = [(0, 1), (2, 4)], 3
+    batch = make_window_batch(trajs, items, data.graph, W)
+    off_loss, off, _ = window_loss(model, batch, data.dt, ones, scale, 1.0, 0.0)
+    on_loss, on, _ = window_loss(model, batch, data.dt, ones, scale, 1.0, 0.0, readout=readout, readout_weight=2.0)
+    sig = list(range(*data.layout.slice("sigma").indices(data.layout.dim)))
+    step = (data.dt * model.dzdt_std.detach())[sig]
+    model.use_readout = False                          # the network's own states, read below
+    X = data.graph.ref_pos
+    per_step = torch.zeros(W)
+    free = model.free_entries(data.graph.node_type, trajs[0].z[0])[:, sig]
+    for i, s in items:                                 # each window rolled out on its own
+        t = trajs[i]
+        pred = rollout(model, data.graph, t.z[s], t.force[s: s + W + 1], data.dt)         # [W+1, N, D]
+        with torch.no_grad():
+            for k in range(1, W + 1):
+                r = (readout(pred[k, :, :3] - X, t.force[s + k]) - t.z[s + k][:, sig]) / step
+                per_step[k - 1] += (r.pow(2) * free).sum()
+    expected = 2.0 * float(per_step.sum()) / (W * len(items) * float(free.sum()))
+    assert on - off == pytest.approx(expected, rel=1e-3) and expected > 0
+    (on_loss - off_loss).backward()                    # the readout term alone
+    grads = [p.grad for p in model.parameters() if p.grad is not None]
+    assert grads and any(float(g.abs().sum()) > 0 for g in grads) and all(torch.isfinite(g).all() for g in grads)
+    assert not any(p.requires_grad for p in readout.parameters())
+
+    capsys.readouterr()
+    ckpt = load_checkpoint(train(_cfg(tmp_path / "ft", "train.epochs=1", "train.window_steps=2",
+                                      "train.window_readout_weight=1.0", f"train.init={init}", *small)))
+    assert "weighed 1 in the window loss (train.window_readout_weight)" in capsys.readouterr().out
+    assert ckpt["epoch"] == 1 and ckpt["hparams"]["stress_readout"]["hops"] == 1
+    assert all(math.isfinite(float(r["loss"])) for r in _rows(tmp_path / "ft"))
+    for bad, shown in (("yes", "'yes'"), ("-1.0", "-1.0"), ("inf", "inf")):
+        with pytest.raises(ConfigError, match=rf"^train.window_readout_weight = {shown}, expected a number >= 0"):
+            train(_cfg(tmp_path / "x", "train.window_steps=2", f"train.window_readout_weight={bad}", f"train.init={init}", *small))
+    refusals = ((("train.window_readout_weight=1", f"train.init={init}", *small), "set train.window_steps >= 1"),
+                (("train.window_readout_weight=1", "train.window_steps=2", f"train.init={init}",
+                  *(a for a in small if "stress_readout" not in a)),
+                 "set model.stress_readout"),
+                (("train.window_readout_weight=1", "train.window_steps=2", *small), "needs train.init with a fitted stress readout"))
+    for args, says in refusals:
+        with pytest.raises(ConfigError, match=rf"^train.window_readout_weight = 1.*{says}"):
+            train(_cfg(tmp_path / "y", *args))
+
+
 def test_training_windows_resume_within_an_epoch_as_if_uninterrupted(tmp_path, monkeypatch):
     """``train.window_steps`` with ``train.checkpoint_minutes``: an epoch's tiling and mirrors come
     from (seed, epoch) alone, so a window run interrupted within its second epoch goes on at its

@@ -219,7 +219,8 @@ def edge_step_scale(trajs: list, edge_index: torch.Tensor, step_change: torch.Te
 
 def window_loss(model: TIGNN, batch, dt: float, column_weights: torch.Tensor, edge_scale: torch.Tensor,
                 lambda_data: float, lambda_degeneracy: float,
-                gradient_weight: float = 0.0) -> tuple[torch.Tensor, float, float]:
+                gradient_weight: float = 0.0, readout: torch.nn.Module | None = None,
+                readout_weight: float = 0.0) -> tuple[torch.Tensor, float, float]:
     """Loss of a batch of training windows (``train.window_steps``, ``make_window_batch``): the
     model rolls each window out from its true first state, back-propagated through every step,
     and at each step k its accumulated error e_k = (z_k - z_true_k) / (dt * dzdt_std) [B*N, D]
@@ -232,13 +233,25 @@ def window_loss(model: TIGNN, batch, dt: float, column_weights: torch.Tensor, ed
     edge term over the mesh edges (i, j) relative to a true step's own (``edge_step_scale``, fixed:
     a window's own scale made windows of slow steps weigh 10-100x). A rollout's error is what the
     one-step loss only bounds step by step; a stress read off the positions feels its variation
-    across the edges (``rate_gradient_error``)."""
+    across the edges (``rate_gradient_error``).
+
+    With a stress ``readout`` (``train.window_readout_weight``: the init's, fitted to its rollouts,
+    kept fixed) the data term adds readout_weight * mean_k MSE(r_k) over the free stress entries,
+    r_k = (readout(q_k - X, f_k) - σ_true_k) / (dt * dzdt_std_σ): the stress the product reports,
+    read off the predicted positions, against the data's. Its gradient reaches the network through
+    the positions only, so the network learns positions whose read-off stress is right."""
     Z, F = batch.z, batch.f                                            # [W+1, B*N, D], [W+1, B*N, 3]
     steps = Z.shape[0] - 1
     step_change = dt * model.dzdt_std                                  # [D]
     free = model.free_entries(batch.node_type, Z[0]) * column_weights # [B*N, D]
     src, dst = batch.edge_index[0], batch.edge_index[1]
     dt_t = torch.tensor(dt, dtype=Z.dtype, device=Z.device)
+    reading = readout is not None and readout_weight > 0
+    if reading:
+        sig = list(readout.columns)                                    # the stress columns it reads
+        free_sig = model.free_entries(batch.node_type, Z[0])[:, sig]   # [B*N, S]
+        n_nodes = int(readout.nodes)
+        copies = Z.shape[1] // n_nodes                                 # B disjoint copies of the mesh
     z, data, deg = Z[0], Z.new_zeros(()), Z.new_zeros(())
     for k in range(1, steps + 1):
         rate, _, _, _, _, d = model.rates(z, F[k], batch.edge_index, batch.node_type, batch.pos, True, True)
@@ -248,6 +261,12 @@ def window_loss(model: TIGNN, batch, dt: float, column_weights: torch.Tensor, ed
         if gradient_weight > 0:
             ef = e * free
             data = data + gradient_weight * ((ef[src] - ef[dst]).pow(2) / edge_scale).mean()
+        if reading:
+            u = (z[:, :3] - batch.pos).reshape(copies, n_nodes, 3)      # [B, N, 3]
+            f = F[k].reshape(copies, n_nodes, 3)                       # [B, N, 3]: state k's load
+            read = torch.cat([readout(u[b], f[b]) for b in range(copies)], 0)   # [B*N, S]
+            r = (read - Z[k][:, sig]) / step_change[sig]               # [B*N, S]
+            data = data + readout_weight * (r.pow(2) * free_sig).sum() / free_sig.sum().clamp(min=1e-30)
         deg = deg + d
     data, deg = data / steps, deg / steps
     return lambda_data * data + lambda_degeneracy * deg, float(data.detach()), float(deg.detach())
@@ -389,7 +408,7 @@ RESUME_KEYS = ("batch_size", "lr", "lr_decay", "lambda_data", "lambda_degeneracy
 #: (with the value that leaves them as they were before: off, or the former fixed behaviour)
 OPTIONAL_RESUME_KEYS = {"rest_rollout": 0, "rest_stability": 0, "rest_stability_probe": STABILITY_PROBE,
                         "rest_stability_every": 1, "symmetry_augment": False, "rate_gradient_weight": 0.0,
-                        "window_steps": 0, "window_weights": None}
+                        "window_steps": 0, "window_weights": None, "window_readout_weight": 0.0}
 #: settings of the rest-stability penalty, which matter only while it is on
 STABILITY_SETTINGS = ("rest_stability_probe", "rest_stability_every")
 
@@ -498,6 +517,35 @@ def rate_gradient_weight(tc) -> float:
         raise ConfigError(f"train.rate_gradient_weight = {raw!r}, expected a number >= 0 (the weight of the "
                           "rate error's differences across the mesh edges; 0: off)")
     return float(raw)
+
+
+def window_readout(tc, cfg, window: int, like: torch.Tensor) -> tuple[torch.nn.Module | None, float]:
+    """``train.window_readout_weight`` (0 or absent: off): (the stress readout of ``train.init``,
+    fitted to its rollouts and kept fixed, on ``like``'s device; the weight) for ``window_loss``, or
+    (None, 0.0). A ConfigError, in one line, unless the weight is a finite number >= 0 and, where it is
+    on, the run trains windows (``train.window_steps``) with a stress readout (``model.stress_readout``)
+    from an init that has one fitted."""
+    raw = _sel(tc, "window_readout_weight", 0.0)
+    if isinstance(raw, bool) or not isinstance(raw, (int, float)) or not (math.isfinite(raw) and raw >= 0):
+        raise ConfigError(f"train.window_readout_weight = {raw!r}, expected a number >= 0 (the weight of the "
+                          "stress read off the predicted positions in the window loss; 0: off)")
+    if raw == 0:
+        return None, 0.0
+    if not window:
+        raise ConfigError(f"train.window_readout_weight = {raw}: the read-off stress is weighed along the "
+                          "training windows; set train.window_steps >= 1")
+    if not readout_hops(cfg):
+        raise ConfigError(f"train.window_readout_weight = {raw}: trains the positions a stress readout reads; "
+                          "set model.stress_readout")
+    init = _sel(tc, "init", None)
+    src = load_checkpoint(project_path(str(init))) if init else None
+    if src is None or not src["hparams"].get("stress_readout"):
+        raise ConfigError(f"train.window_readout_weight = {raw}: needs train.init with a fitted stress readout "
+                          f"(model.stress_readout), got {'no train.init' if src is None else repr(str(init))}")
+    readout = model_from_checkpoint(src).readout.to(like.device).eval()
+    for p in readout.parameters():
+        p.requires_grad_(False)
+    return readout, float(raw)
 
 
 def readout_hops(cfg) -> int:
@@ -656,6 +704,8 @@ def _train_here(cfg) -> Path:
                           f"rest state (train.rest_samples > 0)")
     probe_sizes = stability_probe_sizes(_sel(tc, "rest_stability_probe", STABILITY_PROBE))
     column_weights = edge_scale = None
+    # with windows, the init's stress readout (fixed) may weigh the stress read off the positions
+    readout_fixed, lam_read = window_readout(tc, cfg, window, train_trajs[0].z)
     if window:                                       # training windows instead of one-step pairs
         shortest = min(t.z.shape[0] for t in train_trajs) - 1
         if window > shortest:
@@ -705,7 +755,9 @@ def _train_here(cfg) -> Path:
                  if images is not None else "")
               + (f"; trained instead on the model's own rollouts over windows of {window} steps from true states, "
                  f"{len(window_starts(train_trajs, window, torch.Generator().manual_seed(seed))) + n_rest} windows an epoch "
-                 "(train.window_steps; no training noise)" if window else ""))
+                 "(train.window_steps; no training noise)" if window else "")
+              + (f"; the stress read off the predicted positions by {tc.init}'s readout weighed "
+                 f"{lam_read:g} in the window loss (train.window_readout_weight)" if lam_read else ""))
 
     def resume_state(epoch_done: int, val: float, **extra) -> dict:
         """``model.last.ckpt``'s contents: everything a resumed run needs to go on exactly."""
@@ -768,7 +820,8 @@ def _train_here(cfg) -> Path:
                 mirrors = [images[frame[i]] for i in chosen] if frame is not None else None
                 if window:
                     batch = make_window_batch(batch_trajs, [items[i] for i in chosen], data.graph, window, mirrors)
-                    loss, dl, dg = window_loss(model, batch, ds.dt, column_weights, edge_scale, lam_d, lam_g, lam_grad)
+                    loss, dl, dg = window_loss(model, batch, ds.dt, column_weights, edge_scale, lam_d, lam_g, lam_grad,
+                                               readout_fixed, lam_read)
                 else:
                     batch = make_batch(batch_trajs, [items[i] for i in chosen], data.graph, rolled, mirrors)
                     loss, dl, dg = step_loss(model, batch, ds.dt, noise, gen, lam_d, lam_g, lam_grad)
