@@ -12,7 +12,7 @@ from thermognn.core.errors import ConfigError, DataError
 from thermognn.train import train
 from thermognn.train.checkpoint import last_path, load_checkpoint, model_from_checkpoint
 from thermognn.train.data import load_data
-from thermognn.train.rollout import rollout
+from thermognn.train.rollout import rollout, validation_error
 from thermognn.train.synthetic import write_oscillator_dataset
 
 SMALL = ["train.threads=1", "model.hidden=24", "model.message_passing=2", "train.batch_size=4", "train.val_every=2", "train.lr=3e-3"]
@@ -1159,11 +1159,19 @@ def test_window_readout_term_weighs_the_stress_read_off_the_predicted_positions(
     grads = [p.grad for p in model.parameters() if p.grad is not None]
     assert grads and any(float(g.abs().sum()) > 0 for g in grads) and all(torch.isfinite(g).all() for g in grads)
     assert not any(p.requires_grad for p in readout.parameters())
+    # validation reads the stress off as the product's rollouts report it (TIGNN.read_stress)
+    val = data.of("val")
+    model.eval()
+    own = validation_error(model, data.graph, val, data.layout, data.dt)
+    read = validation_error(model, data.graph, val, data.layout, data.dt, readout)
+    model.use_readout = True
+    assert read == pytest.approx(validation_error(model, data.graph, val, data.layout, data.dt), rel=1e-6)
+    assert read != pytest.approx(own, rel=1e-3)
 
     capsys.readouterr()
     ckpt = load_checkpoint(train(_cfg(tmp_path / "ft", "train.epochs=1", "train.window_steps=2",
                                       "train.window_readout_weight=1.0", f"train.init={init}", *small)))
-    assert "weighed 1 in the window loss (train.window_readout_weight)" in capsys.readouterr().out
+    assert "weighed 1 in the window loss (train.window_readout_weight), and the validation" in capsys.readouterr().out
     assert ckpt["epoch"] == 1 and ckpt["hparams"]["stress_readout"]["hops"] == 1
     assert all(math.isfinite(float(r["loss"])) for r in _rows(tmp_path / "ft"))
     for bad, shown in (("yes", "'yes'"), ("-1.0", "-1.0"), ("inf", "inf")):

@@ -757,7 +757,8 @@ def _train_here(cfg) -> Path:
                  f"{len(window_starts(train_trajs, window, torch.Generator().manual_seed(seed))) + n_rest} windows an epoch "
                  "(train.window_steps; no training noise)" if window else "")
               + (f"; the stress read off the predicted positions by {tc.init}'s readout weighed "
-                 f"{lam_read:g} in the window loss (train.window_readout_weight)" if lam_read else ""))
+                 f"{lam_read:g} in the window loss (train.window_readout_weight), and the validation rollouts' "
+                 "stress read off by it" if lam_read else ""))
 
     def resume_state(epoch_done: int, val: float, **extra) -> dict:
         """``model.last.ckpt``'s contents: everything a resumed run needs to go on exactly."""
@@ -855,7 +856,7 @@ def _train_here(cfg) -> Path:
             epoch += 1
             if epoch % val_every == 0 or epoch == epochs:
                 model.eval()
-                val = validation_error(model, data.graph, val_trajs, ds.layout, ds.dt)
+                val = validation_error(model, data.graph, val_trajs, ds.layout, ds.dt, readout_fixed)
                 row["val_error"] = val
                 if val < best_val or best_val == math.inf:  # the first round always saves
                     best_val, stale = min(val, best_val), 0

@@ -97,14 +97,32 @@ def trajectory_error(pred: Tensor, truth: Tensor, layout: StateLayout) -> dict[s
     return out
 
 
-def validation_error(model, graph: Graph, trajs: list[TrajectoryTensors], layout: StateLayout, dt: float) -> float:
+def read_off(pred: Tensor, readout, graph: Graph, forces: Tensor) -> Tensor:
+    """A rollout pred [S, N, D] with its stress columns read off its positions by ``readout``
+    (a ``StressReadout``), state s under the load ``rollout`` stepped it with, forces[min(s, F-1)]
+    [N, 3]: the stress the product reports (``TIGNN.read_stress``)."""
+    cols = list(readout.columns)
+    with torch.no_grad():
+        read = torch.stack([readout(pred[s, :, :3] - graph.ref_pos, forces[min(s, forces.shape[0] - 1)])
+                            for s in range(pred.shape[0])])                          # [S, N, S_cols]
+    out = pred.clone()
+    out[:, :, cols] = read.to(out.dtype)
+    return out
+
+
+def validation_error(model, graph: Graph, trajs: list[TrajectoryTensors], layout: StateLayout, dt: float,
+                     readout=None) -> float:
     """One number for model selection and early stopping: :func:`trajectory_error` of the rollouts
     from each trajectory's initial state, averaged over the finite groups and the trajectories
-    (inf if none is finite, or where the corotated prior's rollout diverges: the run goes on)."""
+    (inf if none is finite, or where the corotated prior's rollout diverges: the run goes on).
+    With ``readout`` the rollouts' stress is read off their positions by it (:func:`read_off`)."""
     vals = []
     for t in trajs:
         try:
-            errors = trajectory_error(rollout(model, graph, t.z[0], t.force, dt), t.z, layout)
+            pred = rollout(model, graph, t.z[0], t.force, dt)
+            if readout is not None:
+                pred = read_off(pred, readout, graph, t.force)
+            errors = trajectory_error(pred, t.z, layout)
         except RuntimeError as exc:          # the corotated prior met a non-finite state: diverged
             if DIVERGED not in str(exc):
                 raise
