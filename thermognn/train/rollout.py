@@ -104,7 +104,7 @@ def read_off(pred: Tensor, readout, graph: Graph, forces: Tensor) -> Tensor:
     cols = list(readout.columns)
     with torch.no_grad():
         read = torch.stack([readout(pred[s, :, :3] - graph.ref_pos, forces[min(s, forces.shape[0] - 1)])
-                            for s in range(pred.shape[0])])                          # [S, N, S_cols]
+                            for s in range(pred.shape[0])])                          # [S, N, C]
     out = pred.clone()
     out[:, :, cols] = read.to(out.dtype)
     return out
