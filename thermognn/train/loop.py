@@ -243,13 +243,14 @@ def window_loss(model: TIGNN, batch, dt: float, column_weights: torch.Tensor, ed
     Z, F = batch.z, batch.f                                            # [W+1, B*N, D], [W+1, B*N, 3]
     steps = Z.shape[0] - 1
     step_change = dt * model.dzdt_std                                  # [D]
-    free = model.free_entries(batch.node_type, Z[0]) * column_weights # [B*N, D]
+    unweighted = model.free_entries(batch.node_type, Z[0])           # [B*N, D]
+    free = unweighted * column_weights                                 # [B*N, D]
     src, dst = batch.edge_index[0], batch.edge_index[1]
     dt_t = torch.tensor(dt, dtype=Z.dtype, device=Z.device)
     reading = readout is not None and readout_weight > 0
     if reading:
         sig = list(readout.columns)                                    # the stress columns it reads
-        free_sig = model.free_entries(batch.node_type, Z[0])[:, sig]   # [B*N, S]
+        free_sig = unweighted[:, sig]                                  # [B*N, S]
         n_nodes = int(readout.nodes)
         copies = Z.shape[1] // n_nodes                                 # B disjoint copies of the mesh
     z, data, deg = Z[0], Z.new_zeros(()), Z.new_zeros(())

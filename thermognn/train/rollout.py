@@ -42,7 +42,7 @@ def rollout(model, graph: Graph, z0: Tensor, forces: Tensor, dt: float, steps: i
         for s in range(1, steps + 1):
             out.append(model.step(out[-1], loads[s], graph.edge_index, graph.node_type, graph.ref_pos, dt_t).detach())
     if getattr(model, "use_readout", False):    # the stress reported: read off the positions (and loads)
-        return torch.stack([model.read_stress(z, graph.ref_pos, f) for z, f in zip(out, loads)])
+        return read_off(torch.stack(out), model.readout, graph, forces)
     return torch.stack(out)
 
 
@@ -100,7 +100,8 @@ def trajectory_error(pred: Tensor, truth: Tensor, layout: StateLayout) -> dict[s
 def read_off(pred: Tensor, readout, graph: Graph, forces: Tensor) -> Tensor:
     """A rollout pred [S, N, D] with its stress columns read off its positions by ``readout``
     (a ``StressReadout``), state s under the load ``rollout`` stepped it with, forces[min(s, F-1)]
-    [N, 3]: the stress the product reports (``TIGNN.read_stress``)."""
+    [N, 3]: the stress the product reports (``TIGNN.read_stress``, state by state), from the model's
+    own readout (``rollout``) or from one kept apart (``validation_error``)."""
     cols = list(readout.columns)
     with torch.no_grad():
         read = torch.stack([readout(pred[s, :, :3] - graph.ref_pos, forces[min(s, forces.shape[0] - 1)])
