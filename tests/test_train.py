@@ -543,6 +543,38 @@ def test_changed_configuration_trains_from_scratch(tmp_path, capsys):
     assert _without_off_terms({"rest_stability": 10, "rest_stability_probe": 0.3}) == {"rest_stability": 10}
 
 
+def test_a_fine_tune_resumes_only_from_the_same_init_file(tmp_path, capsys):
+    """train.init counts by its contents, not only its path: the next fine-tune of a chain that
+    rewrites the init at one path starts afresh; the same file resumes; so do a run stored before
+    the digest existed and a run whose init is its own checkpoint (which it rewrites itself)."""
+    import shutil
+
+    from thermognn.train.checkpoint import save_checkpoint
+    for name in ("a", "b"):
+        write_oscillator_dataset(tmp_path / name / "dataset.h5", n_trajectories=3, steps=4)
+    train(_cfg(tmp_path / "a", "train.epochs=2"))
+    init = tmp_path / "init.ckpt"
+    shutil.copy(tmp_path / "a" / "model.ckpt", init)
+    tune = (f"train.init={init}", "train.lr=1e-4")
+    train(_cfg(tmp_path / "b", "train.epochs=1", *tune))
+    train(_cfg(tmp_path / "b", "train.epochs=2", *tune))           # the same init, more epochs: resumes
+    assert "resuming from" in capsys.readouterr().out
+    shutil.copy(tmp_path / "b" / "model.ckpt", init)                # the chain's next init, at the same path
+    train(_cfg(tmp_path / "b", "train.epochs=2", *tune))
+    assert "configuration changed (init_digest)" in capsys.readouterr().out
+    assert [int(r["epoch"]) for r in _rows(tmp_path / "b")] == [1, 2]
+    last = last_path(tmp_path / "b" / "model.ckpt")
+    state = load_checkpoint(last)
+    save_checkpoint({**state, "identity": {k: v for k, v in state["identity"].items() if k != "init_digest"}}, last)
+    train(_cfg(tmp_path / "b", "train.epochs=3", *tune))           # stored before the digest: resumes
+    assert "resuming from" in capsys.readouterr().out
+    own = (f"train.init={tmp_path / 'a' / 'model.ckpt'}", "train.lr=1e-4")
+    train(_cfg(tmp_path / "a", "train.epochs=1", *own))           # a new init path: from scratch, rewrites it
+    assert "configuration changed (init, lr)" in capsys.readouterr().out
+    train(_cfg(tmp_path / "a", "train.epochs=2", *own))
+    assert "resuming from" in capsys.readouterr().out
+
+
 def test_structure_auto_follows_effects_and_damping():
     from thermognn.train.loop import resolve_structure
 

@@ -805,7 +805,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     from .data import compute_stats
     from .evaluation import linear_validation_error
     from .loop import (EpochCheckpoints, _base_checkpoint, _progress, _sel, _tensorboard, _write_metrics,
-                       print_rrmse_table, training_identity)
+                       identity_changes, print_rrmse_table, training_identity)
     from .model import build_model, parameter_count
     from .rollout import rollout_errors, validation_error
 
@@ -903,7 +903,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     last = last_path(ckpt_path)
     if bool(_sel(tc, "resume", True)) and last.exists():
         state = load_checkpoint(last)
-        if state.get("identity") != identity:
+        if identity_changes(state.get("identity") or {}, identity):
             if dist.main:
                 print(f"{last}: configuration changed; training from scratch")
         else:

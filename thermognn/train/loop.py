@@ -5,6 +5,7 @@ parallelism (torchrun)."""
 from __future__ import annotations
 
 import csv
+import hashlib
 import math
 import os
 import time
@@ -424,11 +425,27 @@ def _without_off_terms(identity: dict) -> dict:
 
 
 def training_identity(cfg, hparams: dict, dtype_name: str) -> dict:
-    """What must not change for ``model.last.ckpt`` to be resumed (epochs, patience, threads may)."""
-    return _without_off_terms(
+    """What must not change for ``model.last.ckpt`` to be resumed (epochs, patience, threads may).
+    With ``train.init`` its file's contents count too (``init_digest``), not only its path: a
+    checkpoint written anew at the same path (the next of a chain of fine-tunes) starts afresh. Not
+    where the init is the run's own checkpoint, which the run itself rewrites (it resumes)."""
+    identity = _without_off_terms(
         {"hparams": hparams, "dtype": dtype_name, "seed": int(_sel(cfg, "seed", 0)),
          **{k: OmegaConf.to_container(v) if OmegaConf.is_config(v) else v
             for k in RESUME_KEYS + tuple(OPTIONAL_RESUME_KEYS) for v in [_sel(cfg.train, k, None)]}})
+    init = _sel(cfg.train, "init", None)
+    own = project_path(str(_sel(cfg, "paths.checkpoint", ""))).resolve()
+    if init and project_path(str(init)).is_file() and project_path(str(init)).resolve() != own:
+        identity["init_digest"] = hashlib.sha256(project_path(str(init)).read_bytes()).hexdigest()
+    return identity
+
+
+def identity_changes(stored: dict, identity: dict) -> list[str]:
+    """The keys in which a checkpoint's stored training identity differs from this run's; one stored
+    before ``init_digest`` existed is compared without it (it resumes as it did)."""
+    if "init_digest" not in stored:
+        identity = {k: v for k, v in identity.items() if k != "init_digest"}
+    return sorted(k for k in set(identity) | set(stored) if stored.get(k) != identity.get(k))
 
 
 def _fits(model: torch.nn.Module, state_dict: dict) -> bool:
@@ -662,14 +679,14 @@ def _train_here(cfg) -> Path:
     saves = EpochCheckpoints(_sel(tc, "checkpoint_minutes", 10), dist)
 
     last = last_path(ckpt_path)
+    identity = training_identity(cfg, hparams, dtype_name)     # once, before any file is written
     if bool(_sel(tc, "resume", True)) and last.exists() and epochs > 0:
         state = load_checkpoint(last)
         check_fingerprint(state["fingerprint"], ds, last,
                           hint="delete it or pass train.resume=false to train from scratch")
-        identity = training_identity(cfg, hparams, dtype_name)
         stored = _without_off_terms(state.get("identity") or {})
-        if stored != identity:
-            changed = sorted(k for k in set(identity) | set(stored) if stored.get(k) != identity.get(k))
+        changed = identity_changes(stored, identity)
+        if changed:
             print(f"{last}: configuration changed ({', '.join(changed)}); training from scratch")
         elif not _fits(model, state["state_dict"]):
             print(f"{last}: weights from another model version; training from scratch")
@@ -767,7 +784,7 @@ def _train_here(cfg) -> Path:
                 "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
                 "rng": {"generator": gen.get_state(), "torch": torch.get_rng_state()},
                 "history": history, "best_val": best_val, "stale_rounds": stale,
-                "rest_direction": direction, "identity": training_identity(cfg, hparams, dtype_name), **extra}
+                "rest_direction": direction, "identity": identity, **extra}
 
     if epochs == 0 and dist.main:                # readout only: the init's network is the best model
         model.eval()
