@@ -255,6 +255,54 @@ def test_symmetry_augment_shows_training_pairs_in_the_meshs_mirrors(tmp_path, ca
                    f"paths.dataset={tmp_path / 'dataset.h5'}"))
 
 
+def test_mirror_average_steps_the_mean_over_the_meshs_mirror_frames(tmp_path, capsys):
+    """``model.mirror_average``: each step is the mean over the mesh's mirror frames g of
+    g⁻¹ step(g z, g f) (the box: the identity and the x <-> y swap, its own inverse), so the model
+    is exactly equivariant where the plain network is not; set on a trained network with
+    train.epochs=0 from its checkpoint (weights kept), trained with from scratch, dropped again by a
+    fine-tune; export keeps it; bad settings are refused in one line."""
+    from thermognn.export import export
+    from thermognn.train.data import state_images
+
+    write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=4, steps=6)
+    on_data = f"paths.dataset={tmp_path / 'dataset.h5'}"
+    plain_path = train(_cfg(tmp_path / "a", "train.epochs=2", on_data))
+    capsys.readouterr()
+    cfg = _cfg(tmp_path / "m", "train.epochs=0", f"train.init={plain_path}", "model.mirror_average=true", on_data)
+    ckpt = load_checkpoint(train(cfg))
+    assert "kept as it is, stepped in the mesh's 2 mirror frames" in capsys.readouterr().out
+    assert ckpt["hparams"]["mirror_frames"] == {"frames": 2, "nodes": 27} and ckpt["epoch"] == 0
+    src = load_checkpoint(plain_path)
+    assert all(torch.equal(v, ckpt["state_dict"][k]) for k, v in src["state_dict"].items())   # weights kept
+    plain, mirrored = model_from_checkpoint(src), model_from_checkpoint(ckpt)
+    data = load_data(tmp_path / "dataset.h5", [0.5, 0.25, 0.25], 0, torch.float32)
+    swap = state_images(data.graph, data.layout)[1]
+    t = data.read(data.split["train"][0])
+    z, f = t.z[2], t.force[3]
+    args = (data.graph.edge_index, data.graph.node_type, data.graph.ref_pos, torch.tensor(data.dt))
+    step = mirrored.step(z, f, *args)
+    scale = step.abs().amax(0).clamp(min=1e-12)
+    mean = 0.5 * (plain.step(z, f, *args) + swap.states(plain.step(swap.states(z), swap.loads(f), *args)))
+    assert float(((step - mean).abs() / scale).max()) < 1e-5
+    image = mirrored.step(swap.states(z), swap.loads(f), *args)          # the image steps to the step's image
+    assert float(((image - swap.states(step)).abs() / scale).max()) < 1e-5
+    lone = plain.step(swap.states(z), swap.loads(f), *args) - swap.states(plain.step(z, f, *args))
+    assert float((lone.abs() / scale).max()) > 1e-3                       # the plain network is not equivariant
+    scripted = torch.jit.load(str(export(cfg)))
+    assert float(((scripted(z, f) - step).abs() / scale).max()) < 1e-5
+    trained = load_checkpoint(train(_cfg(tmp_path / "t", "train.epochs=1", "model.mirror_average=true", on_data)))
+    assert trained["hparams"]["mirror_frames"]["frames"] == 2
+    dropped = load_checkpoint(train(_cfg(tmp_path / "d", "train.epochs=1", f"train.init={tmp_path / 'm' / 'model.ckpt'}",
+                                         on_data)))
+    assert "mirror_frames" not in dropped["hparams"] and not any(k.startswith("frame_") for k in dropped["state_dict"])
+    with pytest.raises(ConfigError, match=r"model.mirror_average = 'yes', expected true .* or false"):
+        train(_cfg(tmp_path / "bad", "model.mirror_average=yes", on_data))
+    with pytest.raises(ConfigError, match=r"model.mirror_average = true: .* model.prior=linear"):
+        train(_cfg(tmp_path / "lp", "model=linear_prior", "model.mirror_average=true", on_data))
+    with pytest.raises(ConfigError, match=r"train.epochs = 0, expected >= 1 .* model.mirror_average"):
+        train(_cfg(tmp_path / "e0", "train.epochs=0", on_data))
+
+
 def test_generic_structure_trains(tmp_path):
     write_oscillator_dataset(tmp_path / "dataset.h5", n_trajectories=4, steps=6, viscous=True)
     ckpt = train(_cfg(tmp_path, "train.epochs=2"))

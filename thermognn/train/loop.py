@@ -376,7 +376,7 @@ def stability_probe_sizes(value) -> tuple[float, ...]:
 
 
 #: hyperparameters that change how the model steps but not its weights
-STEP_ONLY = ("integrator", "implicit_iterations", "exact_kinematics")
+STEP_ONLY = ("integrator", "implicit_iterations", "exact_kinematics", "mirror_frames")
 #: what training fits anew at its end: a fine-tune may start from a checkpoint with or without it
 REFITTED = ("stress_readout",)
 
@@ -395,7 +395,8 @@ def warm_start(model: TIGNN, path: Path, ds, hparams: dict) -> dict:
     if changed:
         raise ConfigError(f"train.init = '{path}': its model differs from this run's in "
                           + ", ".join(f"{k} ({src['hparams'].get(k)} there, {hparams.get(k)} here)" for k in changed))
-    state = {k: v for k, v in src["state_dict"].items() if not k.startswith("readout.")}   # refitted
+    state = {k: v for k, v in src["state_dict"].items() if not k.startswith(("readout.", "frame_"))}  # refitted
+    state.update({k: v for k, v in model.state_dict().items() if k.startswith("frame_")})   # this run's frames
     if grown:
         load_grown(model, state, grown)
     else:
@@ -510,19 +511,20 @@ def print_rrmse_table(title: str, rows: dict[str, dict[str, float]]) -> None:
     Console().print(table)
 
 
-def training_images(data: LoadedData, where: str) -> list:
-    """``train.symmetry_augment``: the mesh's mirror frames that keep the supports, the node types and
-    (with ``gravity``, the scene's ``gravity`` vector from the dataset's configuration) the body force;
-    prints a line where the mesh has no symmetry but the identity (the option then changes nothing)."""
+def training_images(data: LoadedData, where: str, key: str = "train.symmetry_augment") -> list:
+    """``train.symmetry_augment`` (or ``model.mirror_average``, ``key``): the mesh's mirror frames that
+    keep the supports, the node types and (with ``gravity``, the scene's ``gravity`` vector from the
+    dataset's configuration) the body force; prints a line where the mesh has no symmetry but the
+    identity (the option then changes nothing)."""
     gravity = None
     if "gravity" in data.dataset.effects:          # read as resolve_structure reads the dataset's config
         gravity = OmegaConf.select(OmegaConf.create(data.dataset.config_yaml or ""), "scene.gravity", default=None)
         if gravity is None:
-            raise ConfigError(f"train.symmetry_augment = true: {where} has gravity but its stored configuration "
+            raise ConfigError(f"{key} = true: {where} has gravity but its stored configuration "
                               "names no scene.gravity vector, so no mirror is known to keep it")
-    images = state_images(data.graph, data.layout, None if gravity is None else list(gravity))
+    images = state_images(data.graph, data.layout, None if gravity is None else list(gravity), key=key)
     if len(images) == 1:
-        print(f"train.symmetry_augment: the mesh of {where} has no mirror symmetry"
+        print(f"{key}: the mesh of {where} has no mirror symmetry"
               + (" that keeps gravity" if gravity is not None else "") + "; training as without it")
     return images
 
@@ -599,9 +601,11 @@ def _train_here(cfg) -> Path:
     prior = prior_kind(cfg.model)
     if prior == "linear":                    # its three phases (the fit phase's epochs may be 0)
         phases = training_phases(tc)
-    elif epochs < 0 or (epochs == 0 and not (_sel(tc, "init", None) and readout_hops(cfg))):
+    elif epochs < 0 or (epochs == 0 and not (_sel(tc, "init", None)
+                                             and (readout_hops(cfg) or _sel(cfg, "model.mirror_average", False)))):
         raise ConfigError(f"train.epochs = {epochs}, expected >= 1 (or 0 with train.init and "
-                          "model.stress_readout: the init's network as it is, its stress readout fitted anew)")
+                          "model.stress_readout: the init's network as it is, its stress readout fitted anew; "
+                          "or with model.mirror_average: the init's network stepped in the mesh's mirror frames)")
     ckpt_path = project_path(cfg.paths.checkpoint)
     out_dir = project_path(cfg.out)
     init = _sel(tc, "init", None)            # a fine-tune keeps its init's split (split_names' keep)
@@ -635,9 +639,16 @@ def _train_here(cfg) -> Path:
     if not isinstance(augment, bool):
         raise ConfigError(f"train.symmetry_augment = {augment!r}, expected true (each training pair seen in a "
                           "random mirror of the mesh) or false")
+    mirror_average = _sel(cfg, "model.mirror_average", False)
+    if not isinstance(mirror_average, bool):
+        raise ConfigError(f"model.mirror_average = {mirror_average!r}, expected true (each step the mean of the "
+                          "network's steps in the mesh's mirror frames) or false")
     lam_grad = rate_gradient_weight(tc)
     window = window_steps(tc)
     if prior == "linear":                                # the linearised FE step + learned remainders
+        if mirror_average:
+            raise ConfigError("model.mirror_average = true: an option of the network stepping the whole "
+                              "state; model.prior=linear steps its prior's FE operators (leave it false)")
         if lam_grad > 0:
             raise ConfigError("train.rate_gradient_weight: a term of the network's one-step loss; "
                               "model.prior=linear trains on rollouts (leave it 0)")
@@ -660,8 +671,13 @@ def _train_here(cfg) -> Path:
                               f"{data.layout.names} has no stress (sigma) to read")
         check_determined(data.graph.ref_pos.cpu().numpy(), data.graph.edge_index.cpu().numpy(),
                          sum(t.z.shape[0] for t in train_trajs), hops, str(data.path))
+    frames = training_images(data, str(data.path), "model.mirror_average") if mirror_average else []
+    if len(frames) > 1:                          # each step averaged over the mesh's mirror frames
+        hparams["mirror_frames"] = {"frames": len(frames), "nodes": data.graph.n_nodes}
     torch.manual_seed(seed)
     model = build_model(hparams, dtype)
+    if len(frames) > 1:
+        model.set_frames(frames)
     if _sel(tc, "init", None):                 # warm start (fine-tuning): weights and statistics
         stats = warm_start(model, project_path(str(tc.init)), ds, hparams)
     else:
@@ -776,7 +792,9 @@ def _train_here(cfg) -> Path:
                  "(train.window_steps; no training noise)" if window else "")
               + (f"; the stress read off the predicted positions by {tc.init}'s readout weighed "
                  f"{lam_read:g} in the window loss (train.window_readout_weight), and the validation rollouts' "
-                 "stress read off by it" if lam_read else ""))
+                 "stress read off by it" if lam_read else "")
+              + (f"; each step the mean over the mesh's {len(frames)} mirror frames (model.mirror_average)"
+                 if len(frames) > 1 else ""))
 
     def resume_state(epoch_done: int, val: float, **extra) -> dict:
         """``model.last.ckpt``'s contents: everything a resumed run needs to go on exactly."""
@@ -790,7 +808,9 @@ def _train_here(cfg) -> Path:
         model.eval()
         save_checkpoint({**base, "state_dict": model.state_dict(), "epoch": 0,
                          "val_error": validation_error(model, data.graph, val_trajs, ds.layout, ds.dt)}, ckpt_path)
-        print(f"train.epochs = 0: {tc.init}'s network kept as it is; fitting its stress readout")
+        print(f"train.epochs = 0: {tc.init}'s network kept as it is"
+              + (f", stepped in the mesh's {len(frames)} mirror frames" if len(frames) > 1 else "")
+              + ("; fitting its stress readout" if hops else ""))
     tb = _tensorboard(_sel(tc, "tensorboard", "auto"), out_dir / "tensorboard") if dist.main else None
     stopped = start_epoch >= epochs or (patience > 0 and stale >= patience)
     with _progress(disable=not dist.main) as progress:

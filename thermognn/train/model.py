@@ -185,7 +185,8 @@ class TIGNN(nn.Module):
                  hamiltonian: bool = False, port: bool = True, reference_edges: bool = True,
                  balanced: bool = False, integrator: str = "euler", implicit_iterations: int = 3,
                  velocity_edges: bool = False, edge_operators: bool = False,
-                 exact_kinematics: bool = False, stress_readout: Optional[Dict[str, Any]] = None) -> None:
+                 exact_kinematics: bool = False, stress_readout: Optional[Dict[str, Any]] = None,
+                 mirror_frames: Optional[Dict[str, int]] = None) -> None:
         super().__init__()
         if aggregation not in AGGREGATIONS:
             raise ValueError(f"aggregation '{aggregation}', expected sum or mean")
@@ -245,6 +246,31 @@ class TIGNN(nn.Module):
                                      int(spec.get("mode_values", 0)))
         columns = [int(c) for c in spec["columns"]] or [0]
         self.readout_first, self.readout_end = columns[0], columns[-1] + 1     # contiguous stress columns
+        # the mesh's mirror frames a step is averaged over (``model.mirror_average``; ``set_frames``):
+        # G frames of an N-node mesh, empty (and not saved) without
+        frames = mirror_frames or {"frames": 0, "nodes": 0}
+        G, N = int(frames["frames"]), int(frames["nodes"])
+        self.n_frames = G
+        keep = G > 0                                          # old checkpoints have no such buffers
+        self.register_buffer("frame_source", torch.zeros(G, N, dtype=torch.long), persistent=keep)
+        self.register_buffer("frame_back", torch.zeros(G, N, dtype=torch.long), persistent=keep)
+        self.register_buffer("frame_matrix", torch.zeros(G, dim, dim), persistent=keep)
+        self.register_buffer("frame_inverse", torch.zeros(G, dim, dim), persistent=keep)
+        self.register_buffer("frame_shift", torch.zeros(G, dim), persistent=keep)
+        self.register_buffer("frame_rotation", torch.zeros(G, 3, 3), persistent=keep)
+
+    def set_frames(self, images: List[Any]) -> None:
+        """Fill the mirror frames from the mesh's symmetries (``data.state_images``: ``StateImage``s,
+        the identity first), as many as ``mirror_frames`` declared."""
+        if len(images) != self.n_frames:
+            raise ValueError(f"set_frames: {len(images)} frames for a model built for {self.n_frames}")
+        for k, im in enumerate(images):
+            self.frame_source[k].copy_(im.source)
+            self.frame_back[k].copy_(torch.argsort(im.source))
+            self.frame_matrix[k].copy_(im.matrix)
+            self.frame_inverse[k].copy_(torch.linalg.inv(im.matrix.double()))
+            self.frame_shift[k].copy_(im.shift)
+            self.frame_rotation[k].copy_(im.rotation)
 
     def set_stats(self, stats: Dict[str, Tensor]) -> None:
         """Copy normalisation statistics (keys as the buffers: z_mean, z_std, ...) into the buffers."""
@@ -371,7 +397,36 @@ class TIGNN(nn.Module):
     def step(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
              dt: Tensor) -> Tensor:
         """One step z_n -> z_{n+1} [N, D] in SI units, driven by the force f [N, 3] at t_{n+1}
-        (``integrator``: euler, or midpoint by fixed-point sweeps from the Euler predictor)."""
+        (``integrator``: euler, or midpoint by fixed-point sweeps from the Euler predictor). With
+        mirror frames (``model.mirror_average``) the mean over the mesh's G symmetries g of
+        g⁻¹ step(g z, g f): exactly equivariant, the mirror image of a motion steps as its image."""
+        if self.n_frames > 0:
+            return self.mirrored_step(z, f, edge_index, node_type, ref_pos, dt)
+        return self.plain_step(z, f, edge_index, node_type, ref_pos, dt)
+
+    def mirrored_step(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
+                      dt: Tensor) -> Tensor:
+        """``step`` averaged over the mirror frames, the G images stepped as one batch of G meshes.
+        A frame maps node source[k] to node k: z'[k] = A z[source[k]] + b (R on q, v and voigt(R σ Rᵀ)
+        on the stresses; b = (I - R) c on q [m]), f'[k] = R f[source[k]]; the mesh, its node types and
+        reference positions map onto themselves."""
+        G, N, D = self.n_frames, z.shape[0], self.dim
+        E = edge_index.shape[1]
+        src = self.frame_source.reshape(-1)
+        zg = z.index_select(0, src).reshape(G, N, D)
+        zg = torch.bmm(zg, self.frame_matrix.transpose(1, 2)) + self.frame_shift.unsqueeze(1)    # [G, N, D]
+        fg = torch.bmm(f.index_select(0, src).reshape(G, N, 3), self.frame_rotation.transpose(1, 2))  # [G, N, 3]
+        offsets = (torch.arange(G, device=z.device) * N).view(G, 1, 1)
+        edges = (edge_index.unsqueeze(0) + offsets).transpose(0, 1).reshape(2, G * E)            # [2, G E]
+        nxt = self.plain_step(zg.reshape(G * N, D), fg.reshape(G * N, 3), edges, node_type.repeat(G),
+                              ref_pos.repeat(G, 1), dt).reshape(G, N, D)
+        back = torch.bmm(nxt - self.frame_shift.unsqueeze(1), self.frame_inverse.transpose(1, 2))  # [G, N, D]
+        back = torch.gather(back, 1, self.frame_back.unsqueeze(-1).expand(G, N, D))     # original node order
+        return self.impose(back.mean(0), node_type, ref_pos)
+
+    def plain_step(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
+                   dt: Tensor) -> Tensor:
+        """``step`` in the mesh's own frame."""
         z0 = z.detach()
         rate = self.rates(z0, f, edge_index, node_type, ref_pos, False, False)[0].detach()
         z_next = self.advance(z0, rate, dt, node_type, ref_pos)
