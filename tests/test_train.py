@@ -295,8 +295,18 @@ def test_mirror_average_steps_the_mean_over_the_meshs_mirror_frames(tmp_path, ca
     dropped = load_checkpoint(train(_cfg(tmp_path / "d", "train.epochs=1", f"train.init={tmp_path / 'm' / 'model.ckpt'}",
                                          on_data)))
     assert "mirror_frames" not in dropped["hparams"] and not any(k.startswith("frame_") for k in dropped["state_dict"])
-    with pytest.raises(ConfigError, match=r"model.mirror_average = 'yes', expected true .* or false"):
+    assert "the mirror frames of" in capsys.readouterr().out
+    listed = load_checkpoint(train(_cfg(tmp_path / "g", "train.epochs=0", f"train.init={plain_path}",
+                                        "model.mirror_average=[0,1]", on_data)))
+    assert "(x, y, z), 1 (y, x, z); averaging over 0, 1" in capsys.readouterr().out
+    assert all(torch.equal(v, ckpt["state_dict"][k]) for k, v in listed["state_dict"].items())
+    with pytest.raises(ConfigError, match=r"model.mirror_average = 'yes', expected true .*, false, or a list of frame"):
         train(_cfg(tmp_path / "bad", "model.mirror_average=yes", on_data))
+    with pytest.raises(ConfigError, match=r"model.mirror_average = \[1\]: not a group, frame 1 then 1 is frame 0, "
+                                          r"not listed .* 0 \(x, y, z\), 1 \(y, x, z\)"):
+        train(_cfg(tmp_path / "ng", "model.mirror_average=[1]", on_data))
+    with pytest.raises(ConfigError, match=r"model.mirror_average = \[0, 2\]: expected distinct frame indices from 0 to 1"):
+        train(_cfg(tmp_path / "nr", "model.mirror_average=[0,2]", on_data))
     with pytest.raises(ConfigError, match=r"model.mirror_average = true: .* model.prior=linear"):
         train(_cfg(tmp_path / "lp", "model=linear_prior", "model.mirror_average=true", on_data))
     with pytest.raises(ConfigError, match=r"train.epochs = 0, expected >= 1 .* model.mirror_average"):

@@ -529,6 +529,40 @@ def training_images(data: LoadedData, where: str, key: str = "train.symmetry_aug
     return images
 
 
+def frame_name(rotation) -> str:
+    """A mirror frame by where it sends (x, y, z), e.g. '(x, z, -y)'."""
+    axes = []
+    for row in rotation.tolist():
+        k = max(range(3), key=lambda j: abs(row[j]))
+        axes.append(("-" if row[k] < 0 else "") + "xyz"[k])
+    return "(" + ", ".join(axes) + ")"
+
+
+def averaged_frames(data: LoadedData, setting) -> list:
+    """``model.mirror_average``: the mesh's mirror frames a step is averaged over, all of them
+    (true) or those listed by index; a list must be a group (closed under composition: the
+    mean is then exactly equivariant under it). Prints the mesh's frames and the choice."""
+    images = training_images(data, str(data.path), "model.mirror_average")
+    names = [f"{k} {frame_name(im.rotation)}" for k, im in enumerate(images)]
+    chosen = list(range(len(images))) if setting is True else list(setting)
+    if len(set(chosen)) != len(chosen) or not all(0 <= k < len(images) for k in chosen):
+        raise ConfigError(f"model.mirror_average = {setting}: expected distinct frame indices from 0 to "
+                          f"{len(images) - 1}, the mirror frames of {data.path}: {', '.join(names)}")
+    sources = {tuple(images[k].source.tolist()): k for k in chosen}
+    for a in chosen:
+        for b in chosen:      # b's image of a's image: node k comes from source_a[source_b[k]]
+            both = tuple(images[a].source[images[b].source].tolist())
+            if both not in sources:
+                c = next((k for k, im in enumerate(images) if tuple(im.source.tolist()) == both), None)
+                raise ConfigError(f"model.mirror_average = {setting}: not a group, frame {a} then {b} is frame "
+                                  f"{c}, not listed (the mean is exactly equivariant over a group only); the "
+                                  f"mirror frames of {data.path}: {', '.join(names)}")
+    if len(images) > 1:
+        print(f"model.mirror_average: the mirror frames of {data.path}: {', '.join(names)}; averaging over "
+              + ", ".join(str(k) for k in chosen))
+    return [images[k] for k in chosen]
+
+
 def rate_gradient_weight(tc) -> float:
     """``train.rate_gradient_weight`` (0 or absent: off), a ConfigError unless a finite number >= 0
     (as ``train.stress_remainder_weight``'s check in ``hybrid.training_phases``)."""
@@ -640,14 +674,18 @@ def _train_here(cfg) -> Path:
         raise ConfigError(f"train.symmetry_augment = {augment!r}, expected true (each training pair seen in a "
                           "random mirror of the mesh) or false")
     mirror_average = _sel(cfg, "model.mirror_average", False)
-    if not isinstance(mirror_average, bool):
+    if OmegaConf.is_config(mirror_average):
+        mirror_average = OmegaConf.to_container(mirror_average)
+    if not (isinstance(mirror_average, bool) or (isinstance(mirror_average, list) and mirror_average
+                                                 and all(type(k) is int for k in mirror_average))):
         raise ConfigError(f"model.mirror_average = {mirror_average!r}, expected true (each step the mean of the "
-                          "network's steps in the mesh's mirror frames) or false")
+                          "network's steps in every mirror frame of the mesh), false, or a list of frame "
+                          "indices that form a group, e.g. [0, 3]")
     lam_grad = rate_gradient_weight(tc)
     window = window_steps(tc)
     if prior == "linear":                                # the linearised FE step + learned remainders
         if mirror_average:
-            raise ConfigError("model.mirror_average = true: an option of the network stepping the whole "
+            raise ConfigError(f"model.mirror_average = {str(mirror_average).lower()}: an option of the network stepping the whole "
                               "state; model.prior=linear steps its prior's FE operators (leave it false)")
         if lam_grad > 0:
             raise ConfigError("train.rate_gradient_weight: a term of the network's one-step loss; "
@@ -671,7 +709,7 @@ def _train_here(cfg) -> Path:
                               f"{data.layout.names} has no stress (sigma) to read")
         check_determined(data.graph.ref_pos.cpu().numpy(), data.graph.edge_index.cpu().numpy(),
                          sum(t.z.shape[0] for t in train_trajs), hops, str(data.path))
-    frames = training_images(data, str(data.path), "model.mirror_average") if mirror_average else []
+    frames = averaged_frames(data, mirror_average) if mirror_average else []
     if len(frames) > 1:                          # each step averaged over the mesh's mirror frames
         hparams["mirror_frames"] = {"frames": len(frames), "nodes": data.graph.n_nodes}
     torch.manual_seed(seed)
