@@ -286,6 +286,10 @@ def test_mirror_average_steps_the_mean_over_the_meshs_mirror_frames(tmp_path, ca
     assert float(((step - mean).abs() / scale).max()) < 1e-5
     image = mirrored.step(swap.states(z), swap.loads(f), *args)          # the image steps to the step's image
     assert float(((image - swap.states(step)).abs() / scale).max()) < 1e-5
+    ei, nt, X, dt = args                                                  # a batch of two states steps as each alone
+    two = mirrored.step(torch.cat([z, swap.states(z)]), torch.cat([f, swap.loads(f)]), torch.cat([ei, ei + 27], 1),
+                        nt.repeat(2), X.repeat(2, 1), dt)
+    assert float(((two - torch.cat([step, image])).abs() / scale).max()) < 1e-5
     lone = plain.step(swap.states(z), swap.loads(f), *args) - swap.states(plain.step(z, f, *args))
     assert float((lone.abs() / scale).max()) > 1e-3                       # the plain network is not equivariant
     scripted = torch.jit.load(str(export(cfg)))

@@ -406,23 +406,27 @@ class TIGNN(nn.Module):
 
     def mirrored_step(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                       dt: Tensor) -> Tensor:
-        """``step`` averaged over the mirror frames, the G images stepped as one batch of G meshes.
-        A frame maps node source[k] to node k: z'[k] = A z[source[k]] + b (R on q, v and voigt(R σ Rᵀ)
-        on the stresses; b = (I - R) c on q [m]), f'[k] = R f[source[k]]; the mesh, its node types and
-        reference positions map onto themselves."""
-        G, N, D = self.n_frames, z.shape[0], self.dim
-        E = edge_index.shape[1]
+        """``step`` averaged over the mirror frames, the G images stepped as one batch. z [B N, D] may
+        hold B copies of the N-node mesh (a batch of states, as ``one_step_errors`` steps them). A
+        frame maps node source[k] to node k: z'[k] = A z[source[k]] + b (R on q, v and voigt(R σ Rᵀ)
+        on the stresses; b = (I - R) c on q [m]), f'[k] = R f[source[k]]; the mesh, its node types
+        and reference positions map onto themselves."""
+        G, N, D = self.n_frames, self.frame_source.shape[1], self.dim
+        B = z.shape[0] // N
+        if B * N != z.shape[0]:
+            raise ValueError("mirrored_step: the state's rows are not whole copies of the mesh")
         src = self.frame_source.reshape(-1)
-        zg = z.index_select(0, src).reshape(G, N, D)
-        zg = torch.bmm(zg, self.frame_matrix.transpose(1, 2)) + self.frame_shift.unsqueeze(1)    # [G, N, D]
-        fg = torch.bmm(f.index_select(0, src).reshape(G, N, 3), self.frame_rotation.transpose(1, 2))  # [G, N, 3]
-        offsets = (torch.arange(G, device=z.device) * N).view(G, 1, 1)
-        edges = (edge_index.unsqueeze(0) + offsets).transpose(0, 1).reshape(2, G * E)            # [2, G E]
-        nxt = self.plain_step(zg.reshape(G * N, D), fg.reshape(G * N, 3), edges, node_type.repeat(G),
-                              ref_pos.repeat(G, 1), dt).reshape(G, N, D)
-        back = torch.bmm(nxt - self.frame_shift.unsqueeze(1), self.frame_inverse.transpose(1, 2))  # [G, N, D]
-        back = torch.gather(back, 1, self.frame_back.unsqueeze(-1).expand(G, N, D))     # original node order
-        return self.impose(back.mean(0), node_type, ref_pos)
+        zg = z.reshape(B, N, D).index_select(1, src).reshape(B, G, N, D).transpose(0, 1)         # [G, B, N, D]
+        zg = torch.matmul(zg, self.frame_matrix.transpose(1, 2).unsqueeze(1)) + self.frame_shift.view(G, 1, 1, D)
+        fg = f.reshape(B, N, 3).index_select(1, src).reshape(B, G, N, 3).transpose(0, 1)         # [G, B, N, 3]
+        fg = torch.matmul(fg, self.frame_rotation.transpose(1, 2).unsqueeze(1))
+        offsets = (torch.arange(G, device=z.device) * (B * N)).view(G, 1, 1)
+        edges = (edge_index.unsqueeze(0) + offsets).transpose(0, 1).reshape(2, -1)              # [2, G B E]
+        nxt = self.plain_step(zg.reshape(G * B * N, D), fg.reshape(G * B * N, 3), edges, node_type.repeat(G),
+                              ref_pos.repeat(G, 1), dt).reshape(G, B, N, D)
+        back = torch.matmul(nxt - self.frame_shift.view(G, 1, 1, D), self.frame_inverse.transpose(1, 2).unsqueeze(1))
+        back = torch.gather(back, 2, self.frame_back.view(G, 1, N, 1).expand(G, B, N, D))  # original node order
+        return self.impose(back.mean(0).reshape(B * N, D), node_type, ref_pos)
 
     def plain_step(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                    dt: Tensor) -> Tensor:
