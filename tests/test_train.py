@@ -294,6 +294,9 @@ def test_mirror_average_steps_the_mean_over_the_meshs_mirror_frames(tmp_path, ca
     assert float((lone.abs() / scale).max()) > 1e-3                       # the plain network is not equivariant
     scripted = torch.jit.load(str(export(cfg)))
     assert float(((scripted(z, f) - step).abs() / scale).max()) < 1e-5
+    from thermognn.train import evaluate
+    evaluate(cfg)                                                        # says how it steps
+    assert "each step the mean over 2 mirror frames" in (tmp_path / "m" / "eval" / "summary.md").read_text()
     trained = load_checkpoint(train(_cfg(tmp_path / "t", "train.epochs=1", "model.mirror_average=true", on_data)))
     assert trained["hparams"]["mirror_frames"]["frames"] == 2
     dropped = load_checkpoint(train(_cfg(tmp_path / "d", "train.epochs=1", f"train.init={tmp_path / 'm' / 'model.ckpt'}",

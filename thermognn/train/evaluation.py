@@ -891,6 +891,8 @@ def evaluate(cfg) -> dict:
                 if which_split == "dataset" else ""),
              f"- speed: {ms:.2f} ms per step (forward + autograd, {torch.get_num_threads()} threads, CPU, "
              + describe_step(model_step(ckpt))
+             + (f", each step the mean over {ckpt['hparams']['mirror_frames']['frames']} mirror frames of the mesh "
+                "(`model.mirror_average`)" if (ckpt.get("hparams") or {}).get("mirror_frames") else "")
              + (f"; `rollout` overrides: {stepped}" if stepped else "") + ")"
              + (f"; {fe_sentence(fe)}" if fe else ""),
              f"- energy balance: {_fmt(balance)} = sum |E_s - E_(s-1) - dt P| / sum |E_s - E_(s-1)| over the "
