@@ -257,7 +257,6 @@ class TIGNN(nn.Module):
         self.register_buffer("frame_matrix", torch.zeros(G, dim, dim), persistent=keep)
         self.register_buffer("frame_inverse", torch.zeros(G, dim, dim), persistent=keep)
         self.register_buffer("frame_shift", torch.zeros(G, dim), persistent=keep)
-        self.register_buffer("frame_rotation", torch.zeros(G, 3, 3), persistent=keep)
 
     def set_frames(self, images: List[Any]) -> None:
         """Fill the mirror frames from the mesh's symmetries (``data.state_images``: ``StateImage``s,
@@ -270,7 +269,6 @@ class TIGNN(nn.Module):
             self.frame_matrix[k].copy_(im.matrix)
             self.frame_inverse[k].copy_(torch.linalg.inv(im.matrix.double()))
             self.frame_shift[k].copy_(im.shift)
-            self.frame_rotation[k].copy_(im.rotation)
 
     def set_stats(self, stats: Dict[str, Tensor]) -> None:
         """Copy normalisation statistics (keys as the buffers: z_mean, z_std, ...) into the buffers."""
@@ -419,7 +417,8 @@ class TIGNN(nn.Module):
         zg = z.reshape(B, N, D).index_select(1, src).reshape(B, G, N, D).transpose(0, 1)         # [G, B, N, D]
         zg = torch.matmul(zg, self.frame_matrix.transpose(1, 2).unsqueeze(1)) + self.frame_shift.view(G, 1, 1, D)
         fg = f.reshape(B, N, 3).index_select(1, src).reshape(B, G, N, 3).transpose(0, 1)         # [G, B, N, 3]
-        fg = torch.matmul(fg, self.frame_rotation.transpose(1, 2).unsqueeze(1))
+        rotation = self.frame_matrix[:, :3, :3]                          # [G, 3, 3]: R, the block acting on q
+        fg = torch.matmul(fg, rotation.transpose(1, 2).unsqueeze(1))
         offsets = (torch.arange(G, device=z.device) * (B * N)).view(G, 1, 1)
         edges = (edge_index.unsqueeze(0) + offsets).transpose(0, 1).reshape(2, -1)              # [2, G B E]
         nxt = self.plain_step(zg.reshape(G * B * N, D), fg.reshape(G * B * N, 3), edges, node_type.repeat(G),
