@@ -381,12 +381,11 @@ STEP_ONLY = ("integrator", "implicit_iterations", "exact_kinematics", "mirror_fr
 REFITTED = ("stress_readout",)
 
 
-def warm_start(model: TIGNN, path: Path, ds, hparams: dict) -> dict:
-    """Load weights and normalisation statistics of the checkpoint ``path`` (``train.init``) into
-    ``model``; it must fit the dataset and have the same hyperparameters, except those of the time
+def warm_start(model: TIGNN, src: dict, path: Path, ds, hparams: dict) -> dict:
+    """Load weights and normalisation statistics of the checkpoint ``src`` (``train.init``, read from
+    ``path``) into ``model``; it must fit the dataset and have the same hyperparameters, except those of the time
     step alone (``STEP_ONLY``: a model may be fine-tuned under another integrator), or more processor
     blocks (``model.message_passing``; the new ones start as the identity: ``load_grown``). Returns its stats."""
-    src = load_checkpoint(path)
     check_fingerprint(src["fingerprint"], ds, path, hint="train.init must come from this dataset")
     grown = grown_blocks(src["hparams"], hparams)     # more processor blocks here: a grown model
     changed = sorted(k for k in set(hparams) | set(src["hparams"])
@@ -573,9 +572,11 @@ def rate_gradient_weight(tc) -> float:
     return float(raw)
 
 
-def window_readout(tc, cfg, window: int, like: torch.Tensor) -> tuple[torch.nn.Module | None, float]:
-    """``train.window_readout_weight`` (0 or absent: off): (the stress readout of ``train.init``,
-    fitted to its rollouts and kept fixed, on ``like``'s device; the weight) for ``window_loss``, or
+def window_readout(tc, cfg, window: int, like: torch.Tensor,
+                   src: dict | None) -> tuple[torch.nn.Module | None, float]:
+    """``train.window_readout_weight`` (0 or absent: off): (the stress readout of ``train.init``, its
+    checkpoint ``src`` as loaded (None: no init), fitted to its rollouts and kept fixed, on ``like``'s
+    device; the weight) for ``window_loss``, or
     (None, 0.0). A ConfigError, in one line, unless the weight is a finite number >= 0 and, where it is
     on, the run trains windows (``train.window_steps``) with a stress readout (``model.stress_readout``)
     from an init that has one fitted."""
@@ -592,7 +593,6 @@ def window_readout(tc, cfg, window: int, like: torch.Tensor) -> tuple[torch.nn.M
         raise ConfigError(f"train.window_readout_weight = {raw}: trains the positions a stress readout reads; "
                           "set model.stress_readout")
     init = _sel(tc, "init", None)
-    src = load_checkpoint(project_path(str(init))) if init else None
     if src is None or not src["hparams"].get("stress_readout"):
         raise ConfigError(f"train.window_readout_weight = {raw}: needs train.init with a fitted stress readout "
                           f"(model.stress_readout), got {'no train.init' if src is None else repr(str(init))}")
@@ -643,7 +643,8 @@ def _train_here(cfg) -> Path:
     ckpt_path = project_path(cfg.paths.checkpoint)
     out_dir = project_path(cfg.out)
     init = _sel(tc, "init", None)            # a fine-tune keeps its init's split (split_names' keep)
-    keep_split = load_checkpoint(project_path(str(init))).get("split") if init else None
+    init_ckpt = load_checkpoint(project_path(str(init))) if init else None   # read once, used thrice
+    keep_split = init_ckpt.get("split") if init_ckpt else None
     data = load_data(project_path(cfg.paths.dataset), tc.split, seed, dtype,
                      state_dtype=torch.float64 if prior == "linear" else dtype,   # the prior steps float64 states
                      keep_split=keep_split)
@@ -717,7 +718,7 @@ def _train_here(cfg) -> Path:
     if len(frames) > 1:
         model.set_frames(frames)
     if _sel(tc, "init", None):                 # warm start (fine-tuning): weights and statistics
-        stats = warm_start(model, project_path(str(tc.init)), ds, hparams)
+        stats = warm_start(model, init_ckpt, project_path(str(tc.init)), ds, hparams)
     else:
         stats = compute_stats(train_trajs, data.graph, ds.dt, hparams)
         model.set_stats(stats)
@@ -777,7 +778,7 @@ def _train_here(cfg) -> Path:
     probe_sizes = stability_probe_sizes(_sel(tc, "rest_stability_probe", STABILITY_PROBE))
     column_weights = edge_scale = None
     # with windows, the init's stress readout (fixed) may weigh the stress read off the positions
-    readout_fixed, lam_read = window_readout(tc, cfg, window, train_trajs[0].z)
+    readout_fixed, lam_read = window_readout(tc, cfg, window, train_trajs[0].z, init_ckpt)
     if window:                                       # training windows instead of one-step pairs
         shortest = min(t.z.shape[0] for t in train_trajs) - 1
         if window > shortest:
