@@ -303,6 +303,25 @@ def test_mirror_average_steps_the_mean_over_the_meshs_mirror_frames(tmp_path, ca
                                          on_data)))
     assert "mirror_frames" not in dropped["hparams"] and not any(k.startswith("frame_") for k in dropped["state_dict"])
     assert "the mirror frames of" in capsys.readouterr().out
+    # training windows roll out as the model steps: the window loss's error is that of its averaged steps
+    from thermognn.train.data import make_window_batch
+    from thermognn.train.loop import window_loss
+    window = make_window_batch(data.of("train"), [(0, 1), (1, 2)], data.graph, 3)
+    wei, wnt, wX = window.edge_index, window.node_type, window.pos
+    rolled, errors = window.z[0], []
+    free = mirrored.free_entries(wnt, rolled)                             # [2 N, D]
+    for k in range(1, 4):
+        rolled = mirrored.step(rolled, window.f[k], wei, wnt, wX, dt)
+        e = (rolled - window.z[k]) / (data.dt * mirrored.dzdt_std)
+        errors.append((e.pow(2) * free).sum() / free.sum())
+    ones = torch.ones(data.layout.dim)
+    _, by_loss, _ = window_loss(mirrored, window, data.dt, ones, ones, 1.0, 0.0)
+    assert math.isclose(by_loss, float(sum(errors) / 3), rel_tol=1e-4)
+    _, by_plain, _ = window_loss(plain, window, data.dt, ones, ones, 1.0, 0.0)
+    assert not math.isclose(by_plain, by_loss, rel_tol=1e-3)
+    capsys.readouterr()
+    train(_cfg(tmp_path / "tw", "train.epochs=1", "model.mirror_average=true", "train.window_steps=2", on_data))
+    assert "mirror frames (model.mirror_average), the training windows' steps too" in capsys.readouterr().out
     listed = load_checkpoint(train(_cfg(tmp_path / "g", "train.epochs=0", f"train.init={plain_path}",
                                         "model.mirror_average=[0,1]", on_data)))
     assert "(x, y, z), 1 (y, x, z); averaging over 0, 1" in capsys.readouterr().out

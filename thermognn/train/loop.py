@@ -240,7 +240,11 @@ def window_loss(model: TIGNN, batch, dt: float, column_weights: torch.Tensor, ed
     kept fixed) the data term adds readout_weight * mean_k MSE(r_k) over the free stress entries,
     r_k = (readout(q_k - X, f_k) - σ_true_k) / (dt * dzdt_std_σ): the stress the product reports,
     read off the predicted positions, against the data's. Its gradient reaches the network through
-    the positions only, so the network learns positions whose read-off stress is right."""
+    the positions only, so the network learns positions whose read-off stress is right.
+
+    A model with mirror frames (``model.mirror_average``) rolls the windows out as it steps: each
+    step the mean over the frames (``TIGNN.frame_images``, ``frame_mean``), at G times the cost, so
+    the network learns the averaged rollouts the product gives rather than each frame's own."""
     Z, F = batch.z, batch.f                                            # [W+1, B*N, D], [W+1, B*N, 3]
     steps = Z.shape[0] - 1
     step_change = dt * model.dzdt_std                                  # [D]
@@ -256,8 +260,13 @@ def window_loss(model: TIGNN, batch, dt: float, column_weights: torch.Tensor, ed
         copies = Z.shape[1] // n_nodes                                 # B disjoint copies of the mesh
     z, data, deg = Z[0], Z.new_zeros(()), Z.new_zeros(())
     for k in range(1, steps + 1):
-        rate, _, _, _, _, d = model.rates(z, F[k], batch.edge_index, batch.node_type, batch.pos, True, True)
-        z = model.advance(z, rate, dt_t, batch.node_type, batch.pos)
+        if model.n_frames > 0:                     # the step the product takes: the mean over the mirror frames
+            zg, fg, edges, types, pos = model.frame_images(z, F[k], batch.edge_index, batch.node_type, batch.pos)
+            rate, _, _, _, _, d = model.rates(zg, fg, edges, types, pos, True, True)
+            z = model.frame_mean(model.advance(zg, rate, dt_t, types, pos), batch.node_type, batch.pos)
+        else:
+            rate, _, _, _, _, d = model.rates(z, F[k], batch.edge_index, batch.node_type, batch.pos, True, True)
+            z = model.advance(z, rate, dt_t, batch.node_type, batch.pos)
         e = (z - Z[k]) / step_change                                   # [B*N, D]
         data = data + (e.pow(2) * free).sum() / free.sum().clamp(min=1e-30)
         if gradient_weight > 0:
@@ -833,7 +842,7 @@ def _train_here(cfg) -> Path:
                  f"{lam_read:g} in the window loss (train.window_readout_weight), and the validation rollouts' "
                  "stress read off by it" if lam_read else "")
               + (f"; each step the mean over the mesh's {len(frames)} mirror frames (model.mirror_average)"
-                 if len(frames) > 1 else ""))
+                 + (", the training windows' steps too" if window else "") if len(frames) > 1 else ""))
 
     def resume_state(epoch_done: int, val: float, **extra) -> dict:
         """``model.last.ckpt``'s contents: everything a resumed run needs to go on exactly."""

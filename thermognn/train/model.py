@@ -404,11 +404,21 @@ class TIGNN(nn.Module):
 
     def mirrored_step(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                       dt: Tensor) -> Tensor:
-        """``step`` averaged over the mirror frames, the G images stepped as one batch. z [B N, D] may
-        hold B copies of the N-node mesh (a batch of states, as ``one_step_errors`` steps them). A
-        frame maps node source[k] to node k: z'[k] = A z[source[k]] + b (R on q, v and voigt(R σ Rᵀ)
-        on the stresses; b = (I - R) c on q [m]), f'[k] = R f[source[k]]; the mesh, its node types
-        and reference positions map onto themselves."""
+        """``step`` averaged over the mirror frames, the G images stepped as one batch
+        (``frame_images``, then ``frame_mean``). z [B N, D] may hold B copies of the N-node mesh (a
+        batch of states, as ``one_step_errors`` steps them)."""
+        zg, fg, edges, types, pos = self.frame_images(z, f, edge_index, node_type, ref_pos)
+        return self.frame_mean(self.plain_step(zg, fg, edges, types, pos, dt), node_type, ref_pos)
+
+    @torch.jit.export
+    def frame_images(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor,
+                     ref_pos: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """The state z [B N, D] (B copies of the N-node mesh) and the load f [B N, 3] seen in each of
+        the G mirror frames, as one batch of G B meshes: (z' [G B N, D], f' [G B N, 3], edges
+        [2, G B E], node types [G B N], reference positions [G B N, 3] [m]). A frame maps node
+        source[k] to node k: z'[k] = A z[source[k]] + b (R on q, v and voigt(R σ Rᵀ) on the
+        stresses; b = (I - R) c on q [m]), f'[k] = R f[source[k]]; the mesh, its node types and
+        reference positions map onto themselves."""
         G, N, D = self.n_frames, self.frame_source.shape[1], self.dim
         B = z.shape[0] // N
         if B * N != z.shape[0]:
@@ -421,8 +431,17 @@ class TIGNN(nn.Module):
         fg = torch.matmul(fg, rotation.transpose(1, 2).unsqueeze(1))
         offsets = (torch.arange(G, device=z.device) * (B * N)).view(G, 1, 1)
         edges = (edge_index.unsqueeze(0) + offsets).transpose(0, 1).reshape(2, -1)              # [2, G B E]
-        nxt = self.plain_step(zg.reshape(G * B * N, D), fg.reshape(G * B * N, 3), edges, node_type.repeat(G),
-                              ref_pos.repeat(G, 1), dt).reshape(G, B, N, D)
+        return (zg.reshape(G * B * N, D), fg.reshape(G * B * N, 3), edges, node_type.repeat(G),
+                ref_pos.repeat(G, 1))
+
+    @torch.jit.export
+    def frame_mean(self, images: Tensor, node_type: Tensor, ref_pos: Tensor) -> Tensor:
+        """The mean over the G mirror frames of states seen in them, images [G B N, D] in
+        ``frame_images``' order, each mapped back to the mesh's own frame: [B N, D], the clamped
+        entries imposed (node_type [B N], ref_pos [B N, 3] [m])."""
+        G, N, D = self.n_frames, self.frame_source.shape[1], self.dim
+        B = images.shape[0] // (G * N)
+        nxt = images.reshape(G, B, N, D)
         back = torch.matmul(nxt - self.frame_shift.view(G, 1, 1, D), self.frame_inverse.transpose(1, 2).unsqueeze(1))
         back = torch.gather(back, 2, self.frame_back.view(G, 1, N, 1).expand(G, B, N, D))  # original node order
         return self.impose(back.mean(0).reshape(B * N, D), node_type, ref_pos)
