@@ -4,6 +4,8 @@ least squares, exact on a stress that is such a stencil; TorchScript; clear erro
 from types import SimpleNamespace
 
 import numpy as np
+import math
+
 import pytest
 import torch
 
@@ -355,6 +357,14 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
     assert refitted["epoch"] == 0 and refitted["hparams"]["stress_readout"]["hops"] == 2
     assert all(torch.equal(v, init["state_dict"][k]) for k, v in refitted["state_dict"].items() if not k.startswith("readout."))
     assert not (tmp_path / "refit" / "metrics.csv").exists()
+    from thermognn.train.data import load_data                      # its validation error: the read-off stress's
+    from thermognn.train.rollout import validation_error
+    data = load_data(tmp_path / "dataset.h5", [0.7, 0.15, 0.15], 0, torch.float32, keep_split=refitted["split"])
+    read = model_from_checkpoint(refitted)
+    val = validation_error(read, data.graph, data.of("val"), data.layout, data.dt)
+    assert math.isclose(refitted["val_error"], val, rel_tol=1e-6)
+    assert read.use_readout and not math.isclose(val, validation_error(model_from_checkpoint(init), data.graph,
+                                                                      data.of("val"), data.layout, data.dt), rel_tol=1e-3)
     with pytest.raises(ConfigError, match=r"train.epochs = 0, expected >= 1 \(or 0 with train.init and model.stress_readout"):
         train(load_config([f"out={tmp_path / 'e0'}", "train.epochs=0", "model.stress_readout=1",
                            f"paths.dataset={tmp_path / 'dataset.h5'}"]))

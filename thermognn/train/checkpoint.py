@@ -10,7 +10,8 @@ A checkpoint is a ``torch.save``d dict of plain types and tensors (loadable with
     stats         normalisation statistics {name: tensor} (training split only)
     state_layout  JSON string, dt [s], effects (list), structure ("generic" | "hamiltonian"), scene
     config        resolved config YAML, versions JSON, dataset (path), fingerprint (dict), split (dict)
-    epoch, val_error   (validation rollout error, ``rollout.validation_error``)
+    epoch, val_error   (validation rollout error, ``rollout.validation_error``, of the stress it
+                  reports: with a stress readout fitted after training, read off by that readout)
     prior         (only with ``model.prior=linear``) {"kind", "sweeps", "positions_only"} and
                   "order" when 2 (``model.prior_order``), "relax" when true
                   (``model.prior_relax``), "corotated" (rotation sweeps, ``model.prior_corotated``),
