@@ -1,11 +1,10 @@
 """The stress readout (``model.stress_readout``): a linear stencil of the displacements, fitted by
 least squares, exact on a stress that is such a stencil; TorchScript; clear errors."""
 
+import math
 from types import SimpleNamespace
 
 import numpy as np
-import math
-
 import pytest
 import torch
 

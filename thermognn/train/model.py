@@ -422,7 +422,7 @@ class TIGNN(nn.Module):
         G, N, D = self.n_frames, self.frame_source.shape[1], self.dim
         B = z.shape[0] // N
         if B * N != z.shape[0]:
-            raise ValueError("mirrored_step: the state's rows are not whole copies of the mesh")
+            raise ValueError("frame_images: the state's rows are not whole copies of the mesh")
         src = self.frame_source.reshape(-1)
         zg = z.reshape(B, N, D).index_select(1, src).reshape(B, G, N, D).transpose(0, 1)         # [G, B, N, D]
         zg = torch.matmul(zg, self.frame_matrix.transpose(1, 2).unsqueeze(1)) + self.frame_shift.view(G, 1, 1, D)
