@@ -983,8 +983,8 @@ def _train_here(cfg) -> Path:
             # the checkpoint's validation error is that of the stress it now reports (metrics.csv keeps
             # the one each epoch was selected by: the network's own σ, or the init's readout's)
             selected = ckpt.get("val_error", math.nan)
-            ckpt["val_error"] = validation_error(model_from_checkpoint(ckpt, ds), data.graph, val_trajs,
-                                                 ds.layout, ds.dt)
+            best = model_from_checkpoint(ckpt, ds)
+            ckpt["val_error"] = validation_error(best, data.graph, val_trajs, ds.layout, ds.dt)
             save_checkpoint(ckpt, ckpt_path)
             print(f"stress readout: {fit['hops']} hops" + (f", loads within {load_hops}" if load_hops else "")
                   + (f", onto {fit['modes']} displacement modes" if fit["modes"] else "")
@@ -992,7 +992,8 @@ def _train_here(cfg) -> Path:
                   f"weights ({fit['symmetries']} mesh symmetries), fitted to the model's {len(train_trajs)} training rollouts (relative L2 of sigma "
                   f"{fit['fit_error']:.4f}); validation error with it {ckpt['val_error']:.4e} "
                   f"(selected at {selected:.4e})")
-        best = model_from_checkpoint(ckpt, ds)
+        else:
+            best = model_from_checkpoint(ckpt, ds)
         mean = rollout_errors(best, data.graph, data.of("test"), ds.layout, ds.dt)[0]
         print_rrmse_table(f"test rollout RRMSE ({len(data.split['test'])} trajectories)", {"test": mean})
     return ckpt_path
