@@ -251,6 +251,25 @@ def test_a_load_aware_readout_reads_a_surface_loads_traction():
         fit_stress_readout(ref, ei, [z], list(range(6, 12)), hops=1, source="d.h5", forces=[f], load_hops=-1)
 
 
+def test_a_readout_reads_a_batch_of_fields_as_each_alone():
+    """Leading dimensions of u and f are a batch of fields (a training window's B states, a
+    rollout's snapshots): each reads as it does alone, with loads and modes, eager and scripted."""
+    ref, ei, idx = _grid()
+    z, (f, extra) = _modal_snapshots(ref, idx, 40, seed=0), _side_loads(ref, idx, 40, seed=0)
+    z[:, :, 6:] += extra
+    readout, _ = fit_stress_readout(ref, ei, [z], list(range(6, 12)), hops=1, forces=[f], load_hops=1, modes=4)
+    u = z[:6, :, :3] - ref                                                    # [6, N, 3]
+    alone = torch.stack([readout(u[s], f[s]) for s in range(6)])              # [6, N, 6]
+    assert torch.allclose(readout(u, f[:6]), alone, rtol=0, atol=1e-12 * alone.abs().max())
+    paired = readout(u.reshape(2, 3, -1, 3), f[:6].reshape(2, 3, -1, 3))       # [2, 3, N, 6]
+    assert paired.shape == (2, 3, len(ref), 6) and torch.allclose(paired.reshape(6, -1, 6), alone, rtol=0,
+                                                                   atol=1e-12 * alone.abs().max())
+    unloaded = torch.stack([readout(u[s]) for s in range(6)])
+    assert torch.allclose(readout(u), unloaded, rtol=0, atol=1e-12 * unloaded.abs().max())
+    scripted = torch.jit.script(readout)
+    assert torch.allclose(scripted(u, f[:6]), alone, rtol=0, atol=1e-12 * alone.abs().max())
+
+
 def test_a_model_with_a_readout_reports_the_stress_off_its_positions_and_scripts():
     """TIGNN with ``stress_readout``: its steps are the network's (the state keeps its own σ), a
     rollout reports σ = readout(q - X) at every snapshot; the scripted model reads the same; a

@@ -275,7 +275,7 @@ def window_loss(model: TIGNN, batch, dt: float, column_weights: torch.Tensor, ed
         if reading:
             u = (z[:, :3] - batch.pos).reshape(copies, n_nodes, 3)      # [B, N, 3]
             f = F[k].reshape(copies, n_nodes, 3)                       # [B, N, 3]: state k's load
-            read = torch.cat([readout(u[b], f[b]) for b in range(copies)], 0)   # [B*N, S]
+            read = readout(u, f).reshape(copies * n_nodes, -1)         # [B*N, S]
             r = (read - Z[k][:, sig]) / step_change[sig]               # [B*N, S]
             data = data + readout_weight * (r.pow(2) * free_sig).sum() / free_sig.sum().clamp(min=1e-30)
         deg = deg + d

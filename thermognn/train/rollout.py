@@ -103,9 +103,11 @@ def read_off(pred: Tensor, readout, graph: Graph, forces: Tensor) -> Tensor:
     [N, 3]: the stress the product reports (``TIGNN.read_stress``, state by state), from the model's
     own readout (``rollout``) or from one kept apart (``validation_error``)."""
     cols = list(readout.columns)
-    with torch.no_grad():
-        read = torch.stack([readout(pred[s, :, :3] - graph.ref_pos, forces[min(s, forces.shape[0] - 1)])
-                            for s in range(pred.shape[0])])                          # [S, N, C]
+    S = pred.shape[0]
+    loads = forces[torch.arange(S, device=forces.device).clamp(max=forces.shape[0] - 1)]   # [S, N, 3]
+    with torch.no_grad():                # read in chunks of snapshots: the stencil gathers K nodes each
+        read = torch.cat([readout(pred[a: a + 64, :, :3] - graph.ref_pos, loads[a: a + 64])
+                          for a in range(0, S, 64)])                                  # [S, N, C]
     out = pred.clone()
     out[:, :, cols] = read.to(out.dtype)
     return out

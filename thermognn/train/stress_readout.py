@@ -72,7 +72,7 @@ RIDGE = 1e-12
 
 
 class StressReadout(nn.Module):
-    """σ [N, S] = readout(u [N, 3], f [N, 3]) for the mesh it was fitted on (N nodes).
+    """σ [..., N, S] = readout(u [..., N, 3], f [..., N, 3]) for the mesh it was fitted on (N nodes).
 
     Buffers (shapes from ``spec``, filled by ``fit_stress_readout`` or a checkpoint)::
 
@@ -107,22 +107,28 @@ class StressReadout(nn.Module):
                                                    len(self.columns)), kept)
 
     def forward(self, u: Tensor, f: Optional[Tensor] = None) -> Tensor:
-        """Stress [N, S] (Pa, the state's stress columns ``columns``) of the displacement u [N, 3] (m)
-        under the applied nodal load f [N, 3] (N; with a load reach; None: unloaded, the part the
-        displacement makes)."""
-        zero = torch.zeros(1, 3, dtype=u.dtype, device=u.device)
+        """Stress [..., N, S] (Pa, the state's stress columns ``columns``) of the displacement
+        u [..., N, 3] (m) under the applied nodal load f [..., N, 3] (N; with a load reach; None:
+        unloaded, the part the displacement makes). Leading dimensions are a batch of fields
+        (e.g. the B states of a training window's step, or the S snapshots of a rollout)."""
+        lead = u.shape[:-2]
+        n = self.nodes
+        u = u.reshape(-1, n, 3)                                                           # [B, N, 3]
+        B = u.shape[0]
+        zero = torch.zeros(B, 1, 3, dtype=u.dtype, device=u.device)
         if self.mode_count > 0:          # u projected onto the training displacements' span
             basis = self.modes.to(u.dtype)                                                # [3 N, r]
-            u = (basis @ (basis.t() @ u.reshape(-1))).reshape(self.nodes, 3)              # [N, 3]
-        padded = torch.cat([u, zero], 0)                                                  # [N + 1, 3]
-        near = padded.index_select(0, self.stencil.reshape(-1)).reshape(self.nodes, -1)   # [N, 3 K]
+            u = ((u.reshape(B, 3 * n) @ basis) @ basis.t()).reshape(B, n, 3)              # [B, N, 3]
+        padded = torch.cat([u, zero], 1)                                                  # [B, N + 1, 3]
+        near = padded.index_select(1, self.stencil.reshape(-1)).reshape(B, n, -1)         # [B, N, 3 K]
         if self.load_width > 0:
-            load = torch.zeros_like(u) if f is None else f.to(u.dtype)
-            padded_load = torch.cat([load, zero], 0)                                      # [N + 1, 3]
-            near = torch.cat([near, padded_load.index_select(0, self.load_stencil.reshape(-1))
-                              .reshape(self.nodes, -1)], 1)                                # [N, 3 K + 3 Kf]
+            load = torch.zeros_like(u) if f is None else f.to(u.dtype).reshape(B, n, 3)
+            padded_load = torch.cat([load, zero], 1)                                      # [B, N + 1, 3]
+            near = torch.cat([near, padded_load.index_select(1, self.load_stencil.reshape(-1))
+                              .reshape(B, n, -1)], 2)                                     # [B, N, 3 K + 3 Kf]
         w = self.weight.index_select(0, self.node_class).to(u.dtype)                      # [N, 3 (K + Kf), S]
-        return torch.bmm(near.unsqueeze(1), w).squeeze(1)                                  # [N, S]
+        sigma = torch.bmm(near.transpose(0, 1), w).transpose(0, 1)                        # [B, N, S]
+        return sigma.reshape(lead + sigma.shape[-2:])                                     # [..., N, S]
 
     def fitted_weights(self) -> int:
         """How many weights the fit set (the padding's excluded): the readout's parameter count. With
