@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import statistics
+import time
 import warnings
 from pathlib import Path
 
@@ -99,6 +101,36 @@ def parity(eager: ExportedTIGNN | ExportedLinearPrior, scripted, ds: Dataset, st
     return max_abs, max_rel
 
 
+#: steps timed each way by ``step_times`` (after as many warm-up steps)
+TIMED_STEPS = 7
+
+
+def step_times(path, ds: Dataset) -> tuple[float, float]:
+    """Median wall time (ms) of one step of the exported file ``path``, from the first trajectory's
+    initial state, with the TorchScript graph executor's optimisation off and on
+    (``torch.jit.optimized_execution``), each on a copy freshly loaded as a user loads it (the
+    executor keeps the plan it made first). Off is how serve steps the model: on, the profiling
+    executor re-optimises the autograd graph the step differentiates, and the TIGNN beam's step
+    took about 2x as long (docs/stages.md)."""
+    traj = ds.read((ds.ok_names or ds.names)[0])
+    times = []
+    for optimize in (False, True):
+        module = torch.jit.load(str(path), map_location="cpu")
+        dtype = module.z0.dtype
+        f = torch.as_tensor(traj.force[min(1, traj.force.shape[0] - 1)], dtype=dtype)
+        with torch.jit.optimized_execution(optimize):
+            z = module.begin(torch.as_tensor(traj.z[0], dtype=dtype), torch.as_tensor(traj.force[0], dtype=dtype))
+            for _ in range(TIMED_STEPS):            # warm-up (the profiling executor specialises here)
+                module(z, f)
+            ts = []
+            for _ in range(TIMED_STEPS):
+                t0 = time.perf_counter()
+                module(z, f)
+                ts.append(time.perf_counter() - t0)
+        times.append(1e3 * statistics.median(ts))
+    return times[0], times[1]
+
+
 def export(cfg) -> Path:
     """Load ``cfg.paths.checkpoint``, script it with the dataset's mesh, verify it against the
     eager model and write ``cfg.paths.exported`` atomically."""
@@ -129,6 +161,10 @@ def export(cfg) -> Path:
     with atomic_path(out) as tmp:
         torch.jit.save(scripted, str(tmp), _extra_files={META_FILE: metadata(ckpt, internal)})
         verify(tmp)
+        off, on = step_times(tmp, ds)
+    print(f"export: a step of the exported model takes {off:.1f} ms with the graph executor's optimisation "
+          f"off (torch.jit.optimized_execution(False), as serve steps it), {on:.1f} ms with it on "
+          f"(each freshly loaded; median of {TIMED_STEPS}, {torch.get_num_threads()} threads)")
     print(f"export: wrote {out} ({ckpt['structure']}, {ckpt['dtype']}, {eager.z0.shape[0]} nodes)")
     return out
 
