@@ -270,6 +270,62 @@ def test_a_readout_reads_a_batch_of_fields_as_each_alone():
     assert torch.allclose(scripted(u, f[:6]), alone, rtol=0, atol=1e-12 * alone.abs().max())
 
 
+def test_the_readout_check_holds_load_groups_out_with_their_mirror_images():
+    """``held_out_loads_check`` (``train.readout_folds``): trajectories are grouped by their loaded
+    nodes up to the mesh's mirrors (a load and its mirror image in one group, so a symmetric fit never
+    sees the held-out load's image); each fold is read by a readout fitted to the others. A stencil
+    law is read on held-out loads as on the fitted ones; one load group cannot be checked."""
+    from thermognn.train.stress_readout import held_out_loads_check, load_folds, load_groups
+
+    ref, ei, idx = _grid()
+    nt = torch.from_numpy((idx[:, 0] == 0).astype(np.int64))
+    graph = SimpleNamespace(ref_pos=ref, edge_index=ei, node_type=nt)
+    symmetries = mesh_symmetries(ref.numpy(), ei.numpy(), nt.numpy())
+    R, p = symmetries[1]
+    top = [int(n) for n in np.flatnonzero((idx[:, 1] == 3) & (idx[:, 2] == 1) & (idx[:, 0] > 0))]   # 6 nodes
+    trajs = [_snapshots(ref, idx, 8, seed=k) for k in range(len(top) + 1)]
+
+    def point_load(node):
+        f = torch.zeros(8, len(ref), 3, dtype=torch.float64)
+        f[1:, node, 1] = -1.0
+        return f
+
+    forces = [point_load(n) for n in top] + [point_load(int(p[top[0]]))]       # the last: the first's image
+    groups = load_groups(forces, symmetries)
+    assert groups[-1] == groups[0] and len(set(groups[:-1].tolist())) == len(top)
+    alone = load_groups(forces, symmetries[:1])                                 # the identity only: its own
+    assert len(set(alone.tolist())) == len(top) + 1
+    check = held_out_loads_check(graph, trajs, trajs, forces, list(range(6, 12)), hops=1, folds=3,
+                                 symmetric=True, load_hops=1)
+    assert check["folds"] == 3 and check["groups"] == len(top)
+    assert check["per_snapshot"] < 1e-5 and check["whole"] < 1e-5 and check["in_sample_per_snapshot"] < 1e-5
+    assert check["worst_group_per_snapshot"] >= check["per_snapshot"]
+    assert any(np.allclose(check["worst_group_load_point"], ref[n].numpy()) for n in top)    # a loaded node
+    from thermognn.train.loop import held_out_sentence
+    assert "worst held out: the group loaded at (" in held_out_sentence(check)
+    one = held_out_loads_check(graph, trajs[:2], trajs[:2], forces[:1] * 2, list(range(6, 12)), hops=1,
+                               folds=3, symmetric=True)
+    assert one["folds"] == 0 and "1 load group(s)" in one["reason"]
+    # the fold readouts of one pass (each fold's normal equations taken out of the whole's) are the
+    # readouts fitted without the fold; here the stress also carries the loads' traction
+    loaded = [z.clone() for z in trajs]
+    for z, f in zip(loaded, forces):
+        z[:, :, 7] += f[:, :, 1] / H ** 2
+    fold_of, n_groups = load_folds(graph, forces, 3, symmetric=True)
+    assert n_groups == len(top) and sorted(set(fold_of.tolist())) == [0, 1, 2]
+    whole, report = fit_stress_readout(ref, ei, loaded, list(range(6, 12)), hops=1, symmetric=True, node_type=nt,
+                                       forces=forces, load_hops=1, held_out=fold_of)
+    for j, fold_readout in enumerate(report["held_out_readouts"]):
+        kept = [i for i in range(len(loaded)) if fold_of[i] != j]
+        alone, _ = fit_stress_readout(ref, ei, [loaded[i] for i in kept], list(range(6, 12)), hops=1, symmetric=True,
+                                      node_type=nt, forces=[forces[i] for i in kept], load_hops=1)
+        for i in range(len(loaded)):
+            u, f = loaded[i][:, :, :3] - ref, forces[i]
+            expected = alone(u, f)
+            assert torch.allclose(fold_readout(u, f), expected, rtol=0, atol=1e-8 * expected.abs().max())
+    assert not torch.allclose(report["held_out_readouts"][0].weight, whole.weight)
+
+
 def test_a_model_with_a_readout_reports_the_stress_off_its_positions_and_scripts():
     """TIGNN with ``stress_readout``: its steps are the network's (the state keeps its own σ), a
     rollout reports σ = readout(q - X) at every snapshot; the scripted model reads the same; a
@@ -342,6 +398,8 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
     ckpt = load_checkpoint(train(cfg))
     spec = ckpt["hparams"]["stress_readout"]
     assert spec["hops"] == 1 and spec["columns"] == [6, 7, 8, 9, 10, 11]
+    # every trajectory of this dataset loads the same nodes: no load group to hold out (train.readout_folds)
+    assert ckpt["stress_readout_check"]["folds"] == 0 and "1 load group(s)" in ckpt["stress_readout_check"]["reason"]
     model = model_from_checkpoint(ckpt)
     assert model.use_readout and model.readout.fitted_weights() > 0
     scripted = torch.jit.load(str(export(cfg)))
@@ -383,6 +441,9 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
     assert math.isclose(refitted["val_error"], val, rel_tol=1e-6)
     assert read.use_readout and not math.isclose(val, validation_error(model_from_checkpoint(init), data.graph,
                                                                       data.of("val"), data.layout, data.dt), rel_tol=1e-3)
+    with pytest.raises(ConfigError, match=r"train.readout_folds = 1, expected 0 \(off\) or the number of folds"):
+        train(load_config([f"out={tmp_path / 'f1'}", "model.stress_readout=1", "train.readout_folds=1",
+                           f"paths.dataset={tmp_path / 'dataset.h5'}"]))
     with pytest.raises(ConfigError, match=r"train.epochs = 0, expected >= 1 \(or 0 with train.init and model.stress_readout"):
         train(load_config([f"out={tmp_path / 'e0'}", "train.epochs=0", "model.stress_readout=1",
                            f"paths.dataset={tmp_path / 'dataset.h5'}"]))

@@ -40,7 +40,7 @@ from thermognn.core.state import describe_step
 from .checkpoint import load_checkpoint, model_from_checkpoint, model_step, torch_dtype, with_rollout
 from .data import (Graph, LoadedData, TrajectoryTensors, check_fingerprint, load_data, rest_trajectory,
                    velocity_columns)
-from .loop import print_rrmse_table, rest_growth
+from .loop import held_out_sentence, print_rrmse_table, rest_growth
 from .device import cpu_randn
 from .hybrid import LinearPriorModel
 from .law_prior import HyperelasticNewmarkPrior
@@ -587,7 +587,9 @@ def evaluate(cfg) -> dict:
     (``Dataset.fe_cost``), and for a law prior whose rollouts shortened Newton updates
     "shortened_updates" (their number over the test rollouts, :func:`shortened_updates`), and
     where test trajectories repeat training ones up to a mirror of the mesh "test_repeats_train"
-    (their number, :func:`repeated_cases`)}."""
+    (their number, :func:`repeated_cases`), and for a stress readout that ``train`` checked on
+    held-out loads (``train.readout_folds``) "readout_held_out_sigma" / "readout_held_out_sigma_whole"
+    (``stress_readout.held_out_loads_check``, from the checkpoint)}."""
     torch.set_num_threads(int(OmegaConf.select(cfg, "train.threads", default=2)))
     ckpt_path = project_path(cfg.paths.checkpoint)
     ckpt = load_checkpoint(ckpt_path)
@@ -635,6 +637,10 @@ def evaluate(cfg) -> dict:
         span_miss = {part: outside_modes(model.readout, torch.cat([t.z[:, :, q].double() - X for t in trajs]))
                      for part, trajs in (("test", test), ("train", train_trajs))}
         mean_test["readout_modes_miss"], mean_test["readout_modes_miss_train"] = span_miss["test"], span_miss["train"]
+    readout_check = ckpt.get("stress_readout_check") or {}        # train's check on held-out loads
+    if readout_check.get("folds"):
+        mean_test["readout_held_out_sigma"] = readout_check["per_snapshot"]
+        mean_test["readout_held_out_sigma_whole"] = readout_check["whole"]
     by_load = by_peak_load(loads, per_traj, whole_traj, groups)
     linear = linear_baseline(data, test)
     linear_train = linear_baseline(data, train_trajs) if "snapshot" in linear else {}
@@ -832,6 +838,8 @@ def evaluate(cfg) -> dict:
         print(f"evaluate: {repeated_sentence(repeats, len(test))}")
     if span_miss:
         print(f"evaluate: {modes_sentence(model.readout.mode_count, span_miss)}")
+    if readout_check:
+        print(f"evaluate: {held_out_sentence(readout_check)} (train's check)")
     if worst:
         print("evaluate: largest whole-rollout test errors: " + "; ".join(
             f"{test[k].name} ({where(k)}): " + ", ".join(f"{g} {_fmt(whole_traj[k][g])}" for g in groups)
@@ -928,6 +936,8 @@ def evaluate(cfg) -> dict:
                if repeats else []),
              *([modes_sentence(model.readout.mode_count, span_miss) + " (`readout_modes_miss` in `rrmse.json`).", ""]
                if span_miss else []),
+             *([held_out_sentence(readout_check) + " (train's check; `readout_held_out_sigma` in `rrmse.json`).", ""]
+               if readout_check.get("folds") else []),
              *([f"The {len(worst)} test trajectories with the largest whole-rollout errors (ranked by the "
                 "mean over the groups of each error relative to the test mean above; all of them in "
                 "`rrmse_per_trajectory.csv`, with the load points):", "",

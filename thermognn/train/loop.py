@@ -283,6 +283,27 @@ def window_loss(model: TIGNN, batch, dt: float, column_weights: torch.Tensor, ed
     return lambda_data * data + lambda_degeneracy * deg, float(data.detach()), float(deg.detach())
 
 
+def readout_folds(tc) -> int:
+    """``train.readout_folds``: folds of load groups the fitted stress readout is checked on (0: off)."""
+    k = _sel(tc, "readout_folds", 0)
+    if isinstance(k, bool) or not isinstance(k, int) or k < 0 or k == 1:
+        raise ConfigError(f"train.readout_folds = {k!r}, expected 0 (off) or the number of folds of load groups "
+                          "the stress readout is checked on (an integer >= 2)")
+    return k
+
+
+def held_out_sentence(check: dict) -> str:
+    """``train``'s line on the stress readout's check on held-out loads (``held_out_loads_check``)."""
+    if not check.get("folds"):
+        return f"stress readout on held-out loads: not checked ({check.get('reason', '')})"
+    return (f"stress readout on held-out loads ({check['groups']} load groups in {check['folds']} folds, "
+            f"each read by a readout fitted to the other folds' training rollouts; train.readout_folds): "
+            f"sigma per snapshot {check['per_snapshot']:.2%}, whole {check['whole']:.2%}; "
+            f"on the loads it was fitted to {check['in_sample_per_snapshot']:.2%}, {check['in_sample_whole']:.2%}; "
+            f"worst held out: the group loaded at ({', '.join(f'{v:.4g}' for v in check['worst_group_load_point'])}) m, "
+            f"{check['worst_group_per_snapshot']:.2%}")
+
+
 def window_steps(tc) -> int:
     """``train.window_steps``: the length of the training windows (0: one-step pairs)."""
     w = _sel(tc, "window_steps", 0)
@@ -667,6 +688,7 @@ def _train_here(cfg) -> Path:
     from .evaluation import linear_validation_error     # (evaluation imports this module)
     train_trajs, val_trajs = data.of("train"), data.of("val")
     hops = readout_hops(cfg)                             # model.stress_readout
+    folds = readout_folds(tc)                            # its check on held-out loads
     mirror_readout = bool(_sel(cfg, "model.stress_readout_symmetric", False))
     if mirror_readout and not hops:
         raise ConfigError("model.stress_readout_symmetric = true: ties the weights of a stress readout; "
@@ -978,8 +1000,11 @@ def _train_here(cfg) -> Path:
             from .stress_readout import fit_readout_to_rollouts, with_stress_readout
 
             readout, fit = fit_readout_to_rollouts(model_from_checkpoint(ckpt, ds), data, train_trajs, hops,
-                                                   symmetric=mirror_readout, load_hops=load_hops, modes=modes)
+                                                   symmetric=mirror_readout, load_hops=load_hops, modes=modes,
+                                                   folds=folds)
             ckpt = with_stress_readout(ckpt, readout, hops, load_hops)
+            if "held_out_loads" in fit:
+                ckpt["stress_readout_check"] = fit["held_out_loads"]
             # the checkpoint's validation error is that of the stress it now reports (metrics.csv keeps
             # the one each epoch was selected by: the network's own σ, or the init's readout's)
             selected = ckpt.get("val_error", math.nan)
@@ -992,6 +1017,8 @@ def _train_here(cfg) -> Path:
                   f"weights ({fit['symmetries']} mesh symmetries), fitted to the model's {len(train_trajs)} training rollouts (relative L2 of sigma "
                   f"{fit['fit_error']:.4f}); validation error with it {ckpt['val_error']:.4e} "
                   f"(selected at {selected:.4e})")
+            if "held_out_loads" in fit:
+                print(held_out_sentence(fit["held_out_loads"]))
         else:
             best = model_from_checkpoint(ckpt, ds)
         mean = rollout_errors(best, data.graph, data.of("test"), ds.layout, ds.dt)[0]

@@ -334,7 +334,8 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
                        columns: Sequence[int], hops: int, source: str = "dataset", symmetric: bool = False,
                        node_type: Tensor | None = None, forces: Sequence[Tensor] | None = None,
                        load_hops: int = 0, modes: int = 0,
-                       span: Sequence[Tensor] | None = None) -> tuple[StressReadout, Dict]:
+                       span: Sequence[Tensor] | None = None,
+                       held_out: Sequence[int] | None = None) -> tuple[StressReadout, Dict]:
     """Least-squares fit of the readout to the states z [T, N, D] of ``trajectories`` (the training
     split): σ = z[..., columns] against u = z[..., :3] - X, and with ``load_hops`` >= 1
     (``model.stress_readout_load``) the applied loads ``forces`` [T, N, 3] (N) of the same snapshots
@@ -348,7 +349,13 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     Returns the readout and a report {"hops", "load_hops", "modes", "classes", "weights", "symmetries",
     "fit_error"} (weights: the independent ones, the load's that a snapshot loads; fit_error:
     relative L2 over the fitted snapshots). Raises DataError (naming ``source``) where the fit is
-    underdetermined or the data's stress-free state is not at u = 0."""
+    underdetermined or the data's stress-free state is not at u = 0.
+
+    ``held_out`` (a fold k >= 0 per trajectory, -1: in every fit; not with ``modes``, whose basis
+    would depend on the fold): the report's "held_out_readouts" [K] also holds, for each fold k, the
+    readout of the same shape fitted without fold k's trajectories, from the same pass over the
+    shapes (each fold's normal equations subtracted from the whole's, so the K readouts cost about
+    no more than the fit itself: TIGNN beam, 200 s against 204 s; ``held_out_loads_check``)."""
     X = ref_pos.detach().cpu().double().numpy()
     z = np.concatenate([t.detach().cpu().double().numpy() for t in trajectories])        # [S, N, D]
     cols = [int(c) for c in columns]
@@ -381,6 +388,13 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
         u, sigma = mirrored(u, sigma, symmetries)                          # [S |G|, N, 3], [S |G|, N, 6]
         f = mirrored_vectors(f, symmetries)                                # [S |G|, N, 3]
         rest = np.tile(rest, len(symmetries))
+    folds = 0
+    if held_out is not None:
+        if modes:
+            raise ValueError("fit_stress_readout: held_out folds with modes (the basis would depend on the fold)")
+        per_snapshot = np.concatenate([np.full(len(t), int(k)) for t, k in zip(trajectories, held_out)])   # [S]
+        row_fold = np.tile(per_snapshot, len(symmetries))                  # [S |G|], mirrored's frame order
+        folds = int(row_fold.max()) + 1 if len(row_fold) else 0
     basis, mode_values = np.zeros((3 * len(X), 0)), 0
     if modes:
         fields = np.concatenate([t.detach().cpu().double().numpy() for t in (span or trajectories)])[:, :, :3] - X
@@ -388,39 +402,70 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
         u = ((u.reshape(len(u), -1) @ basis) @ basis.T).reshape(u.shape)                   # [S, N, 3]
     n, width = len(X), max(len(s) for s in stencil)
     load_width = max(len(s) for s in load_stencil)
-    readout = StressReadout(n, width, int(classes.max()) + 1, cols, load_width=load_width,
-                            modes=basis.shape[1], mode_values=mode_values)
-    weight = np.zeros(tuple(readout.weight.shape))
+    weight = np.zeros((int(classes.max()) + 1, 3 * (width + load_width), len(cols)))   # StressReadout.weight's
+    fold_weights = np.zeros((folds,) + weight.shape)            # [K, classes, ...]: each without fold k
     loaded = np.zeros(weight.shape[0], dtype=np.int64)          # per class: load columns some snapshot loads
+
+    def solve(gram, rhs, column_max, rows, k):
+        """Weights [3 k + 3 kf, C] from the normal equations (gram = aᵀa, rhs = aᵀb of ``rows`` rows),
+        each column scaled to O(1) by its largest value ``column_max``; a clamped column (round-off)
+        and a load column no row loads get weight 0. Also returns the loaded load columns' count."""
+        scale = column_max.copy()
+        still = scale <= 1e-9 * reach                            # clamped: round-off, weight 0
+        still[3 * k:] = scale[3 * k:] == 0.0                     # a load column no snapshot loads: 0
+        scale[still] = 1.0
+        gn = gram / scale[:, None] / scale[None, :]
+        gn[still], gn[:, still] = 0.0, 0.0
+        rn = np.where(still[:, None], 0.0, rhs / scale[:, None])
+        w = np.linalg.solve(gn + RIDGE * rows * np.eye(len(scale)), rn)
+        return np.where(still[:, None], 0.0, w / scale[:, None]), int((~still[3 * k:]).sum())
+
+    # the snapshots in blocks: one per fold, then those never held out (all of them without folds)
+    blocks = ([np.flatnonzero(row_fold == j) for j in range(folds)] + [np.flatnonzero(row_fold < 0)]
+              if folds else [np.arange(len(u))])
+    blocks = [snaps for snaps in blocks if len(snaps)]           # (each fold has a snapshot)
     predicted = np.zeros_like(sigma)
     for c in range(weight.shape[0]):
         nodes = np.flatnonzero(classes == c)
         st = np.array([stencil[i] for i in nodes])                                       # [m, k]
+        lst = np.array([load_stencil[i] for i in nodes]) if load_hops else None          # [m, kf]
         k = st.shape[1]
-        a = u[:, st].reshape(len(u) * len(nodes), -1)                                    # [S m, 3 k]
-        if load_hops:
-            a = np.concatenate([a, f[:, np.array([load_stencil[i] for i in nodes])]
-                                .reshape(len(u) * len(nodes), -1)], 1)                   # [S m, 3 k + 3 kf]
-        b = sigma[:, nodes].reshape(len(u) * len(nodes), -1)                             # [S m, C]
-        scale = np.abs(a).max(0)                                                         # columns to O(1)
-        still = scale <= 1e-9 * reach                            # clamped: round-off, weight 0
-        still[3 * k:] = scale[3 * k:] == 0.0                     # a load column no snapshot loads: 0
-        loaded[c] = int((~still[3 * k:]).sum())
-        scale[still] = 1.0
-        an = np.where(still, 0.0, a / scale)
-        w = np.linalg.solve(an.T @ an + RIDGE * len(an) * np.eye(an.shape[1]), an.T @ b)
-        w = np.where(still[:, None], 0.0, w / scale[:, None])
+        parts = []                                   # per block: (a [s m, 3 k + 3 kf], b [s m, C], aᵀa, aᵀb)
+        for snaps in blocks:
+            a = u[snaps][:, st].reshape(len(snaps) * len(nodes), -1)                     # [s m, 3 k]
+            if load_hops:
+                a = np.concatenate([a, f[snaps][:, lst].reshape(len(snaps) * len(nodes), -1)], 1)
+            b = sigma[snaps][:, nodes].reshape(len(snaps) * len(nodes), -1)              # [s m, C]
+            parts.append((a, b, a.T @ a, a.T @ b))
+        gram, rhs = sum(p[2] for p in parts), sum(p[3] for p in parts)
+        column_max = np.stack([np.abs(p[0]).max(0) for p in parts])                   # [blocks, P]
+        rows = sum(len(p[0]) for p in parts)
+        w, loaded[c] = solve(gram, rhs, column_max.max(0), rows, k)
+        width_here = parts[0][0].shape[1]
         weight[c, :3 * k] = w[:3 * k]
-        weight[c, 3 * width:3 * width + (a.shape[1] - 3 * k)] = w[3 * k:]
-        predicted[:, nodes] = (a @ w).reshape(len(u), len(nodes), -1)
-    with torch.no_grad():
-        readout.stencil.copy_(torch.tensor([s + [n] * (width - len(s)) for s in stencil]))
-        if load_hops:
-            readout.load_stencil.copy_(torch.tensor([s + [n] * (load_width - len(s)) for s in load_stencil]))
-        readout.node_class.copy_(torch.from_numpy(classes))
-        readout.weight.copy_(torch.from_numpy(weight))
-        if basis.shape[1]:
-            readout.modes.copy_(torch.from_numpy(basis))
+        weight[c, 3 * width:3 * width + (width_here - 3 * k)] = w[3 * k:]
+        for snaps, (a, *_rest) in zip(blocks, parts):
+            predicted[snaps[:, None], nodes[None, :]] = (a @ w).reshape(len(snaps), len(nodes), -1)
+        for j in range(folds):        # each fold's normal equations taken out of the whole's
+            wj, _ = solve(gram - parts[j][2], rhs - parts[j][3], np.delete(column_max, j, axis=0).max(0),
+                          rows - len(parts[j][0]), k)
+            fold_weights[j, c, :3 * k] = wj[:3 * k]
+            fold_weights[j, c, 3 * width:3 * width + (width_here - 3 * k)] = wj[3 * k:]
+
+    def filled(w_all: np.ndarray) -> StressReadout:
+        r = StressReadout(n, width, int(classes.max()) + 1, cols, load_width=load_width,
+                          modes=basis.shape[1], mode_values=mode_values)
+        with torch.no_grad():
+            r.stencil.copy_(torch.tensor([s + [n] * (width - len(s)) for s in stencil]))
+            if load_hops:
+                r.load_stencil.copy_(torch.tensor([s + [n] * (load_width - len(s)) for s in load_stencil]))
+            r.node_class.copy_(torch.from_numpy(classes))
+            r.weight.copy_(torch.from_numpy(w_all))
+            if basis.shape[1]:
+                r.modes.copy_(torch.from_numpy(basis))
+        return r
+
+    readout = filled(weight)
     if symmetric or load_hops:             # one shape per orbit holds the independent weights
         held = np.unique(shape_orbits(classes, symmetries))
         readout.independent = (int(readout.shape_sizes()[torch.from_numpy(held)].sum()) * 3
@@ -428,8 +473,11 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     moving = ~rest
     err = float(np.mean([np.linalg.norm(p - s) / np.linalg.norm(s)
                          for p, s in zip(predicted[moving], sigma[moving]) if np.linalg.norm(s) > 0]))
-    return readout, {"hops": int(hops), "load_hops": load_hops, "modes": basis.shape[1], "classes": int(weight.shape[0]),
-                     "weights": readout.fitted_weights(), "symmetries": len(symmetries), "fit_error": err}
+    report = {"hops": int(hops), "load_hops": load_hops, "modes": basis.shape[1], "classes": int(weight.shape[0]),
+              "weights": readout.fitted_weights(), "symmetries": len(symmetries), "fit_error": err}
+    if held_out is not None:
+        report["held_out_readouts"] = [filled(w) for w in fold_weights]
+    return readout, report
 
 
 def readout_spec(readout: StressReadout, hops: int, load_hops: int = 0) -> Dict:
@@ -449,9 +497,115 @@ def with_stress_readout(ckpt: Dict, readout: StressReadout, hops: int, load_hops
     return {**ckpt, "hparams": hparams, "state_dict": state}
 
 
+def load_groups(forces: Sequence[Tensor], symmetries) -> np.ndarray:
+    """Each trajectory's load group [T]: trajectories whose loaded nodes (any nonzero applied load
+    over the trajectory; forces [S, N, 3] each) are the same set, or mirror images of one another
+    under ``symmetries`` ((R, p) pairs, ``mesh_symmetries``), share one. Groups are numbered by
+    their loaded nodes' canonical image, so the numbering does not depend on the trajectories' order."""
+    keys = []
+    for f in forces:
+        loaded = np.flatnonzero((f.detach().cpu().abs().sum((0, 2)) > 0).numpy())        # node indices
+        keys.append(min(tuple(sorted(int(j) for j in p[loaded])) for _, p in symmetries))
+    order = {k: i for i, k in enumerate(sorted(set(keys)))}
+    return np.array([order[k] for k in keys], dtype=np.int64)
+
+
+def stress_errors(read: Tensor, sigma: Tensor) -> tuple[float, float]:
+    """(per snapshot, whole) relative L2 error of a read-off stress ``read`` against the true
+    ``sigma`` ([S, N, C] each), over the snapshots s >= 1 (per snapshot: those with a stress)."""
+    read, sigma = read[1:].double(), sigma[1:].double()
+    norms = sigma.flatten(1).norm(dim=1)                                                 # [S - 1]
+    has = norms > 0
+    per = float(((read - sigma).flatten(1).norm(dim=1)[has] / norms[has]).mean()) if bool(has.any()) else float("nan")
+    whole = float((read - sigma).norm() / sigma.norm()) if float(sigma.norm()) > 0 else float("nan")
+    return per, whole
+
+
+def load_folds(graph, forces: Sequence[Tensor], folds: int, symmetric: bool = False) -> tuple[np.ndarray, int]:
+    """(the fold [T] of each trajectory, the number of load groups): the trajectories' load groups
+    (``load_groups``, up to the mesh's mirrors when ``symmetric``) dealt into min(``folds``, groups)
+    folds, group g into fold g mod K; the folds are empty ([0]) where there are fewer than 2 groups."""
+    X = graph.ref_pos.detach().cpu().double().numpy()
+    symmetries = (mesh_symmetries(X, graph.edge_index.cpu().numpy(), graph.node_type.cpu().numpy())
+                  if symmetric else [(np.eye(3), np.arange(len(X)))])
+    groups = load_groups(forces, symmetries)
+    n_groups = int(groups.max()) + 1 if len(groups) else 0
+    k = min(int(folds), n_groups)
+    return (groups % k if k >= 2 else np.zeros(0, dtype=np.int64)), n_groups
+
+
+def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tensor], forces: Sequence[Tensor],
+                         columns: Sequence[int], hops: int, folds: int, symmetric: bool = False,
+                         load_hops: int = 0, modes: int = 0, source: str = "dataset",
+                         fitted: StressReadout | None = None,
+                         fold_readouts: Sequence[StressReadout] | None = None) -> Dict:
+    """How the readout does on loads it was not fitted to (``train.readout_folds``): the
+    trajectories' load groups (``load_folds``: the loaded nodes, up to the mesh's mirrors, which a
+    symmetric fit would otherwise see in the held-out ones' place) are dealt into ``folds`` folds;
+    each fold's trajectories are read by a readout of the same shape fitted to the others'
+    ``rolled`` states [S, N, D] (and ``forces``; ``modes`` from the others' true states ``truths``)
+    and scored against their true stress. The fold readouts come from one pass over the shapes
+    (``fit_stress_readout``'s ``held_out``), or are given (``fold_readouts``, fold k's without it);
+    with ``modes``, whose basis depends on the fold, one fit each. On the reference split of the
+    TIGNN beam, whose test cases mirror training ones, the test error does not show this
+    (docs/accuracy.md, session 62).
+
+    Returns {"folds", "groups", "per_snapshot", "whole", "in_sample_per_snapshot",
+    "in_sample_whole", "worst_group_per_snapshot", "worst_group_load_point"} (means over the
+    trajectories; in sample: read by the readout fitted to all, ``fitted`` where given; the load
+    group read worst held out, and its load's place [m]: the mean reference position of a
+    trajectory's loaded nodes), or {"folds": 0, "groups", "reason"} where there are fewer than 2 load
+    groups or a fold's complement leaves the fit underdetermined."""
+    fold_of, n_groups = load_folds(graph, forces, folds, symmetric)
+    if not len(fold_of):
+        return {"folds": 0, "groups": n_groups, "reason": f"{n_groups} load group(s): nothing to hold out"}
+    k = int(fold_of.max()) + 1
+    cols = [int(c) for c in columns]
+    X = graph.ref_pos
+
+    def fit(idx, held_out=None):
+        return fit_stress_readout(X, graph.edge_index, [rolled[i] for i in idx], cols, hops, source=source,
+                                  symmetric=symmetric, node_type=graph.node_type,
+                                  forces=[forces[i] for i in idx], load_hops=load_hops, modes=modes,
+                                  span=[truths[i] for i in idx], held_out=held_out)
+
+    try:
+        if fold_readouts is None and not modes:
+            whole, report = fit(range(len(rolled)), held_out=fold_of)
+            fitted, fold_readouts = fitted if fitted is not None else whole, report["held_out_readouts"]
+        elif fold_readouts is None:
+            fold_readouts = [fit([i for i in range(len(rolled)) if fold_of[i] != j])[0] for j in range(k)]
+        if fitted is None:
+            fitted = fit(range(len(rolled)))[0]
+    except DataError as exc:
+        return {"folds": 0, "groups": n_groups, "reason": f"a fold left out: {exc}"}
+
+    def errors(readout, i):
+        with torch.no_grad():
+            u = rolled[i][:, :, :3].detach().cpu().double() - X.detach().cpu().double()       # [S, N, 3]
+            read = readout(u, forces[i].detach().cpu().double())                                # [S, N, C]
+        return stress_errors(read, truths[i][:, :, cols].detach().cpu())
+
+    held = [errors(fold_readouts[int(fold_of[i])], i) for i in range(len(rolled))]
+    in_sample = [errors(fitted, i) for i in range(len(rolled))]
+    # the load group read worst, and where its load is (the mean reference position of the first
+    # such trajectory's loaded nodes)
+    groups = load_folds(graph, forces, n_groups, symmetric)[0]            # one fold per group: the group
+    per_group = {int(g): float(np.mean([held[i][0] for i in range(len(held)) if groups[i] == g])) for g in set(groups)}
+    worst = max(per_group, key=per_group.get)
+    first = int(np.flatnonzero(groups == worst)[0])
+    loaded = (forces[first].detach().cpu().abs().sum((0, 2)) > 0).numpy()
+    return {"folds": k, "groups": n_groups,
+            "per_snapshot": float(np.mean([e[0] for e in held])), "whole": float(np.mean([e[1] for e in held])),
+            "in_sample_per_snapshot": float(np.mean([e[0] for e in in_sample])),
+            "in_sample_whole": float(np.mean([e[1] for e in in_sample])),
+            "worst_group_per_snapshot": per_group[worst],
+            "worst_group_load_point": [float(v) for v in X.detach().cpu().double().numpy()[loaded].mean(0)]}
+
+
 def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
                             roll=None, symmetric: bool = False, load_hops: int = 0,
-                            modes: int = 0) -> tuple[StressReadout, Dict]:
+                            modes: int = 0, folds: int = 0) -> tuple[StressReadout, Dict]:
     """The readout fitted to the trained ``model``'s own rollouts of ``trajectories`` (the training
     split, ``TrajectoryTensors``): its predicted positions against the data's stress at each step.
     Fitted to the true positions instead, the readout's stencil (a strain: differences of nearby
@@ -462,7 +616,8 @@ def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
     its readout is fitted to such rollouts: 7.1 % against 9.0 % fitted to ``rollout``'s).
     ``symmetric``: mirror-image weights, ``load_hops``: the applied loads within that reach too,
     ``modes``: the rollouts' displacements projected onto the span of the trajectories' own
-    (true) leading displacement fields first (``fit_stress_readout``)."""
+    (true) leading displacement fields first (``fit_stress_readout``). ``folds`` >= 2: the report's
+    "held_out_loads" is ``held_out_loads_check`` on the same rollouts."""
     from .rollout import rollout
 
     if roll is None:
@@ -481,7 +636,16 @@ def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
             rolled.append(pred)
     finally:
         model.use_readout = was
-    return fit_stress_readout(data.graph.ref_pos, data.graph.edge_index, rolled, columns, hops,
-                              source=str(data.path), symmetric=symmetric, node_type=data.graph.node_type,
-                              forces=[t.force for t in trajectories], load_hops=load_hops,
-                              modes=modes, span=[t.z for t in trajectories])
+    forces = [t.force for t in trajectories]
+    fold_of = load_folds(data.graph, forces, folds, symmetric)[0] if folds >= 2 and not modes else None
+    readout, fit = fit_stress_readout(data.graph.ref_pos, data.graph.edge_index, rolled, columns, hops,
+                                      source=str(data.path), symmetric=symmetric, node_type=data.graph.node_type,
+                                      forces=forces, load_hops=load_hops, modes=modes,
+                                      span=[t.z for t in trajectories],
+                                      held_out=fold_of if fold_of is not None and len(fold_of) else None)
+    if folds >= 2:                   # the same pass gave the fold readouts (without modes)
+        fit["held_out_loads"] = held_out_loads_check(
+            data.graph, rolled, [t.z for t in trajectories], forces, columns, hops, folds, symmetric=symmetric,
+            load_hops=load_hops, modes=modes, source=str(data.path), fitted=readout,
+            fold_readouts=fit.pop("held_out_readouts", None))
+    return readout, fit
