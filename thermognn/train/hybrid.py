@@ -780,7 +780,7 @@ def rollout_weights(tc) -> Tuple[float, float, float]:
 
 
 def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str, ckpt_path: Path,
-                       out_dir: Path, dist, phases: Phases) -> Path:
+                       out_dir: Path, dist, phases: Phases, init_ckpt: dict | None = None) -> Path:
     """``thermognn train`` with ``model.prior=linear`` (module docstring): ``train.epochs`` fit
     epochs on the exact remainders, then ``train.rollout_epochs`` epochs on rollouts (windows of
     ``train.rollout_window`` steps, or whole), then ``train.whole_epochs`` epochs on whole
@@ -792,7 +792,8 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     ``metrics.csv`` with the phase of each epoch. Validation runs every epoch; with
     ``train.patience`` p > 0 a phase ends after p epochs without improving on its own best (the
     fit phase hands over to the rollouts, the rollouts to the whole trajectories, the last phase
-    ends training).
+    ends training). ``init_ckpt``: ``train.init``'s checkpoint as ``train`` already read it (None:
+    read here).
 
     Under torchrun (``dist``: ``loop._Dist``) each of the W processes takes every W-th sample of
     an epoch's shuffled order (the same order everywhere: one seeded generator) and the gradients
@@ -839,7 +840,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
             p.mul_(START_SCALE)
     if _sel(tc, "init", None):                   # warm start from a checkpoint of the same model (its prior's
         #                                              stress law may differ: it holds no weights)
-        src = load_checkpoint(project_path(str(tc.init)))
+        src = init_ckpt if init_ckpt is not None else load_checkpoint(project_path(str(tc.init)))
         grown = grown_blocks(src.get("hparams") or {}, hparams)   # or this model with more processor blocks
         weights_of = lambda prior: {k: v for k, v in (prior or {}).items() if k != "stress"}  # noqa: E731
         if weights_of(src.get("prior")) != weights_of(settings) or (src.get("hparams") or {}) | (

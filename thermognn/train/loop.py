@@ -731,7 +731,8 @@ def _train_here(cfg) -> Path:
         if hops:
             raise ConfigError("model.stress_readout: an option of the network stepping the whole state; "
                               "model.prior=linear takes its stress from the prior (leave it 0)")
-        return train_linear_prior(cfg, data, hparams, dtype_name, structure, ckpt_path, out_dir, dist, phases)
+        return train_linear_prior(cfg, data, hparams, dtype_name, structure, ckpt_path, out_dir, dist, phases,
+                                  init_ckpt)
 
     if hops:                                     # refused now rather than after training
         from .stress_readout import check_determined
