@@ -311,8 +311,8 @@ def test_the_readout_check_holds_load_groups_out_with_their_mirror_images():
     loaded = [z.clone() for z in trajs]
     for z, f in zip(loaded, forces):
         z[:, :, 7] += f[:, :, 1] / H ** 2
-    fold_of, n_groups = load_folds(graph, forces, 3, symmetric=True)
-    assert n_groups == len(top) and sorted(set(fold_of.tolist())) == [0, 1, 2]
+    fold_of, group_of = load_folds(graph, forces, 3, symmetric=True)
+    assert list(group_of) == list(groups) and sorted(set(fold_of.tolist())) == [0, 1, 2]
     whole, report = fit_stress_readout(ref, ei, loaded, list(range(6, 12)), hops=1, symmetric=True, node_type=nt,
                                        forces=forces, load_hops=1, held_out=fold_of)
     for j, fold_readout in enumerate(report["held_out_readouts"]):

@@ -432,10 +432,11 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
         k = st.shape[1]
         parts = []                                   # per block: (a [s m, 3 k + 3 kf], b [s m, C], aᵀa, aᵀb)
         for snaps in blocks:
-            a = u[snaps][:, st].reshape(len(snaps) * len(nodes), -1)                     # [s m, 3 k]
+            rows_of = snaps[:, None, None]                                               # [s, 1, 1]
+            a = u[rows_of, st].reshape(len(snaps) * len(nodes), -1)                      # [s m, 3 k]
             if load_hops:
-                a = np.concatenate([a, f[snaps][:, lst].reshape(len(snaps) * len(nodes), -1)], 1)
-            b = sigma[snaps][:, nodes].reshape(len(snaps) * len(nodes), -1)              # [s m, C]
+                a = np.concatenate([a, f[rows_of, lst].reshape(len(snaps) * len(nodes), -1)], 1)
+            b = sigma[snaps[:, None], nodes].reshape(len(snaps) * len(nodes), -1)        # [s m, C]
             parts.append((a, b, a.T @ a, a.T @ b))
         gram, rhs = sum(p[2] for p in parts), sum(p[3] for p in parts)
         column_max = np.stack([np.abs(p[0]).max(0) for p in parts])                   # [blocks, P]
@@ -510,19 +511,8 @@ def load_groups(forces: Sequence[Tensor], symmetries) -> np.ndarray:
     return np.array([order[k] for k in keys], dtype=np.int64)
 
 
-def stress_errors(read: Tensor, sigma: Tensor) -> tuple[float, float]:
-    """(per snapshot, whole) relative L2 error of a read-off stress ``read`` against the true
-    ``sigma`` ([S, N, C] each), over the snapshots s >= 1 (per snapshot: those with a stress)."""
-    read, sigma = read[1:].double(), sigma[1:].double()
-    norms = sigma.flatten(1).norm(dim=1)                                                 # [S - 1]
-    has = norms > 0
-    per = float(((read - sigma).flatten(1).norm(dim=1)[has] / norms[has]).mean()) if bool(has.any()) else float("nan")
-    whole = float((read - sigma).norm() / sigma.norm()) if float(sigma.norm()) > 0 else float("nan")
-    return per, whole
-
-
-def load_folds(graph, forces: Sequence[Tensor], folds: int, symmetric: bool = False) -> tuple[np.ndarray, int]:
-    """(the fold [T] of each trajectory, the number of load groups): the trajectories' load groups
+def load_folds(graph, forces: Sequence[Tensor], folds: int, symmetric: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(the fold [T] of each trajectory, its load group [T]): the trajectories' load groups
     (``load_groups``, up to the mesh's mirrors when ``symmetric``) dealt into min(``folds``, groups)
     folds, group g into fold g mod K; the folds are empty ([0]) where there are fewer than 2 groups."""
     X = graph.ref_pos.detach().cpu().double().numpy()
@@ -531,7 +521,7 @@ def load_folds(graph, forces: Sequence[Tensor], folds: int, symmetric: bool = Fa
     groups = load_groups(forces, symmetries)
     n_groups = int(groups.max()) + 1 if len(groups) else 0
     k = min(int(folds), n_groups)
-    return (groups % k if k >= 2 else np.zeros(0, dtype=np.int64)), n_groups
+    return (groups % k if k >= 2 else np.zeros(0, dtype=np.int64)), groups
 
 
 def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tensor], forces: Sequence[Tensor],
@@ -556,7 +546,12 @@ def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tenso
     group read worst held out, and its load's place [m]: the mean reference position of a
     trajectory's loaded nodes), or {"folds": 0, "groups", "reason"} where there are fewer than 2 load
     groups or a fold's complement leaves the fit underdetermined."""
-    fold_of, n_groups = load_folds(graph, forces, folds, symmetric)
+    from thermognn.core.state import StateLayout
+
+    from .rollout import rrmse_per_step, trajectory_error, trajectory_rrmse
+
+    fold_of, groups = load_folds(graph, forces, folds, symmetric)
+    n_groups = int(groups.max()) + 1 if len(groups) else 0
     if not len(fold_of):
         return {"folds": 0, "groups": n_groups, "reason": f"{n_groups} load group(s): nothing to hold out"}
     k = int(fold_of.max()) + 1
@@ -580,17 +575,21 @@ def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tenso
     except DataError as exc:
         return {"folds": 0, "groups": n_groups, "reason": f"a fold left out: {exc}"}
 
+    stress = StateLayout((("sigma", len(cols)),))
+
     def errors(readout, i):
+        """(per snapshot, whole) relative L2 error of trajectory i's stress read by ``readout``."""
         with torch.no_grad():
             u = rolled[i][:, :, :3].detach().cpu().double() - X.detach().cpu().double()       # [S, N, 3]
             read = readout(u, forces[i].detach().cpu().double())                                # [S, N, C]
-        return stress_errors(read, truths[i][:, :, cols].detach().cpu())
+        true = truths[i][:, :, cols].detach().cpu().double()
+        return (trajectory_rrmse(rrmse_per_step(read, true, stress))["sigma"],
+                trajectory_error(read, true, stress)["sigma"])
 
     held = [errors(fold_readouts[int(fold_of[i])], i) for i in range(len(rolled))]
     in_sample = [errors(fitted, i) for i in range(len(rolled))]
     # the load group read worst, and where its load is (the mean reference position of the first
     # such trajectory's loaded nodes)
-    groups = load_folds(graph, forces, n_groups, symmetric)[0]            # one fold per group: the group
     per_group = {int(g): float(np.mean([held[i][0] for i in range(len(held)) if groups[i] == g])) for g in set(groups)}
     worst = max(per_group, key=per_group.get)
     first = int(np.flatnonzero(groups == worst)[0])
