@@ -326,6 +326,60 @@ def test_the_readout_check_holds_load_groups_out_with_their_mirror_images():
     assert not torch.allclose(report["held_out_readouts"][0].weight, whole.weight)
 
 
+def test_each_shape_chooses_the_ridge_that_reads_held_out_load_groups_best():
+    """``ridge`` (``model.stress_readout_ridge``) as a list: each neighbourhood shape takes the ridge
+    whose weights, fitted without a fold of load groups, read that fold's rows with the least squared
+    error summed over the folds; fold k's readout takes the one the other folds chose; the whole
+    readout is the single-ridge fit with each shape's choice. Checked against fits with one ridge
+    each, on a stress no stencil reads exactly (so the choice varies)."""
+    from thermognn.train.stress_readout import load_folds
+
+    ref, ei, idx = _grid()
+    graph = SimpleNamespace(ref_pos=ref, edge_index=ei, node_type=torch.zeros(len(ref), dtype=torch.long))
+    top = [int(n) for n in np.flatnonzero((idx[:, 1] == 3) & (idx[:, 2] == 1))]          # 7 load points
+    trajs, forces = [], []
+    for k, node in enumerate(top):
+        z = _snapshots(ref, idx, 14, seed=k)
+        z[:, :, 6:] += 4e8 * (z[:, :, :3] - ref).pow(2).repeat(1, 1, 2)                # not a stencil's
+        f = torch.zeros(14, len(ref), 3, dtype=torch.float64)
+        f[1:, node, 1] = -1.0
+        trajs.append(z)
+        forces.append(f)
+    fold_of, _ = load_folds(graph, forces, 3)
+    ridges = [0.0, 1e-6, 1e-3]
+    cols = list(range(6, 12))
+    readout, report = fit_stress_readout(ref, ei, trajs, cols, hops=2, held_out=fold_of, ridge=ridges)
+    single = [fit_stress_readout(ref, ei, trajs, cols, hops=2, held_out=fold_of, ridge=r) for r in ridges]
+    classes = readout.node_class.numpy()
+    sse = np.zeros((len(ridges), 3, int(classes.max()) + 1))     # [ridge, fold, shape]
+    for r, (_, rep) in enumerate(single):
+        for i, z in enumerate(trajs):
+            j = int(fold_of[i])
+            with torch.no_grad():
+                err = ((rep["held_out_readouts"][j](z[:, :, :3] - ref) - z[:, :, 6:]) ** 2).sum((0, 2)).numpy()
+            np.add.at(sse[r, j], classes, err)
+    best = sse.sum(1).argmin(0)                                                           # [shape]
+    assert np.array_equal(report["ridge"], np.array(ridges)[best]) and len(set(best.tolist())) > 1
+    from thermognn.train.loop import held_out_sentence, ridge_counts
+    counts = ridge_counts(report["ridge"])
+    assert sum(c for _, c in counts) == len(best) and [v for v, _ in counts] == sorted({ridges[b] for b in best})
+    check = {"folds": 3, "groups": 7, "per_snapshot": 0.1, "whole": 0.1, "in_sample_per_snapshot": 0.1,
+             "in_sample_whole": 0.1, "worst_group_per_snapshot": 0.2, "worst_group_load_point": [0, 0, 0],
+             "ridge": counts}
+    assert f"0.001 for {counts[-1][1]} shape" in held_out_sentence(check)
+    for c in range(len(best)):
+        w = single[best[c]][0].weight[c]
+        assert torch.allclose(readout.weight[c], w, rtol=0, atol=1e-9 * w.abs().max())
+        for j in range(3):
+            other = (sse.sum(1) - sse[:, j])[:, c].argmin()                                 # the other folds' choice
+            w = single[other][1]["held_out_readouts"][j].weight[c]
+            assert torch.allclose(report["held_out_readouts"][j].weight[c], w, rtol=0, atol=1e-9 * w.abs().max())
+    with pytest.raises(DataError, match=r"d\.h5: model\.stress_readout_ridge = \[0\.0, 0\.001\]: choosing among"):
+        fit_stress_readout(ref, ei, trajs, cols, hops=2, source="d.h5", ridge=[0.0, 1e-3])
+    with pytest.raises(DataError, match=r"d\.h5: model\.stress_readout_ridge = \[-1\.0\], expected one ridge >= 0"):
+        fit_stress_readout(ref, ei, trajs, cols, hops=2, source="d.h5", ridge=-1.0)
+
+
 def test_a_model_with_a_readout_reports_the_stress_off_its_positions_and_scripts():
     """TIGNN with ``stress_readout``: its steps are the network's (the state keeps its own σ), a
     rollout reports σ = readout(q - X) at every snapshot; the scripted model reads the same; a
@@ -443,6 +497,19 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
                                                                       data.of("val"), data.layout, data.dt), rel_tol=1e-3)
     with pytest.raises(ConfigError, match=r"train.readout_folds = 1, expected 0 \(off\) or the number of folds"):
         train(load_config([f"out={tmp_path / 'f1'}", "model.stress_readout=1", "train.readout_folds=1",
+                           f"paths.dataset={tmp_path / 'dataset.h5'}"]))
+    with pytest.raises(DataError, match=r"dataset\.h5: model\.stress_readout_ridge = \[0\.0, 1e-06\]: .* load 1 group"):
+        train(load_config([f"out={tmp_path / 'r1'}", "model.stress_readout=1", "model.stress_readout_ridge=[0,1e-6]",
+                           f"paths.dataset={tmp_path / 'dataset.h5'}"]))
+    with pytest.raises(ConfigError, match=r"stress_readout_ridge = \[0, 1e-06\]: .* train.readout_folds >= 2 \(it is 0\)"):
+        train(load_config([f"out={tmp_path / 'r2'}", "model.stress_readout=1", "model.stress_readout_ridge=[0,1e-6]",
+                           "train.readout_folds=0", f"paths.dataset={tmp_path / 'dataset.h5'}"]))
+    for bad in ("-1", "[]", "abc"):
+        with pytest.raises(ConfigError, match=r"model.stress_readout_ridge = .*, expected a ridge >= 0"):
+            train(load_config([f"out={tmp_path / 'r3'}", "model.stress_readout=1", f"model.stress_readout_ridge={bad}",
+                               f"paths.dataset={tmp_path / 'dataset.h5'}"]))
+    with pytest.raises(ConfigError, match=r"model.stress_readout_ridge = 1e-06: .* set model.stress_readout"):
+        train(load_config([f"out={tmp_path / 'r4'}", "model.stress_readout_ridge=1e-6",
                            f"paths.dataset={tmp_path / 'dataset.h5'}"]))
     with pytest.raises(ConfigError, match=r"train.epochs = 0, expected >= 1 \(or 0 with train.init and model.stress_readout"):
         train(load_config([f"out={tmp_path / 'e0'}", "train.epochs=0", "model.stress_readout=1",

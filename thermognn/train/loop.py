@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import math
+from collections import Counter
 import os
 import time
 from pathlib import Path
@@ -292,16 +293,52 @@ def readout_folds(tc) -> int:
     return k
 
 
+def readout_ridge(cfg, hops: int, folds: int, modes: int) -> float | list[float]:
+    """``model.stress_readout_ridge``: the stress readout's ridge (relative; 0: the fit's round-off
+    guard alone), or a list of ridges each neighbourhood shape chooses among by the held-out load
+    groups of ``train.readout_folds`` (``fit_stress_readout``)."""
+    given = _sel(cfg, "model.stress_readout_ridge", 0)
+    given = 0 if given is None else given
+    if OmegaConf.is_config(given):
+        given = OmegaConf.to_container(given)
+    values = given if isinstance(given, list) else [given]
+    if not values or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
+                             for v in values):
+        raise ConfigError(f"model.stress_readout_ridge = {given!r}, expected a ridge >= 0 (relative to the "
+                          "fit's equations) or a list of them to choose among per neighbourhood shape")
+    if any(values) and not hops:
+        raise ConfigError(f"model.stress_readout_ridge = {given!r}: a ridge of a stress readout's fit; "
+                          "set model.stress_readout to its reach in hops (>= 1)")
+    if len(values) > 1 and (folds < 2 or modes):
+        raise ConfigError(f"model.stress_readout_ridge = {given!r}: each shape chooses among these by the "
+                          "held-out load groups of train.readout_folds, expected train.readout_folds >= 2 "
+                          f"(it is {folds}) and model.stress_readout_modes = 0 (it is {modes})")
+    return [float(v) for v in values] if len(values) > 1 else float(values[0])
+
+
+def ridge_counts(chosen) -> list[list[float]]:
+    """[[ridge, shapes], ...]: how many of the readout's neighbourhood shapes chose each ridge
+    (``fit_stress_readout``'s report "ridge" [C]), smallest ridge first."""
+    return [[v, c] for v, c in sorted(Counter(float(v) for v in chosen).items())]
+
+
+def ridge_sentence(counts) -> str:
+    """Words on ``ridge_counts``."""
+    return ("ridge chosen per neighbourhood shape by the held-out load groups (model.stress_readout_ridge): "
+            + ", ".join(f"{v:g} for {int(c)} shape{'s' if c > 1 else ''}" for v, c in counts))
+
+
 def held_out_sentence(check: dict) -> str:
     """``train``'s line on the stress readout's check on held-out loads (``held_out_loads_check``)."""
     if not check.get("folds"):
         return f"stress readout on held-out loads: not checked ({check.get('reason', '')})"
+    chosen = f"; {ridge_sentence(check['ridge'])}" if check.get("ridge") else ""
     return (f"stress readout on held-out loads ({check['groups']} load groups in {check['folds']} folds, "
             f"each read by a readout fitted to the other folds' training rollouts; train.readout_folds): "
             f"sigma per snapshot {check['per_snapshot']:.2%}, whole {check['whole']:.2%}; "
             f"on the loads it was fitted to {check['in_sample_per_snapshot']:.2%}, {check['in_sample_whole']:.2%}; "
             f"worst held out: the group loaded at ({', '.join(f'{v:.4g}' for v in check['worst_group_load_point'])}) m, "
-            f"{check['worst_group_per_snapshot']:.2%}")
+            f"{check['worst_group_per_snapshot']:.2%}{chosen}")
 
 
 def window_steps(tc) -> int:
@@ -701,6 +738,7 @@ def _train_here(cfg) -> Path:
     if isinstance(modes, bool) or not isinstance(modes, int) or modes < 0 or (modes and not hops):
         raise ConfigError(f"model.stress_readout_modes = {modes!r}: how many principal displacement fields a "
                           "stress readout projects onto, expected 0 (off) or >= 1 with model.stress_readout set")
+    ridge = readout_ridge(cfg, hops, folds, modes)
     augment = _sel(tc, "symmetry_augment", False)
     if not isinstance(augment, bool):
         raise ConfigError(f"train.symmetry_augment = {augment!r}, expected true (each training pair seen in a "
@@ -742,6 +780,14 @@ def _train_here(cfg) -> Path:
                               f"{data.layout.names} has no stress (sigma) to read")
         check_determined(data.graph.ref_pos.cpu().numpy(), data.graph.edge_index.cpu().numpy(),
                          sum(t.z.shape[0] for t in train_trajs), hops, str(data.path))
+        if isinstance(ridge, list):              # the shapes choose by held-out load groups: are there 2?
+            from .stress_readout import load_folds
+
+            groups = load_folds(data.graph, [t.force for t in train_trajs], folds, mirror_readout)[1]
+            if len(set(groups.tolist())) < 2:
+                raise DataError(f"{data.path}: model.stress_readout_ridge = {ridge}: each shape chooses its "
+                                "ridge by held-out load groups, and the training trajectories load "
+                                f"{len(set(groups.tolist()))} group of nodes; give one ridge")
     frames = averaged_frames(data, mirror_average) if mirror_average else []
     if len(frames) > 1:                          # each step averaged over the mesh's mirror frames
         hparams["mirror_frames"] = {"frames": len(frames), "nodes": data.graph.n_nodes}
@@ -1002,9 +1048,11 @@ def _train_here(cfg) -> Path:
 
             readout, fit = fit_readout_to_rollouts(model_from_checkpoint(ckpt, ds), data, train_trajs, hops,
                                                    symmetric=mirror_readout, load_hops=load_hops, modes=modes,
-                                                   folds=folds)
+                                                   folds=folds, ridge=ridge)
             ckpt = with_stress_readout(ckpt, readout, hops, load_hops)
             if "held_out_loads" in fit:
+                if isinstance(ridge, list):
+                    fit["held_out_loads"]["ridge"] = ridge_counts(fit["ridge"])
                 ckpt["stress_readout_check"] = fit["held_out_loads"]
             # the checkpoint's validation error is that of the stress it now reports (metrics.csv keeps
             # the one each epoch was selected by: the network's own σ, or the init's readout's)
