@@ -508,9 +508,10 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
         with pytest.raises(ConfigError, match=r"model.stress_readout_ridge = .*, expected a ridge >= 0"):
             train(load_config([f"out={tmp_path / 'r3'}", "model.stress_readout=1", f"model.stress_readout_ridge={bad}",
                                f"paths.dataset={tmp_path / 'dataset.h5'}"]))
-    with pytest.raises(ConfigError, match=r"model.stress_readout_ridge = 1e-06: .* set model.stress_readout"):
-        train(load_config([f"out={tmp_path / 'r4'}", "model.stress_readout_ridge=1e-6",
-                           f"paths.dataset={tmp_path / 'dataset.h5'}"]))
+    for given in ("1e-06", "auto"):
+        with pytest.raises(ConfigError, match=rf"model.stress_readout_ridge = '?{given}'?: .* set model.stress_readout"):
+            train(load_config([f"out={tmp_path / 'r4'}", f"model.stress_readout_ridge={given}",
+                               f"paths.dataset={tmp_path / 'dataset.h5'}"]))
     with pytest.raises(ConfigError, match=r"train.epochs = 0, expected >= 1 \(or 0 with train.init and model.stress_readout"):
         train(load_config([f"out={tmp_path / 'e0'}", "train.epochs=0", "model.stress_readout=1",
                            f"paths.dataset={tmp_path / 'dataset.h5'}"]))

@@ -297,15 +297,18 @@ def readout_ridge(cfg, hops: int, folds: int, modes: int) -> float | list[float]
     """``model.stress_readout_ridge``: the stress readout's ridge (relative; 0: the fit's round-off
     guard alone), or a list of ridges each neighbourhood shape chooses among by the held-out load
     groups of ``train.readout_folds`` (``fit_stress_readout``)."""
+    from .stress_readout import AUTO_RIDGES
+
     given = _sel(cfg, "model.stress_readout_ridge", 0)
     given = 0 if given is None else given
     if OmegaConf.is_config(given):
         given = OmegaConf.to_container(given)
-    values = given if isinstance(given, list) else [given]
+    values = list(AUTO_RIDGES) if given == "auto" else given if isinstance(given, list) else [given]
     if not values or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
                              for v in values):
         raise ConfigError(f"model.stress_readout_ridge = {given!r}, expected a ridge >= 0 (relative to the "
-                          "fit's equations) or a list of them to choose among per neighbourhood shape")
+                          "fit's equations), a list of them to choose among per neighbourhood shape, or auto "
+                          f"({len(AUTO_RIDGES)} of them: 0 and 1e-10 ... 1e-2 in half decades)")
     if any(values) and not hops:
         raise ConfigError(f"model.stress_readout_ridge = {given!r}: a ridge of a stress readout's fit; "
                           "set model.stress_readout to its reach in hops (>= 1)")

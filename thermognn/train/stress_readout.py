@@ -70,6 +70,11 @@ VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 #: 1e34 on round-off-sized clamped displacements; test error 1.12 % at 1e-12, 1.32 % at 1e-11)
 RIDGE = 1e-12
 
+#: the ridges ``model.stress_readout_ridge=auto`` chooses among per neighbourhood shape: 0 and
+#: 1e-10 ... 1e-2 in half decades (TIGNN beam, session 63: on true fields the end shapes chose
+#: 1e-7-1e-6; fitted to a barely trained network's rollouts, many chose 1e-5, the top of a shorter list)
+AUTO_RIDGES = (0.0,) + tuple(float(f"{10.0 ** e:.3g}") for e in np.arange(-10.0, -1.99, 0.5))
+
 
 class StressReadout(nn.Module):
     """σ [..., N, S] = readout(u [..., N, 3], f [..., N, 3]) for the mesh it was fitted on (N nodes).
@@ -420,7 +425,8 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
         """Weights [3 k + 3 kf, C] from the normal equations (gram = aᵀa, rhs = aᵀb of ``rows`` rows),
         each column scaled to O(1) by its largest value ``column_max``, with a ridge of RIDGE + ``lam``
         (relative); a clamped column (round-off) and a load column no row loads get weight 0. Also
-        returns the loaded load columns' count."""
+        returns the loaded load columns' count. ``lam`` an array [L]: the weights [L, 3 k + 3 kf, C]
+        of each ridge, from one eigendecomposition."""
         scale = column_max.copy()
         still = scale <= 1e-9 * reach                            # clamped: round-off, weight 0
         still[3 * k:] = scale[3 * k:] == 0.0                     # a load column no snapshot loads: 0
@@ -428,7 +434,12 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
         gn = gram / scale[:, None] / scale[None, :]
         gn[still], gn[:, still] = 0.0, 0.0
         rn = np.where(still[:, None], 0.0, rhs / scale[:, None])
-        w = np.linalg.solve(gn + (RIDGE + lam) * rows * np.eye(len(scale)), rn)
+        if np.ndim(lam):                 # gn = V diag(e) Vᵀ: (gn + r I)⁻¹ rn = V diag(1 / (e + r)) Vᵀ rn
+            e, V = np.linalg.eigh(gn)
+            proj = V.T @ rn                                                               # [P, C]
+            w = np.stack([V @ (proj / (e + (RIDGE + lv) * rows)[:, None]) for lv in lam])  # [L, P, C]
+        else:
+            w = np.linalg.solve(gn + (RIDGE + lam) * rows * np.eye(len(scale)), rn)
         return np.where(still[:, None], 0.0, w / scale[:, None]), int((~still[3 * k:]).sum())
 
     # the snapshots in blocks: one per fold, then those never held out (all of them without folds)
@@ -467,13 +478,11 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
                          rows - len(parts[j][0]), k, lam)[0]
 
         fold_ridge = np.full(folds, ridges[0])
-        fold_w = {}
         if len(ridges) > 1:                  # each candidate's squared error on each held-out fold's rows
             sse = np.zeros((len(ridges), folds))
-            for li, lam in enumerate(ridges):
-                for j in range(folds):
-                    wj = fold_w[li, j] = without(j, lam)
-                    _, bj, gj, rj = parts[j]       # |a w - b|² = wᵀ aᵀa w - 2 wᵀ aᵀb + |b|²
+            for j in range(folds):
+                _, bj, gj, rj = parts[j]           # |a w - b|² = wᵀ aᵀa w - 2 wᵀ aᵀb + |b|²
+                for li, wj in enumerate(without(j, ridges)):
                     sse[li, j] = (wj * (gj @ wj)).sum() - 2.0 * (wj * rj).sum() + (bj ** 2).sum()
             chosen[c] = ridges[int(np.argmin(sse.sum(1)))]
             fold_ridge = ridges[np.argmin(sse.sum(1, keepdims=True) - sse, axis=0)]   # the other folds' choice
@@ -484,8 +493,7 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
         for snaps, (a, *_rest) in zip(blocks, parts):
             predicted[snaps[:, None], nodes[None, :]] = (a @ w).reshape(len(snaps), len(nodes), -1)
         for j in range(folds):        # each fold's normal equations taken out of the whole's
-            li = int(np.flatnonzero(ridges == fold_ridge[j])[0])
-            wj = fold_w[li, j] if (li, j) in fold_w else without(j, fold_ridge[j])
+            wj = without(j, fold_ridge[j])
             fold_weights[j, c, :3 * k] = wj[:3 * k]
             fold_weights[j, c, 3 * width:3 * width + (width_here - 3 * k)] = wj[3 * k:]
 
