@@ -370,7 +370,7 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     readout the one the *other* folds chose, so the held-out check does not score a choice made on
     its own rows. The report's "ridge" is each shape's [C]. On the TIGNN beam's true fields (session
     63) only the shapes near the free end choose one, where the stencil extrapolates to loads it
-    never saw: held-out σ 3.87 → 2.2 %, in sample 0.53 → 1.2 %."""
+    never saw: held-out σ 3.87 → 2.38 %, in sample 0.53 → 1.17 % (3 hops, no loads; docs/accuracy.md)."""
     X = ref_pos.detach().cpu().double().numpy()
     z = np.concatenate([t.detach().cpu().double().numpy() for t in trajectories])        # [S, N, D]
     cols = [int(c) for c in columns]
