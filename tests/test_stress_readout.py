@@ -367,6 +367,15 @@ def test_each_shape_chooses_the_ridge_that_reads_held_out_load_groups_best():
              "in_sample_whole": 0.1, "worst_group_per_snapshot": 0.2, "worst_group_load_point": [0, 0, 0],
              "ridge": counts}
     assert f"0.001 for {counts[-1][1]} shape" in held_out_sentence(check)
+    # the check also reads every shape at the first ridge alone: the single-ridge check's figures
+    from thermognn.train.stress_readout import held_out_loads_check
+    chose = held_out_loads_check(graph, trajs, trajs, forces, cols, hops=2, folds=3, ridge=ridges)
+    alone = held_out_loads_check(graph, trajs, trajs, forces, cols, hops=2, folds=3, ridge=ridges[0])
+    assert "first_ridge" not in alone and chose["first_ridge"]["ridge"] == ridges[0]
+    assert math.isclose(chose["first_ridge"]["per_snapshot"], alone["per_snapshot"], rel_tol=1e-9)
+    assert math.isclose(chose["first_ridge"]["in_sample_per_snapshot"], alone["in_sample_per_snapshot"], rel_tol=1e-9)
+    assert chose["per_snapshot"] != alone["per_snapshot"]
+    assert "; every shape at ridge 0 instead: held out " in held_out_sentence(chose)
     for c in range(len(best)):
         w = single[best[c]][0].weight[c]
         assert torch.allclose(readout.weight[c], w, rtol=0, atol=1e-9 * w.abs().max())

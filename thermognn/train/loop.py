@@ -336,6 +336,10 @@ def held_out_sentence(check: dict) -> str:
     if not check.get("folds"):
         return f"stress readout on held-out loads: not checked ({check.get('reason', '')})"
     chosen = f"; {ridge_sentence(check['ridge'])}" if check.get("ridge") else ""
+    if check.get("first_ridge"):
+        alone = check["first_ridge"]
+        chosen += (f"; every shape at ridge {alone['ridge']:g} instead: held out {alone['per_snapshot']:.2%}, "
+                   f"on the loads fitted {alone['in_sample_per_snapshot']:.2%}")
     return (f"stress readout on held-out loads ({check['groups']} load groups in {check['folds']} folds, "
             f"each read by a readout fitted to the other folds' training rollouts; train.readout_folds): "
             f"sigma per snapshot {check['per_snapshot']:.2%}, whole {check['whole']:.2%}; "

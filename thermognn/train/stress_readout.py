@@ -368,7 +368,9 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     need ``held_out`` folds: each neighbourhood shape takes the one whose weights, fitted without a
     fold, read that fold's rows best (least squared error summed over the folds), and each fold's
     readout the one the *other* folds chose, so the held-out check does not score a choice made on
-    its own rows. The report's "ridge" is each shape's [C]. On the TIGNN beam's true fields (session
+    its own rows. The report's "ridge" is each shape's [C], and "first_ridge_readouts" the readouts
+    with every shape at the first ridge of the list ([K] fold ones, then the whole), for the check
+    to set beside the choice. On the TIGNN beam's true fields (session
     63) only the shapes near the free end choose one, where the stencil extrapolates to loads it
     never saw: held-out σ 3.87 → 2.38 %, in sample 0.53 → 1.17 % (3 hops, no loads; docs/accuracy.md)."""
     X = ref_pos.detach().cpu().double().numpy()
@@ -419,6 +421,7 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     load_width = max(len(s) for s in load_stencil)
     weight = np.zeros((int(classes.max()) + 1, 3 * (width + load_width), len(cols)))   # StressReadout.weight's
     fold_weights = np.zeros((folds,) + weight.shape)            # [K, classes, ...]: each without fold k
+    first_weights = np.zeros((folds + 1,) + weight.shape)       # with a choice: the first ridge's, folds then whole
     loaded = np.zeros(weight.shape[0], dtype=np.int64)          # per class: load columns some snapshot loads
 
     def solve(gram, rhs, column_max, rows, k, lam):
@@ -486,6 +489,10 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
                     sse[li, j] = (wj * (gj @ wj)).sum() - 2.0 * (wj * rj).sum() + (bj ** 2).sum()
             chosen[c] = ridges[int(np.argmin(sse.sum(1)))]
             fold_ridge = ridges[np.argmin(sse.sum(1, keepdims=True) - sse, axis=0)]   # the other folds' choice
+            for j, wj in enumerate([without(j, ridges[0]) for j in range(folds)]
+                                   + [solve(gram, rhs, column_max.max(0), rows, k, ridges[0])[0]]):
+                first_weights[j, c, :3 * k] = wj[:3 * k]
+                first_weights[j, c, 3 * width:3 * width + (wj.shape[0] - 3 * k)] = wj[3 * k:]
         w, loaded[c] = solve(gram, rhs, column_max.max(0), rows, k, chosen[c])
         width_here = parts[0][0].shape[1]
         weight[c, :3 * k] = w[:3 * k]
@@ -523,6 +530,8 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
               "ridge": chosen}
     if held_out is not None:
         report["held_out_readouts"] = [filled(w) for w in fold_weights]
+    if len(ridges) > 1:              # the readouts at the first ridge alone, for the check to compare
+        report["first_ridge_readouts"] = [filled(w) for w in first_weights]
     return readout, report
 
 
@@ -574,7 +583,8 @@ def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tenso
                          load_hops: int = 0, modes: int = 0, source: str = "dataset",
                          fitted: StressReadout | None = None,
                          fold_readouts: Sequence[StressReadout] | None = None,
-                         ridge: float | Sequence[float] = 0.0) -> Dict:
+                         ridge: float | Sequence[float] = 0.0,
+                         first_ridge_readouts: Sequence[StressReadout] | None = None) -> Dict:
     """How the readout does on loads it was not fitted to (``train.readout_folds``): the
     trajectories' load groups (``load_folds``: the loaded nodes, up to the mesh's mirrors, which a
     symmetric fit would otherwise see in the held-out ones' place) are dealt into ``folds`` folds;
@@ -590,7 +600,9 @@ def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tenso
     "in_sample_whole", "worst_group_per_snapshot", "worst_group_load_point"} (means over the
     trajectories; in sample: read by the readout fitted to all, ``fitted`` where given; the load
     group read worst held out, and its load's place [m]: the mean reference position of a
-    trajectory's loaded nodes), or {"folds": 0, "groups", "reason"} where there are fewer than 2 load
+    trajectory's loaded nodes; with ``ridge`` a list, also "first_ridge": {"ridge", "per_snapshot",
+    "in_sample_per_snapshot"}, the same with every shape at the list's first ridge, from the fit's
+    "first_ridge_readouts" or ``first_ridge_readouts``), or {"folds": 0, "groups", "reason"} where there are fewer than 2 load
     groups or a fold's complement leaves the fit underdetermined."""
     from thermognn.core.state import StateLayout
 
@@ -614,6 +626,7 @@ def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tenso
         if fold_readouts is None and not modes:
             whole, report = fit(range(len(rolled)), held_out=fold_of)
             fitted, fold_readouts = fitted if fitted is not None else whole, report["held_out_readouts"]
+            first_ridge_readouts = report.get("first_ridge_readouts", first_ridge_readouts)
         elif fold_readouts is None:
             fold_readouts = [fit([i for i in range(len(rolled)) if fold_of[i] != j])[0] for j in range(k)]
         if fitted is None:
@@ -640,12 +653,19 @@ def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tenso
     worst = max(per_group, key=per_group.get)
     first = int(np.flatnonzero(groups == worst)[0])
     loaded = (forces[first].detach().cpu().abs().sum((0, 2)) > 0).numpy()
-    return {"folds": k, "groups": n_groups,
-            "per_snapshot": float(np.mean([e[0] for e in held])), "whole": float(np.mean([e[1] for e in held])),
-            "in_sample_per_snapshot": float(np.mean([e[0] for e in in_sample])),
-            "in_sample_whole": float(np.mean([e[1] for e in in_sample])),
-            "worst_group_per_snapshot": per_group[worst],
-            "worst_group_load_point": [float(v) for v in X.detach().cpu().double().numpy()[loaded].mean(0)]}
+    out = {"folds": k, "groups": n_groups,
+           "per_snapshot": float(np.mean([e[0] for e in held])), "whole": float(np.mean([e[1] for e in held])),
+           "in_sample_per_snapshot": float(np.mean([e[0] for e in in_sample])),
+           "in_sample_whole": float(np.mean([e[1] for e in in_sample])),
+           "worst_group_per_snapshot": per_group[worst],
+           "worst_group_load_point": [float(v) for v in X.detach().cpu().double().numpy()[loaded].mean(0)]}
+    if first_ridge_readouts is not None:      # the same, every shape at the first ridge of the list
+        r0 = float(np.atleast_1d(ridge)[0])
+        held0 = [errors(first_ridge_readouts[int(fold_of[i])], i)[0] for i in range(len(rolled))]
+        out["first_ridge"] = {"ridge": r0, "per_snapshot": float(np.mean(held0)),
+                              "in_sample_per_snapshot": float(np.mean([errors(first_ridge_readouts[-1], i)[0]
+                                                                        for i in range(len(rolled))]))}
+    return out
 
 
 def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
@@ -694,5 +714,6 @@ def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
         fit["held_out_loads"] = held_out_loads_check(
             data.graph, rolled, [t.z for t in trajectories], forces, columns, hops, folds, symmetric=symmetric,
             load_hops=load_hops, modes=modes, source=str(data.path), fitted=readout,
-            fold_readouts=fit.pop("held_out_readouts", None), ridge=ridge)
+            fold_readouts=fit.pop("held_out_readouts", None), ridge=ridge,
+            first_ridge_readouts=fit.pop("first_ridge_readouts", None))
     return readout, fit
