@@ -421,7 +421,6 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     load_width = max(len(s) for s in load_stencil)
     weight = np.zeros((int(classes.max()) + 1, 3 * (width + load_width), len(cols)))   # StressReadout.weight's
     fold_weights = np.zeros((folds,) + weight.shape)            # [K, classes, ...]: each without fold k
-    first_weights = np.zeros((folds + 1,) + weight.shape)       # with a choice: the first ridge's, folds then whole
     loaded = np.zeros(weight.shape[0], dtype=np.int64)          # per class: load columns some snapshot loads
 
     def solve(gram, rhs, column_max, rows, k, lam):
@@ -458,6 +457,7 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
                         "ridges needs training trajectories with at least 2 load groups to hold out "
                         "(train.readout_folds >= 2, without model.stress_readout_modes)")
     chosen = np.full(weight.shape[0], ridges[0])                # per class: its ridge
+    first_weights = np.zeros((folds + 1,) + weight.shape) if len(ridges) > 1 else None   # the first ridge's: folds, whole
     predicted = np.zeros_like(sigma)
     for c in range(weight.shape[0]):
         nodes = np.flatnonzero(classes == c)
@@ -489,8 +489,9 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
                     sse[li, j] = (wj * (gj @ wj)).sum() - 2.0 * (wj * rj).sum() + (bj ** 2).sum()
             chosen[c] = ridges[int(np.argmin(sse.sum(1)))]
             fold_ridge = ridges[np.argmin(sse.sum(1, keepdims=True) - sse, axis=0)]   # the other folds' choice
-            for j, wj in enumerate([without(j, ridges[0]) for j in range(folds)]
-                                   + [solve(gram, rhs, column_max.max(0), rows, k, ridges[0])[0]]):
+            alone = [without(j, ridges[0]) for j in range(folds)] + [solve(gram, rhs, column_max.max(0), rows, k,
+                                                                           ridges[0])[0]]
+            for j, wj in enumerate(alone):               # every shape at the first ridge: folds, then whole
                 first_weights[j, c, :3 * k] = wj[:3 * k]
                 first_weights[j, c, 3 * width:3 * width + (wj.shape[0] - 3 * k)] = wj[3 * k:]
         w, loaded[c] = solve(gram, rhs, column_max.max(0), rows, k, chosen[c])
@@ -602,8 +603,8 @@ def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tenso
     group read worst held out, and its load's place [m]: the mean reference position of a
     trajectory's loaded nodes; with ``ridge`` a list, also "first_ridge": {"ridge", "per_snapshot",
     "in_sample_per_snapshot"}, the same with every shape at the list's first ridge, from the fit's
-    "first_ridge_readouts" or ``first_ridge_readouts``), or {"folds": 0, "groups", "reason"} where there are fewer than 2 load
-    groups or a fold's complement leaves the fit underdetermined."""
+    "first_ridge_readouts" or ``first_ridge_readouts``), or {"folds": 0, "groups", "reason"} where
+    there are fewer than 2 load groups or a fold's complement leaves the fit underdetermined."""
     from thermognn.core.state import StateLayout
 
     from .rollout import rrmse_per_step, trajectory_error, trajectory_rrmse
