@@ -376,6 +376,14 @@ def test_each_shape_chooses_the_ridge_that_reads_held_out_load_groups_best():
     assert math.isclose(chose["first_ridge"]["in_sample_per_snapshot"], alone["in_sample_per_snapshot"], rel_tol=1e-9)
     assert chose["per_snapshot"] != alone["per_snapshot"]
     assert "; every shape at ridge 0 instead: held out " in held_out_sentence(chose)
+    # train's path: the readout fitted to rollouts (here the true states) keeps both in its check
+    from thermognn.core.state import StateLayout
+    from thermognn.train.stress_readout import fit_readout_to_rollouts
+    data = SimpleNamespace(graph=graph, layout=StateLayout((("q", 3), ("v", 3), ("sigma", 6))), path="d.h5", dt=0.1)
+    _, fit = fit_readout_to_rollouts(torch.nn.Module(), data, [SimpleNamespace(z=z, force=f) for z, f in zip(trajs, forces)],
+                                     2, roll=lambda m, t: t.z, folds=3, ridge=ridges)
+    assert fit["held_out_loads"]["first_ridge"] == chose["first_ridge"]
+    assert fit["held_out_loads"]["per_snapshot"] == chose["per_snapshot"]
     for c in range(len(best)):
         w = single[best[c]][0].weight[c]
         assert torch.allclose(readout.weight[c], w, rtol=0, atol=1e-9 * w.abs().max())
