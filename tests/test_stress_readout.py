@@ -360,7 +360,8 @@ def test_each_shape_chooses_the_ridge_that_reads_held_out_load_groups_best():
             np.add.at(sse[r, j], classes, err)
     best = sse.sum(1).argmin(0)                                                           # [shape]
     assert np.array_equal(report["ridge"], np.array(ridges)[best]) and len(set(best.tolist())) > 1
-    from thermognn.train.loop import held_out_sentence, ridge_counts
+    from thermognn.train.loop import held_out_sentence
+    from thermognn.train.stress_readout import ridge_counts
     counts = ridge_counts(report["ridge"])
     assert sum(c for _, c in counts) == len(best) and [v for v, _ in counts] == sorted({ridges[b] for b in best})
     check = {"folds": 3, "groups": 7, "per_snapshot": 0.1, "whole": 0.1, "in_sample_per_snapshot": 0.1,

@@ -7,7 +7,6 @@ from __future__ import annotations
 import csv
 import hashlib
 import math
-from collections import Counter
 import os
 import time
 from pathlib import Path
@@ -319,14 +318,8 @@ def readout_ridge(cfg, hops: int, folds: int, modes: int) -> float | list[float]
     return [float(v) for v in values] if len(values) > 1 else float(values[0])
 
 
-def ridge_counts(chosen) -> list[list[float]]:
-    """[[ridge, shapes], ...]: how many of the readout's neighbourhood shapes chose each ridge
-    (``fit_stress_readout``'s report "ridge" [C]), smallest ridge first."""
-    return [[v, c] for v, c in sorted(Counter(float(v) for v in chosen).items())]
-
-
 def ridge_sentence(counts) -> str:
-    """Words on ``ridge_counts``."""
+    """Words on ``stress_readout.ridge_counts``."""
     return ("ridge chosen per neighbourhood shape by the held-out load groups (model.stress_readout_ridge): "
             + ", ".join(f"{v:g} for {int(c)} shape{'s' if c > 1 else ''}" for v, c in counts))
 
@@ -1058,8 +1051,6 @@ def _train_here(cfg) -> Path:
                                                    folds=folds, ridge=ridge)
             ckpt = with_stress_readout(ckpt, readout, hops, load_hops)
             if "held_out_loads" in fit:
-                if isinstance(ridge, list):
-                    fit["held_out_loads"]["ridge"] = ridge_counts(fit["ridge"])
                 ckpt["stress_readout_check"] = fit["held_out_loads"]
             # the checkpoint's validation error is that of the stress it now reports (metrics.csv keeps
             # the one each epoch was selected by: the network's own σ, or the init's readout's)

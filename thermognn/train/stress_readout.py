@@ -53,6 +53,7 @@ positions the stencil amplifies a rollout's small nodal errors; fitted to the ro
 from __future__ import annotations
 
 import itertools
+from collections import Counter
 from typing import Dict, List, Optional, Sequence
 
 import numpy as np
@@ -458,6 +459,12 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
                         "(train.readout_folds >= 2, without model.stress_readout_modes)")
     chosen = np.full(weight.shape[0], ridges[0])                # per class: its ridge
     first_weights = np.zeros((folds + 1,) + weight.shape) if len(ridges) > 1 else None   # the first ridge's: folds, whole
+
+    def place(into, c, k, w):
+        """Shape c's weights w [3 k + 3 kf, C] into ``into`` [classes, 3 (width + load_width), C]: the
+        displacement stencil's first, the load stencil's from column 3 width (StressReadout.weight's layout)."""
+        into[c, :3 * k] = w[:3 * k]
+        into[c, 3 * width:3 * width + (w.shape[0] - 3 * k)] = w[3 * k:]
     predicted = np.zeros_like(sigma)
     for c in range(weight.shape[0]):
         nodes = np.flatnonzero(classes == c)
@@ -492,18 +499,13 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
             alone = [without(j, ridges[0]) for j in range(folds)] + [solve(gram, rhs, column_max.max(0), rows, k,
                                                                            ridges[0])[0]]
             for j, wj in enumerate(alone):               # every shape at the first ridge: folds, then whole
-                first_weights[j, c, :3 * k] = wj[:3 * k]
-                first_weights[j, c, 3 * width:3 * width + (wj.shape[0] - 3 * k)] = wj[3 * k:]
+                place(first_weights[j], c, k, wj)
         w, loaded[c] = solve(gram, rhs, column_max.max(0), rows, k, chosen[c])
-        width_here = parts[0][0].shape[1]
-        weight[c, :3 * k] = w[:3 * k]
-        weight[c, 3 * width:3 * width + (width_here - 3 * k)] = w[3 * k:]
+        place(weight, c, k, w)
         for snaps, (a, *_rest) in zip(blocks, parts):
             predicted[snaps[:, None], nodes[None, :]] = (a @ w).reshape(len(snaps), len(nodes), -1)
         for j in range(folds):        # each fold's normal equations taken out of the whole's
-            wj = without(j, fold_ridge[j])
-            fold_weights[j, c, :3 * k] = wj[:3 * k]
-            fold_weights[j, c, 3 * width:3 * width + (width_here - 3 * k)] = wj[3 * k:]
+            place(fold_weights[j], c, k, without(j, fold_ridge[j]))
 
     def filled(w_all: np.ndarray) -> StressReadout:
         r = StressReadout(n, width, int(classes.max()) + 1, cols, load_width=load_width,
@@ -553,6 +555,12 @@ def with_stress_readout(ckpt: Dict, readout: StressReadout, hops: int, load_hops
     return {**ckpt, "hparams": hparams, "state_dict": state}
 
 
+def ridge_counts(chosen) -> list[list[float]]:
+    """[[ridge, shapes], ...]: how many of the readout's neighbourhood shapes chose each ridge
+    (``fit_stress_readout``'s report "ridge" [C]), smallest ridge first."""
+    return [[v, c] for v, c in sorted(Counter(float(v) for v in chosen).items())]
+
+
 def load_groups(forces: Sequence[Tensor], symmetries) -> np.ndarray:
     """Each trajectory's load group [T]: trajectories whose loaded nodes (any nonzero applied load
     over the trajectory; forces [S, N, 3] each) are the same set, or mirror images of one another
@@ -582,29 +590,29 @@ def load_folds(graph, forces: Sequence[Tensor], folds: int, symmetric: bool = Fa
 def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tensor], forces: Sequence[Tensor],
                          columns: Sequence[int], hops: int, folds: int, symmetric: bool = False,
                          load_hops: int = 0, modes: int = 0, source: str = "dataset",
-                         fitted: StressReadout | None = None,
-                         fold_readouts: Sequence[StressReadout] | None = None,
                          ridge: float | Sequence[float] = 0.0,
-                         first_ridge_readouts: Sequence[StressReadout] | None = None) -> Dict:
+                         fit: tuple[StressReadout, Dict] | None = None) -> Dict:
     """How the readout does on loads it was not fitted to (``train.readout_folds``): the
     trajectories' load groups (``load_folds``: the loaded nodes, up to the mesh's mirrors, which a
     symmetric fit would otherwise see in the held-out ones' place) are dealt into ``folds`` folds;
     each fold's trajectories are read by a readout of the same shape fitted to the others'
     ``rolled`` states [S, N, D] (and ``forces``; ``modes`` from the others' true states ``truths``)
     and scored against their true stress. The fold readouts come from one pass over the shapes
-    (``fit_stress_readout``'s ``held_out``), or are given (``fold_readouts``, fold k's without it);
-    with ``modes``, whose basis depends on the fold, one fit each. On the reference split of the
+    (``fit_stress_readout``'s ``held_out``: its report's "held_out_readouts"), the whole split's fit
+    ``fit`` = (readout, report) where given (``fit_readout_to_rollouts``), else fitted here; with
+    ``modes``, whose basis depends on the fold, one fit each. On the reference split of the
     TIGNN beam, whose test cases mirror training ones, the test error does not show this
     (docs/accuracy.md, session 62).
 
     Returns {"folds", "groups", "per_snapshot", "whole", "in_sample_per_snapshot",
     "in_sample_whole", "worst_group_per_snapshot", "worst_group_load_point"} (means over the
-    trajectories; in sample: read by the readout fitted to all, ``fitted`` where given; the load
+    trajectories; in sample: read by the readout fitted to all, ``fit``'s where given; the load
     group read worst held out, and its load's place [m]: the mean reference position of a
-    trajectory's loaded nodes; with ``ridge`` a list, also "first_ridge": {"ridge", "per_snapshot",
-    "in_sample_per_snapshot"}, the same with every shape at the list's first ridge, from the fit's
-    "first_ridge_readouts" or ``first_ridge_readouts``), or {"folds": 0, "groups", "reason"} where
-    there are fewer than 2 load groups or a fold's complement leaves the fit underdetermined."""
+    trajectory's loaded nodes; with ``ridge`` a list, also "ridge", ``ridge_counts`` of the shapes'
+    choice, and "first_ridge": {"ridge", "per_snapshot", "in_sample_per_snapshot"}, the same with
+    every shape at the list's first ridge, from the fit's "first_ridge_readouts"), or {"folds": 0,
+    "groups", "reason"} where there are fewer than 2 load groups or a fold's complement leaves the
+    fit underdetermined."""
     from thermognn.core.state import StateLayout
 
     from .rollout import rrmse_per_step, trajectory_error, trajectory_rrmse
@@ -617,21 +625,17 @@ def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tenso
     cols = [int(c) for c in columns]
     X = graph.ref_pos
 
-    def fit(idx, held_out=None):
+    def refit(idx, held_out=None):
         return fit_stress_readout(X, graph.edge_index, [rolled[i] for i in idx], cols, hops, source=source,
                                   symmetric=symmetric, node_type=graph.node_type,
                                   forces=[forces[i] for i in idx], load_hops=load_hops, modes=modes,
                                   span=[truths[i] for i in idx], held_out=held_out, ridge=ridge)
 
     try:
-        if fold_readouts is None and not modes:
-            whole, report = fit(range(len(rolled)), held_out=fold_of)
-            fitted, fold_readouts = fitted if fitted is not None else whole, report["held_out_readouts"]
-            first_ridge_readouts = report.get("first_ridge_readouts", first_ridge_readouts)
-        elif fold_readouts is None:
-            fold_readouts = [fit([i for i in range(len(rolled)) if fold_of[i] != j])[0] for j in range(k)]
-        if fitted is None:
-            fitted = fit(range(len(rolled)))[0]
+        fitted, report = fit if fit is not None else refit(range(len(rolled)), held_out=None if modes else fold_of)
+        fold_readouts = report.get("held_out_readouts")
+        if fold_readouts is None:                # modes: the basis depends on the fold
+            fold_readouts = [refit([i for i in range(len(rolled)) if fold_of[i] != j])[0] for j in range(k)]
     except DataError as exc:
         return {"folds": 0, "groups": n_groups, "reason": f"a fold left out: {exc}"}
 
@@ -660,7 +664,9 @@ def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tenso
            "in_sample_whole": float(np.mean([e[1] for e in in_sample])),
            "worst_group_per_snapshot": per_group[worst],
            "worst_group_load_point": [float(v) for v in X.detach().cpu().double().numpy()[loaded].mean(0)]}
-    if first_ridge_readouts is not None:      # the same, every shape at the first ridge of the list
+    first_ridge_readouts = report.get("first_ridge_readouts")
+    if first_ridge_readouts is not None:      # a list of ridges: the shapes' choice, and every shape at the first
+        out["ridge"] = ridge_counts(report["ridge"])
         r0 = float(np.atleast_1d(ridge)[0])
         held0 = [errors(first_ridge_readouts[int(fold_of[i])], i)[0] for i in range(len(rolled))]
         out["first_ridge"] = {"ridge": r0, "per_snapshot": float(np.mean(held0)),
@@ -714,7 +720,7 @@ def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
     if folds >= 2:                   # the same pass gave the fold readouts (without modes)
         fit["held_out_loads"] = held_out_loads_check(
             data.graph, rolled, [t.z for t in trajectories], forces, columns, hops, folds, symmetric=symmetric,
-            load_hops=load_hops, modes=modes, source=str(data.path), fitted=readout,
-            fold_readouts=fit.pop("held_out_readouts", None), ridge=ridge,
-            first_ridge_readouts=fit.pop("first_ridge_readouts", None))
+            load_hops=load_hops, modes=modes, source=str(data.path), ridge=ridge, fit=(readout, fit))
+    for kept_out in ("held_out_readouts", "first_ridge_readouts"):      # readouts the check alone reads
+        fit.pop(kept_out, None)
     return readout, fit
