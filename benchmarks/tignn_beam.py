@@ -27,7 +27,6 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-REFERENCE = {"q": 4.1e-3, "v": 1.7e-2, "sigma": 9.5e-2, "params": 268_000, "ms_per_step": 84.0}
 
 
 def rollout_gt_clamped(model, graph, truth: torch.Tensor, forces: torch.Tensor, dt: float) -> torch.Tensor:
@@ -71,7 +70,7 @@ def main(argv: list[str]) -> None:
     from thermognn.train.data import load_data
     from thermognn.train.model import parameter_count, readout_weight_count, step_settings
     from thermognn.train.rollout import rrmse_per_step, trajectory_rrmse
-    from thermognn.train.tignn_import import import_tignn
+    from thermognn.train.tignn_import import PUBLISHED, import_tignn
 
     cfg = load_config(["scene=tignn_beam", f"out={args.out}", *overrides])
     dataset = Path(cfg.paths.dataset)
@@ -131,8 +130,8 @@ def main(argv: list[str]) -> None:
     params = parameter_count(model) + readout_weight_count(model)
     print(f"\nTIGNN beam, reference test split {data.split['test']}, clamped nodes imposed from ground truth")
     print(f"{'':12s} {'q':>9s} {'v':>9s} {'sigma':>9s} {'params':>9s} {'ms/step':>8s}")
-    print(f"{'published':12s} {REFERENCE['q']:9.2e} {REFERENCE['v']:9.2e} {REFERENCE['sigma']:9.2e} "
-          f"{REFERENCE['params']:9d} {REFERENCE['ms_per_step']:8.1f}")
+    print(f"{'published':12s} {PUBLISHED['q']:9.2e} {PUBLISHED['v']:9.2e} {PUBLISHED['sigma']:9.2e} "
+          f"{PUBLISHED['params']:9d} {PUBLISHED['ms_per_step']:8.1f}")
     kin = lambda exact: "exact" if exact else "learned"  # noqa: E731
     print(f"{'thermognn':12s} {mean['q']:9.2e} {mean['v']:9.2e} {mean['sigma']:9.2e} {params:9d} {ms:8.1f}"
           f"   ({describe_step(step_settings(ckpt['hparams']))}; {stepped or 'as trained'})")
