@@ -66,6 +66,36 @@ def test_readout_recovers_a_linear_stencil_stress_on_unseen_fields():
     assert torch.equal(readout(torch.zeros_like(ref)), torch.zeros(len(ref), 6, dtype=torch.float64))
 
 
+def test_a_relative_fit_minimises_the_snapshots_squared_relative_errors():
+    """``relative``: each snapshot weighed by 1 / |σ| of it. On a stress the stencil reads exactly
+    both fits are exact; on one it cannot (a quadratic term, the larger the louder), over snapshots
+    whose stress spans two decades, the weighted least squares give the least sum of squared relative
+    errors per snapshot, the plain ones the least sum of squared errors, and at the rest state σ = 0."""
+    ref, ei, idx = _grid()
+    z = _snapshots(ref, idx, 60, seed=0)
+    cols = list(range(6, 12))
+    for relative in (False, True):
+        assert fit_stress_readout(ref, ei, [z], cols, hops=1, relative=relative)[1]["fit_error"] < 1e-8   # the ridge
+    amplitude = torch.logspace(-2, 0, len(z), dtype=torch.float64)[:, None, None]          # [S, 1, 1]
+    u = (z[:, :, :3] - ref) * amplitude                                                      # [S, N, 3]
+    bent = z.clone()
+    bent[:, :, :3] = ref + u
+    bent[:, :, 6:] = z[:, :, 6:] * amplitude + 3e9 * u[:, :, :1] * u[:, :, 1:2]               # [S, N, 6]
+    plain, fit_plain = fit_stress_readout(ref, ei, [bent], cols, hops=1)
+    weighed, fit_weighed = fit_stress_readout(ref, ei, [bent], cols, hops=1, relative=True)
+    assert fit_weighed["relative"] and not fit_plain["relative"]
+
+    def squared_errors(readout):
+        e = readout.double()(u) - bent[:, :, 6:]                                             # [S, N, 6]
+        norms = bent[:, :, 6:].flatten(1).norm(dim=1)
+        return float((e.flatten(1).norm(dim=1) ** 2).sum()), float(((e.flatten(1).norm(dim=1) / norms) ** 2).sum())
+    (abs_plain, rel_plain), (abs_weighed, rel_weighed) = squared_errors(plain), squared_errors(weighed)
+    assert rel_plain > 0 and abs_weighed > 0
+    assert rel_weighed < 0.9 * rel_plain and abs_plain < abs_weighed
+    assert fit_weighed["fit_error"] < fit_plain["fit_error"]       # the mean relative error it reports
+    assert torch.equal(weighed(torch.zeros_like(ref)), torch.zeros(len(ref), 6, dtype=torch.float64))
+
+
 def test_stencils_are_the_nodes_within_hops_and_shapes_repeat():
     ref, ei, idx = _grid()
     near, classes = stencils(ref.numpy(), ei.numpy(), 2)
@@ -498,7 +528,8 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
     summary = (tmp_path / "sym" / "eval" / "summary.md").read_text()
     assert "displacement modes" in summary and f"+ {loaded.readout.fitted_weights()} of the stress readout = " in summary
     refit = load_config([f"out={tmp_path / 'refit'}", *small, "train.epochs=0", "model.stress_readout=2",
-                         "model.stress_readout_symmetric=true", f"train.init={tmp_path / 'model.ckpt'}",
+                         "model.stress_readout_symmetric=true", "model.stress_readout_relative=true",
+                         f"train.init={tmp_path / 'model.ckpt'}",
                          f"paths.dataset={tmp_path / 'dataset.h5'}"])
     refitted = load_checkpoint(train(refit))                       # no training: the readout alone, anew
     init = load_checkpoint(tmp_path / "model.ckpt")
@@ -538,6 +569,9 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
                            f"paths.dataset={tmp_path / 'dataset.h5'}"]))
     with pytest.raises(ConfigError, match=r"model.stress_readout_modes = 4: .* expected 0 \(off\) or >= 1 with model.stress_readout set"):
         train(load_config([f"out={tmp_path / 'nm'}", "model.stress_readout_modes=4",
+                           f"paths.dataset={tmp_path / 'dataset.h5'}"]))
+    with pytest.raises(ConfigError, match=r"model.stress_readout_relative = True: .* expected true or false \(true with model.stress_readout set\)"):
+        train(load_config([f"out={tmp_path / 'nr'}", "model.stress_readout_relative=true",
                            f"paths.dataset={tmp_path / 'dataset.h5'}"]))
     with pytest.raises(ConfigError, match="model.stress_readout_symmetric = true: .* set model.stress_readout"):
         train(load_config([f"out={tmp_path / 'ns'}", "model.stress_readout_symmetric=true",

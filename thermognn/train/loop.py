@@ -739,6 +739,10 @@ def _train_here(cfg) -> Path:
         raise ConfigError(f"model.stress_readout_modes = {modes!r}: how many principal displacement fields a "
                           "stress readout projects onto, expected 0 (off) or >= 1 with model.stress_readout set")
     ridge = readout_ridge(cfg, hops, folds, modes)
+    relative = _sel(cfg, "model.stress_readout_relative", False)
+    if not isinstance(relative, bool) or (relative and not hops):
+        raise ConfigError(f"model.stress_readout_relative = {relative!r}: weighs each snapshot by 1 / |σ| in a "
+                          "stress readout's fit, expected true or false (true with model.stress_readout set)")
     augment = _sel(tc, "symmetry_augment", False)
     if not isinstance(augment, bool):
         raise ConfigError(f"train.symmetry_augment = {augment!r}, expected true (each training pair seen in a "
@@ -1048,7 +1052,7 @@ def _train_here(cfg) -> Path:
 
             readout, fit = fit_readout_to_rollouts(model_from_checkpoint(ckpt, ds), data, train_trajs, hops,
                                                    symmetric=mirror_readout, load_hops=load_hops, modes=modes,
-                                                   folds=folds, ridge=ridge)
+                                                   folds=folds, ridge=ridge, relative=relative)
             ckpt = with_stress_readout(ckpt, readout, hops, load_hops)
             if "held_out_loads" in fit:
                 ckpt["stress_readout_check"] = fit["held_out_loads"]
@@ -1060,6 +1064,7 @@ def _train_here(cfg) -> Path:
             save_checkpoint(ckpt, ckpt_path)
             print(f"stress readout: {fit['hops']} hops" + (f", loads within {load_hops}" if load_hops else "")
                   + (f", onto {fit['modes']} displacement modes" if fit["modes"] else "")
+                  + (", each snapshot weighed by 1 / |sigma|" if fit["relative"] else "")
                   + f", {fit['classes']} neighbourhood shapes, {fit['weights']} "
                   f"weights ({fit['symmetries']} mesh symmetries), fitted to the model's {len(train_trajs)} training rollouts (relative L2 of sigma "
                   f"{fit['fit_error']:.4f}); validation error with it {ckpt['val_error']:.4e} "

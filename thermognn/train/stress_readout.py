@@ -342,7 +342,8 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
                        load_hops: int = 0, modes: int = 0,
                        span: Sequence[Tensor] | None = None,
                        held_out: Sequence[int] | None = None,
-                       ridge: float | Sequence[float] = 0.0) -> tuple[StressReadout, Dict]:
+                       ridge: float | Sequence[float] = 0.0,
+                       relative: bool = False) -> tuple[StressReadout, Dict]:
     """Least-squares fit of the readout to the states z [T, N, D] of ``trajectories`` (the training
     split): σ = z[..., columns] against u = z[..., :3] - X, and with ``load_hops`` >= 1
     (``model.stress_readout_load``) the applied loads ``forces`` [T, N, 3] (N) of the same snapshots
@@ -373,7 +374,13 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     with every shape at the first ridge of the list ([K] fold ones, then the whole), for the check
     to set beside the choice. On the TIGNN beam's true fields (session
     63) only the shapes near the free end choose one, where the stencil extrapolates to loads it
-    never saw: held-out σ 3.87 → 2.38 %, in sample 0.53 → 1.17 % (3 hops, no loads; docs/accuracy.md)."""
+    never saw: held-out σ 3.87 → 2.38 %, in sample 0.53 → 1.17 % (3 hops, no loads; docs/accuracy.md).
+
+    ``relative`` (``model.stress_readout_relative``): each snapshot's equations weighed by 1 / |σ| of
+    that snapshot (the norm over its nodes and columns; times the snapshots' median |σ|), so the fit minimises the sum of the
+    snapshots' squared *relative* errors, the reference metric's kind, instead of their absolute ones,
+    which the snapshots of the largest stress (late in a loading) dominate; the ridge choice and
+    ``fit_error`` are unchanged in kind (the choice then sums relative squared errors too)."""
     X = ref_pos.detach().cpu().double().numpy()
     z = np.concatenate([t.detach().cpu().double().numpy() for t in trajectories])        # [S, N, D]
     cols = [int(c) for c in columns]
@@ -406,6 +413,14 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
         u, sigma = mirrored(u, sigma, symmetries)                          # [S |G|, N, 3], [S |G|, N, 6]
         f = mirrored_vectors(f, symmetries)                                # [S |G|, N, 3]
         rest = np.tile(rest, len(symmetries))
+    # each snapshot's weight in the fit [S |G|]: 1, or with ``relative`` the median |σ| over its own
+    # (dimensionless, about 1, so the round-off test of the clamped columns keeps its scale); the
+    # stress-free snapshots (σ = 0, u = 0: no equations) weigh 0
+    snapshot_norm = np.linalg.norm(sigma.reshape(len(sigma), -1), axis=1)               # [S |G|] (Pa)
+    row_weight = np.ones(len(sigma))
+    if relative and (snapshot_norm > 0).any():
+        row_weight = np.where(snapshot_norm > 0, np.median(snapshot_norm[snapshot_norm > 0])
+                              / np.where(snapshot_norm > 0, snapshot_norm, 1.0), 0.0)
     folds = 0
     if held_out is not None:
         if modes:
@@ -478,6 +493,9 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
             if load_hops:
                 a = np.concatenate([a, f[rows_of, lst].reshape(len(snaps) * len(nodes), -1)], 1)
             b = sigma[snaps[:, None], nodes].reshape(len(snaps) * len(nodes), -1)        # [s m, C]
+            if relative:                 # each snapshot's rows weighed by 1 / |σ| of that snapshot
+                rw = np.repeat(row_weight[snaps], len(nodes))[:, None]                   # [s m, 1]
+                a, b = a * rw, b * rw
             parts.append((a, b, a.T @ a, a.T @ b))
         gram, rhs = sum(p[2] for p in parts), sum(p[3] for p in parts)
         column_max = np.stack([np.abs(p[0]).max(0) for p in parts])                   # [blocks, P]
@@ -503,7 +521,9 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
         w, loaded[c] = solve(gram, rhs, column_max.max(0), rows, k, chosen[c])
         place(weight, c, k, w)
         for snaps, (a, *_rest) in zip(blocks, parts):
-            predicted[snaps[:, None], nodes[None, :]] = (a @ w).reshape(len(snaps), len(nodes), -1)
+            rw = np.repeat(row_weight[snaps], len(nodes))[:, None]                       # [s m, 1]
+            read = (a @ w) / np.where(rw > 0, rw, 1.0)                                   # [s m, C] (Pa)
+            predicted[snaps[:, None], nodes[None, :]] = read.reshape(len(snaps), len(nodes), -1)
         for j in range(folds):        # each fold's normal equations taken out of the whole's
             place(fold_weights[j], c, k, without(j, fold_ridge[j]))
 
@@ -530,7 +550,7 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
                          for p, s in zip(predicted[moving], sigma[moving]) if np.linalg.norm(s) > 0]))
     report = {"hops": int(hops), "load_hops": load_hops, "modes": basis.shape[1], "classes": int(weight.shape[0]),
               "weights": readout.fitted_weights(), "symmetries": len(symmetries), "fit_error": err,
-              "ridge": chosen}
+              "ridge": chosen, "relative": bool(relative)}
     if held_out is not None:
         report["held_out_readouts"] = [filled(w) for w in fold_weights]
     if len(ridges) > 1:              # the readouts at the first ridge alone, for the check to compare
@@ -591,7 +611,7 @@ def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tenso
                          columns: Sequence[int], hops: int, folds: int, symmetric: bool = False,
                          load_hops: int = 0, modes: int = 0, source: str = "dataset",
                          ridge: float | Sequence[float] = 0.0,
-                         fit: tuple[StressReadout, Dict] | None = None) -> Dict:
+                         fit: tuple[StressReadout, Dict] | None = None, relative: bool = False) -> Dict:
     """How the readout does on loads it was not fitted to (``train.readout_folds``): the
     trajectories' load groups (``load_folds``: the loaded nodes, up to the mesh's mirrors, which a
     symmetric fit would otherwise see in the held-out ones' place) are dealt into ``folds`` folds;
@@ -629,7 +649,8 @@ def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tenso
         return fit_stress_readout(X, graph.edge_index, [rolled[i] for i in idx], cols, hops, source=source,
                                   symmetric=symmetric, node_type=graph.node_type,
                                   forces=[forces[i] for i in idx], load_hops=load_hops, modes=modes,
-                                  span=[truths[i] for i in idx], held_out=held_out, ridge=ridge)
+                                  span=[truths[i] for i in idx], held_out=held_out, ridge=ridge,
+                                  relative=relative)
 
     try:
         fitted, report = fit if fit is not None else refit(range(len(rolled)), held_out=None if modes else fold_of)
@@ -678,7 +699,8 @@ def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tenso
 def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
                             roll=None, symmetric: bool = False, load_hops: int = 0,
                             modes: int = 0, folds: int = 0,
-                            ridge: float | Sequence[float] = 0.0) -> tuple[StressReadout, Dict]:
+                            ridge: float | Sequence[float] = 0.0,
+                            relative: bool = False) -> tuple[StressReadout, Dict]:
     """The readout fitted to the trained ``model``'s own rollouts of ``trajectories`` (the training
     split, ``TrajectoryTensors``): its predicted positions against the data's stress at each step.
     Fitted to the true positions instead, the readout's stencil (a strain: differences of nearby
@@ -689,7 +711,8 @@ def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
     its readout is fitted to such rollouts: 7.1 % against 9.0 % fitted to ``rollout``'s).
     ``symmetric``: mirror-image weights, ``load_hops``: the applied loads within that reach too,
     ``modes``: the rollouts' displacements projected onto the span of the trajectories' own
-    (true) leading displacement fields first (``fit_stress_readout``). ``folds`` >= 2: the report's
+    (true) leading displacement fields first, ``relative``: each snapshot weighed by 1 / |σ| of it
+    (``fit_stress_readout``). ``folds`` >= 2: the report's
     "held_out_loads" is ``held_out_loads_check`` on the same rollouts."""
     from .rollout import rollout
 
@@ -716,11 +739,12 @@ def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
                                       forces=forces, load_hops=load_hops, modes=modes,
                                       span=[t.z for t in trajectories],
                                       held_out=fold_of if fold_of is not None and len(fold_of) else None,
-                                      ridge=ridge)
+                                      ridge=ridge, relative=relative)
     if folds >= 2:                   # the same pass gave the fold readouts (without modes)
         fit["held_out_loads"] = held_out_loads_check(
             data.graph, rolled, [t.z for t in trajectories], forces, columns, hops, folds, symmetric=symmetric,
-            load_hops=load_hops, modes=modes, source=str(data.path), ridge=ridge, fit=(readout, fit))
+            load_hops=load_hops, modes=modes, source=str(data.path), ridge=ridge, fit=(readout, fit),
+            relative=relative)
     for kept_out in ("held_out_readouts", "first_ridge_readouts"):      # readouts the check alone reads
         fit.pop(kept_out, None)
     return readout, fit
