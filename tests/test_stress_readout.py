@@ -83,7 +83,11 @@ def test_a_relative_fit_minimises_the_snapshots_squared_relative_errors():
     bent[:, :, 6:] = z[:, :, 6:] * amplitude + 3e9 * u[:, :, :1] * u[:, :, 1:2]               # [S, N, 6]
     plain, fit_plain = fit_stress_readout(ref, ei, [bent], cols, hops=1)
     weighed, fit_weighed = fit_stress_readout(ref, ei, [bent], cols, hops=1, relative=True)
-    assert fit_weighed["relative"] and not fit_plain["relative"]
+    assert fit_weighed["relative"] == 1.0 and fit_plain["relative"] == 0.0
+    half = fit_stress_readout(ref, ei, [bent], cols, hops=1, relative=0.5)[1]      # 1 / |σ|^0.5: between them
+    assert half["relative"] == 0.5 and fit_weighed["fit_error"] < half["fit_error"] < fit_plain["fit_error"]
+    with pytest.raises(DataError, match=r"d\.h5: model\.stress_readout_relative = 2, expected true, false or the power"):
+        fit_stress_readout(ref, ei, [bent], cols, hops=1, relative=2, source="d.h5")
 
     def squared_errors(readout):
         e = readout.double()(u) - bent[:, :, 6:]                                             # [S, N, 6]
@@ -570,9 +574,11 @@ def test_train_fits_the_readout_to_its_rollouts_and_export_keeps_it(tmp_path):
     with pytest.raises(ConfigError, match=r"model.stress_readout_modes = 4: .* expected 0 \(off\) or >= 1 with model.stress_readout set"):
         train(load_config([f"out={tmp_path / 'nm'}", "model.stress_readout_modes=4",
                            f"paths.dataset={tmp_path / 'dataset.h5'}"]))
-    with pytest.raises(ConfigError, match=r"model.stress_readout_relative = True: .* expected true or false \(true with model.stress_readout set\)"):
-        train(load_config([f"out={tmp_path / 'nr'}", "model.stress_readout_relative=true",
-                           f"paths.dataset={tmp_path / 'dataset.h5'}"]))
+    for given, shown in (("true", "True"), ("1.5", "1.5"), ("abc", "'abc'")):
+        with pytest.raises(ConfigError, match=rf"model.stress_readout_relative = {shown}: .* expected true \(p = 1\), "
+                                              r"false or p in \[0, 1\] \(other than 0 only with model.stress_readout set\)"):
+            train(load_config([f"out={tmp_path / 'nr'}", f"model.stress_readout_relative={given}",
+                               f"paths.dataset={tmp_path / 'dataset.h5'}"]))
     with pytest.raises(ConfigError, match="model.stress_readout_symmetric = true: .* set model.stress_readout"):
         train(load_config([f"out={tmp_path / 'ns'}", "model.stress_readout_symmetric=true",
                            f"paths.dataset={tmp_path / 'dataset.h5'}"]))

@@ -740,9 +740,11 @@ def _train_here(cfg) -> Path:
                           "stress readout projects onto, expected 0 (off) or >= 1 with model.stress_readout set")
     ridge = readout_ridge(cfg, hops, folds, modes)
     relative = _sel(cfg, "model.stress_readout_relative", False)
-    if not isinstance(relative, bool) or (relative and not hops):
-        raise ConfigError(f"model.stress_readout_relative = {relative!r}: weighs each snapshot by 1 / |σ| in a "
-                          "stress readout's fit, expected true or false (true with model.stress_readout set)")
+    if (not isinstance(relative, (bool, int, float)) or not 0 <= float(relative) <= 1
+            or (relative and not hops)):
+        raise ConfigError(f"model.stress_readout_relative = {relative!r}: weighs each snapshot by 1 / |σ|^p in a "
+                          "stress readout's fit, expected true (p = 1), false or p in [0, 1] (other than 0 only "
+                          "with model.stress_readout set)")
     augment = _sel(tc, "symmetry_augment", False)
     if not isinstance(augment, bool):
         raise ConfigError(f"train.symmetry_augment = {augment!r}, expected true (each training pair seen in a "
@@ -1064,7 +1066,8 @@ def _train_here(cfg) -> Path:
             save_checkpoint(ckpt, ckpt_path)
             print(f"stress readout: {fit['hops']} hops" + (f", loads within {load_hops}" if load_hops else "")
                   + (f", onto {fit['modes']} displacement modes" if fit["modes"] else "")
-                  + (", each snapshot weighed by 1 / |sigma|" if fit["relative"] else "")
+                  + ((", each snapshot weighed by 1 / |sigma|" + (f"^{fit['relative']:g}" if fit["relative"] != 1 else ""))
+                     if fit["relative"] else "")
                   + f", {fit['classes']} neighbourhood shapes, {fit['weights']} "
                   f"weights ({fit['symmetries']} mesh symmetries), fitted to the model's {len(train_trajs)} training rollouts (relative L2 of sigma "
                   f"{fit['fit_error']:.4f}); validation error with it {ckpt['val_error']:.4e} "

@@ -343,7 +343,7 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
                        span: Sequence[Tensor] | None = None,
                        held_out: Sequence[int] | None = None,
                        ridge: float | Sequence[float] = 0.0,
-                       relative: bool = False) -> tuple[StressReadout, Dict]:
+                       relative: bool | float = False) -> tuple[StressReadout, Dict]:
     """Least-squares fit of the readout to the states z [T, N, D] of ``trajectories`` (the training
     split): σ = z[..., columns] against u = z[..., :3] - X, and with ``load_hops`` >= 1
     (``model.stress_readout_load``) the applied loads ``forces`` [T, N, 3] (N) of the same snapshots
@@ -380,7 +380,9 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     that snapshot (the norm over its nodes and columns; times the snapshots' median |σ|), so the fit minimises the sum of the
     snapshots' squared *relative* errors, the reference metric's kind, instead of their absolute ones,
     which the snapshots of the largest stress (late in a loading) dominate; the ridge choice and
-    ``fit_error`` are unchanged in kind (the choice then sums relative squared errors too)."""
+    ``fit_error`` are unchanged in kind (the choice then sums relative squared errors too). A number
+    p in [0, 1] instead weighs them by 1 / |σ|^p: p = 1 is ``True``, p = 0 ``False``, between them a
+    compromise between the two metrics (TIGNN beam, docs/accuracy.md, session 67)."""
     X = ref_pos.detach().cpu().double().numpy()
     z = np.concatenate([t.detach().cpu().double().numpy() for t in trajectories])        # [S, N, D]
     cols = [int(c) for c in columns]
@@ -417,10 +419,14 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     # (dimensionless, about 1, so the round-off test of the clamped columns keeps its scale); the
     # stress-free snapshots (σ = 0, u = 0: no equations) weigh 0
     snapshot_norm = np.linalg.norm(sigma.reshape(len(sigma), -1), axis=1)               # [S |G|] (Pa)
+    power = float(relative)
+    if not 0.0 <= power <= 1.0:
+        raise DataError(f"{source}: model.stress_readout_relative = {relative!r}, expected true, false or "
+                        "the power p in [0, 1] of the snapshots' weights 1 / |σ|^p")
     row_weight = np.ones(len(sigma))
-    if relative and (snapshot_norm > 0).any():
-        row_weight = np.where(snapshot_norm > 0, np.median(snapshot_norm[snapshot_norm > 0])
-                              / np.where(snapshot_norm > 0, snapshot_norm, 1.0), 0.0)
+    if power and (snapshot_norm > 0).any():
+        row_weight = np.where(snapshot_norm > 0, (np.median(snapshot_norm[snapshot_norm > 0])
+                                                  / np.where(snapshot_norm > 0, snapshot_norm, 1.0)) ** power, 0.0)
     folds = 0
     if held_out is not None:
         if modes:
@@ -493,7 +499,7 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
             if load_hops:
                 a = np.concatenate([a, f[rows_of, lst].reshape(len(snaps) * len(nodes), -1)], 1)
             b = sigma[snaps[:, None], nodes].reshape(len(snaps) * len(nodes), -1)        # [s m, C]
-            if relative:                 # each snapshot's rows weighed by 1 / |σ| of that snapshot
+            if power:                    # each snapshot's rows weighed by 1 / |σ|^p of that snapshot
                 rw = np.repeat(row_weight[snaps], len(nodes))[:, None]                   # [s m, 1]
                 a, b = a * rw, b * rw
             parts.append((a, b, a.T @ a, a.T @ b))
@@ -550,7 +556,7 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
                          for p, s in zip(predicted[moving], sigma[moving]) if np.linalg.norm(s) > 0]))
     report = {"hops": int(hops), "load_hops": load_hops, "modes": basis.shape[1], "classes": int(weight.shape[0]),
               "weights": readout.fitted_weights(), "symmetries": len(symmetries), "fit_error": err,
-              "ridge": chosen, "relative": bool(relative)}
+              "ridge": chosen, "relative": power}
     if held_out is not None:
         report["held_out_readouts"] = [filled(w) for w in fold_weights]
     if len(ridges) > 1:              # the readouts at the first ridge alone, for the check to compare
@@ -611,7 +617,7 @@ def held_out_loads_check(graph, rolled: Sequence[Tensor], truths: Sequence[Tenso
                          columns: Sequence[int], hops: int, folds: int, symmetric: bool = False,
                          load_hops: int = 0, modes: int = 0, source: str = "dataset",
                          ridge: float | Sequence[float] = 0.0,
-                         fit: tuple[StressReadout, Dict] | None = None, relative: bool = False) -> Dict:
+                         fit: tuple[StressReadout, Dict] | None = None, relative: bool | float = False) -> Dict:
     """How the readout does on loads it was not fitted to (``train.readout_folds``): the
     trajectories' load groups (``load_folds``: the loaded nodes, up to the mesh's mirrors, which a
     symmetric fit would otherwise see in the held-out ones' place) are dealt into ``folds`` folds;
@@ -700,7 +706,7 @@ def fit_readout_to_rollouts(model: nn.Module, data, trajectories, hops: int,
                             roll=None, symmetric: bool = False, load_hops: int = 0,
                             modes: int = 0, folds: int = 0,
                             ridge: float | Sequence[float] = 0.0,
-                            relative: bool = False) -> tuple[StressReadout, Dict]:
+                            relative: bool | float = False) -> tuple[StressReadout, Dict]:
     """The readout fitted to the trained ``model``'s own rollouts of ``trajectories`` (the training
     split, ``TrajectoryTensors``): its predicted positions against the data's stress at each step.
     Fitted to the true positions instead, the readout's stencil (a strain: differences of nearby
