@@ -377,12 +377,13 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
     never saw: held-out σ 3.87 → 2.38 %, in sample 0.53 → 1.17 % (3 hops, no loads; docs/accuracy.md).
 
     ``relative`` (``model.stress_readout_relative``): each snapshot's equations weighed by 1 / |σ| of
-    that snapshot (the norm over its nodes and columns; times the snapshots' median |σ|), so the fit minimises the sum of the
-    snapshots' squared *relative* errors, the reference metric's kind, instead of their absolute ones,
-    which the snapshots of the largest stress (late in a loading) dominate; the ridge choice and
-    ``fit_error`` are unchanged in kind (the choice then sums relative squared errors too). A number
-    p in [0, 1] instead weighs them by 1 / |σ|^p: p = 1 is ``True``, p = 0 ``False``, between them a
-    compromise between the two metrics (TIGNN beam, docs/accuracy.md, session 67)."""
+    that snapshot (the norm over its nodes and columns, times the snapshots' median |σ|), so the fit
+    minimises the sum of the snapshots' squared *relative* errors, the per-snapshot metric's kind,
+    instead of their absolute ones, which the snapshots of the largest stress (late in a loading)
+    dominate; the ridge choice then sums weighed squared errors too, and ``fit_error`` is unchanged
+    in kind. A number p in [0, 1] weighs them by 1 / |σ|^p: p = 1 is ``True``, p = 0 ``False``, in
+    between a compromise between the per-snapshot and whole-rollout metrics (TIGNN beam,
+    docs/accuracy.md, session 67: p = 0.5 read the validation split best per snapshot)."""
     X = ref_pos.detach().cpu().double().numpy()
     z = np.concatenate([t.detach().cpu().double().numpy() for t in trajectories])        # [S, N, D]
     cols = [int(c) for c in columns]
@@ -415,7 +416,7 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
         u, sigma = mirrored(u, sigma, symmetries)                          # [S |G|, N, 3], [S |G|, N, 6]
         f = mirrored_vectors(f, symmetries)                                # [S |G|, N, 3]
         rest = np.tile(rest, len(symmetries))
-    # each snapshot's weight in the fit [S |G|]: 1, or with ``relative`` the median |σ| over its own
+    # each snapshot's weight in the fit [S |G|]: 1, or with ``relative`` = p (median |σ| / its |σ|)^p
     # (dimensionless, about 1, so the round-off test of the clamped columns keeps its scale); the
     # stress-free snapshots (σ = 0, u = 0: no equations) weigh 0
     snapshot_norm = np.linalg.norm(sigma.reshape(len(sigma), -1), axis=1)               # [S |G|] (Pa)
