@@ -493,17 +493,17 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
         st = np.array([stencil[i] for i in nodes])                                       # [m, k]
         lst = np.array([load_stencil[i] for i in nodes]) if load_hops else None          # [m, kf]
         k = st.shape[1]
-        parts = []                                   # per block: (a [s m, 3 k + 3 kf], b [s m, C], aᵀa, aᵀb)
+        parts = []                       # per block: (a [s m, 3 k + 3 kf], b [s m, C], aᵀa, aᵀb, row weights [s m, 1])
         for snaps in blocks:
             rows_of = snaps[:, None, None]                                               # [s, 1, 1]
             a = u[rows_of, st].reshape(len(snaps) * len(nodes), -1)                      # [s m, 3 k]
             if load_hops:
                 a = np.concatenate([a, f[rows_of, lst].reshape(len(snaps) * len(nodes), -1)], 1)
             b = sigma[snaps[:, None], nodes].reshape(len(snaps) * len(nodes), -1)        # [s m, C]
+            rw = np.repeat(row_weight[snaps], len(nodes))[:, None]                       # [s m, 1]: 1 unless weighed
             if power:                    # each snapshot's rows weighed by 1 / |σ|^p of that snapshot
-                rw = np.repeat(row_weight[snaps], len(nodes))[:, None]                   # [s m, 1]
                 a, b = a * rw, b * rw
-            parts.append((a, b, a.T @ a, a.T @ b))
+            parts.append((a, b, a.T @ a, a.T @ b, rw))
         gram, rhs = sum(p[2] for p in parts), sum(p[3] for p in parts)
         column_max = np.stack([np.abs(p[0]).max(0) for p in parts])                   # [blocks, P]
         rows = sum(len(p[0]) for p in parts)
@@ -516,7 +516,7 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
         if len(ridges) > 1:                  # each candidate's squared error on each held-out fold's rows
             sse = np.zeros((len(ridges), folds))
             for j in range(folds):
-                _, bj, gj, rj = parts[j]           # |a w - b|² = wᵀ aᵀa w - 2 wᵀ aᵀb + |b|²
+                _, bj, gj, rj, _ = parts[j]        # |a w - b|² = wᵀ aᵀa w - 2 wᵀ aᵀb + |b|²
                 for li, wj in enumerate(without(j, ridges)):
                     sse[li, j] = (wj * (gj @ wj)).sum() - 2.0 * (wj * rj).sum() + (bj ** 2).sum()
             chosen[c] = ridges[int(np.argmin(sse.sum(1)))]
@@ -527,9 +527,8 @@ def fit_stress_readout(ref_pos: Tensor, edge_index: Tensor, trajectories: Sequen
                 place(first_weights[j], c, k, wj)
         w, loaded[c] = solve(gram, rhs, column_max.max(0), rows, k, chosen[c])
         place(weight, c, k, w)
-        for snaps, (a, *_rest) in zip(blocks, parts):
-            rw = np.repeat(row_weight[snaps], len(nodes))[:, None]                       # [s m, 1]
-            read = (a @ w) / np.where(rw > 0, rw, 1.0)                                   # [s m, C] (Pa)
+        for snaps, (a, _b, _g, _r, rw) in zip(blocks, parts):
+            read = (a @ w) / np.where(rw > 0, rw, 1.0)                                   # [s m, C] (Pa), unweighed
             predicted[snaps[:, None], nodes[None, :]] = read.reshape(len(snaps), len(nodes), -1)
         for j in range(folds):        # each fold's normal equations taken out of the whole's
             place(fold_weights[j], c, k, without(j, fold_ridge[j]))
