@@ -75,8 +75,7 @@ def main(argv: list[str]) -> None:
         z, f, dt = t.z[0], t.force[1], torch.tensor(d.dt, dtype=dtype)
 
         def one_step():                       # a step as evaluate reports it
-            out = model.step(z, f, g.edge_index, g.node_type, g.ref_pos, dt)
-            return model.read_stress(out, g.ref_pos, f) if model.use_readout else out
+            return model.reported_step(z, f, g.edge_index, g.node_type, g.ref_pos, dt)
         return one_step
 
     steps = [stepper(m, torch_dtype(c["dtype"])) for m, c in zip(models, ckpts)]

@@ -464,6 +464,11 @@ def test_a_model_with_a_readout_reports_the_stress_off_its_positions_and_scripts
     for z in reported:
         assert torch.allclose(z[:, 6:], model.readout(z[:, :3] - ref), rtol=1e-12, atol=0)
     assert not torch.allclose(reported[1:, :, 6:], own[1:, :, 6:])
+    # the step the benchmarks time is the rollout's first step as reported (from the imposed start): σ read
+    # off with a readout, the network's without
+    start = model.impose(z0, nt, ref)
+    assert torch.allclose(model.reported_step(start, f[1], ei, nt, ref, dt), reported[1], rtol=1e-12, atol=1e-9)
+    assert torch.allclose(plain.reported_step(start, f[1], ei, nt, ref, dt), own[1], rtol=1e-12, atol=1e-9)
     scripted = torch.jit.script(model)
     assert torch.allclose(scripted.read_stress(reported[2], ref), reported[2], rtol=1e-12, atol=1e-12)
     assert set(plain.state_dict()) == {k for k in ckpt["state_dict"] if not k.startswith("readout.")}
