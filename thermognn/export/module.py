@@ -69,9 +69,7 @@ class ExportedTIGNN(nn.Module):
         """The state z [N, D] as the model reports it: with ``model.stress_readout`` its stress read
         off the positions (and, with ``model.stress_readout_load``, the applied load f [N, 3] (N) of
         that state; None: unloaded), the state ``forward`` steps keeping the network's own σ; else z."""
-        if self.core.use_readout:
-            return self.core.read_stress(z, self.reference_positions, f)
-        return z
+        return self.core.report(z, self.reference_positions, f)
 
 
 class ExportedLinearPrior(nn.Module):

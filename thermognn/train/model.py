@@ -472,10 +472,17 @@ class TIGNN(nn.Module):
 
     def reported_step(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                       dt: Tensor) -> Tensor:
-        """``step``, then (with a stress readout) σ read off the new positions and the load f [N, 3]:
-        the state a rollout reports, as the benchmarks time it [N, D]."""
-        out = self.step(z, f, edge_index, node_type, ref_pos, dt)
-        return self.read_stress(out, ref_pos, f) if self.use_readout else out
+        """``step``, then ``report`` of the new state under the load f [N, 3]: the state a rollout
+        reports, as the benchmarks time it [N, D]."""
+        return self.report(self.step(z, f, edge_index, node_type, ref_pos, dt), ref_pos, f)
+
+    @torch.jit.export
+    def report(self, z: Tensor, ref_pos: Tensor, f: Optional[Tensor] = None) -> Tensor:
+        """The state z [N, D] as the model reports it: with a stress readout its stress read off the
+        positions (``read_stress``; the load f [N, 3] of that state, None: unloaded), else z."""
+        if self.use_readout:
+            return self.read_stress(z, ref_pos, f)
+        return z
 
     @torch.jit.export
     def read_stress(self, z: Tensor, ref_pos: Tensor, f: Optional[Tensor] = None) -> Tensor:
