@@ -1134,6 +1134,19 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
     assert int(prior.shortened) == 0                      # the data's steps are taken whole
     G, H = prior.remainders(u, v, sigma, f)
     assert float(G.abs().max()) < 1e-10 * float(f.abs().max()) and float(H.abs().max()) < 1e-12 * float(sigma.abs().max())
+    # what the budget leaves (train.fit_target=budget): the remainders that land each budgeted step
+    # from a data state on the next; stepped from rest with them, the budgeted prior is the FE rollout
+    from types import SimpleNamespace
+
+    from thermognn.train.hybrid import budget_remainders
+    for k in (1, 2):
+        prior = make(k)
+        model = SimpleNamespace(prior=prior, reference_positions=torch.as_tensor(X))
+        (Gb,), (Hb,), (miss,) = budget_remainders(model, [SimpleNamespace(z=z, force=f)])
+        assert miss < 1e-10 and float(Hb.abs().max()) < 1e-12 * float(sigma.abs().max())
+        assert float(Gb.norm()) > 1e-7 * float(f.norm())          # not round-off (k = 1: 1.6e-6 of the loads)
+        U, V, Sig = _prior_rollout(prior, u, v, f, prior.gather(Gb), None)
+        assert rel(U, u) < 1e-9 and rel(V, v) < 1e-8 and rel(Sig, sigma) < 1e-9, (k, rel(U, u), rel(V, v))
     # the CPU's sparse LU and the dense solve (TorchScript, GPU) step alike
     prior = make(2)
     uf, vf = prior.gather(u[3:4]), prior.gather(v[3:4])

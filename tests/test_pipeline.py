@@ -386,6 +386,11 @@ def test_linear_prior_ends_on_whole_trajectories(tmp_path, tiny_block):
     for bad in (-1, "much"):
         with pytest.raises(ConfigError, match=rf"^train.stress_remainder_weight = {bad}, expected a number >= 0"):
             training_phases(OmegaConf.create({"epochs": 1, "stress_remainder_weight": bad}))
+    # train.fit_target: the law prior's fit on what its Newton budget leaves (default: the exact remainders)
+    assert training_phases(OmegaConf.create({"epochs": 1})).fit_target == "exact"
+    assert training_phases(OmegaConf.create({"epochs": 1, "fit_target": "budget"})).fit_target == "budget"
+    with pytest.raises(ConfigError, match=r"^train.fit_target = 'converged', expected one of: exact \| budget$"):
+        training_phases(OmegaConf.create({"epochs": 1, "fit_target": "converged"}))
 
 
 def test_linear_prior_of_first_order_trains_evaluates_and_exports(tmp_path, tiny_block):
@@ -518,3 +523,15 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
         assert errors[f"whole_{g}"] == pytest.approx(errors[f"newton1_fe_whole_{g}"], rel=0.2), (g, errors)
     layout = json.loads(verify(out / "model.pt")["state_layout"])
     assert [g for g, _ in layout] == ["q", "v", "sigma", "a", "G"]
+    # train.fit_target=budget: the fit learns the load each one-iteration step misses, which is no
+    # round-off (the exact remainders are); only the law prior has a budget to learn
+    budget = _train_prior(tmp_path / "budget", tiny_block, "model.prior_law=true", "model.prior_newton=1",
+                          "train.epochs=1", "train.rollout_epochs=0", "train.fit_target=budget")
+    ratio = float(re.search(r"the fit phase learns what 1 Newton iteration\(s\) a step leave: RMS G (\S+) of the loads",
+                            budget.stdout).group(1))
+    assert 1e-8 < ratio < 0.1, budget.stdout[-2000:]
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'lin'}",
+                          f"paths.dataset={tiny_block}", "model=linear_prior", "train.epochs=1", "train.fit_target=budget",
+                          "train.threads=1"], capture_output=True, text=True, timeout=600)
+    assert res.returncode != 0 and res.stderr.strip().startswith("error: train.fit_target = budget needs model=law_prior"), \
+        res.stderr[-2000:]

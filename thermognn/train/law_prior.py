@@ -60,6 +60,10 @@ FD_STEP = 1.0e-6
 J_FLOOR = 0.05
 #: halvings of an update at most
 MAX_HALVINGS = 12
+#: ``budget_loads``: the largest miss of a step's end it leaves, relative to the largest displacement
+BUDGET_RTOL = 1.0e-10
+#: ``budget_loads``: load corrections at most
+BUDGET_CORRECTIONS = 30
 
 
 def _eye(F: Tensor) -> Tensor:
@@ -424,6 +428,53 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         a1 = self.c0 * u1 - predictor
         v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
         return u1, v1, a1, self.relax_from(S_iso0, u1, h0)
+
+    @torch.jit.unused
+    def budget_loads(self, u: Tensor, v: Tensor, f: Tensor, rtol: float = BUDGET_RTOL,
+                     max_corrections: int = BUDGET_CORRECTIONS) -> Tuple[Tensor, float]:
+        """What the Newton budget misses along one FE trajectory, as loads: e [S - 1, n] N such
+        that the budgeted step (``iterations`` Newton iterations, no remainders) from the data's
+        state s (u[s], v[s] [S, n], its Newmark acceleration and Prony history) under the load
+        f[s + 1] + e[s] lands on the data's u[s + 1]; and the largest miss left, relative to the
+        largest displacement (round-off where the corrections converged).
+
+        The end of a budgeted step moves with its load as the inverse step matrix
+        A = c0 m_f M + K_T of its last iteration's start (each iteration solves with the exact
+        tangent; to first order in that start's residual), so e is corrected by
+        e ← e + A (u[s + 1] − u1(e)), Newton's method for e: with one iteration a step the step is
+        affine in its load and one correction is exact; with k, A is taken where k − 1 iterations
+        under the current e end (``max_corrections`` at most, until the miss is below ``rtol``)."""
+        with torch.no_grad():
+            shortened, iterations = self.shortened.clone(), self.iterations
+            a = self.accelerations(u, v, f)
+            h = self.internal_history(u)
+            u0, v0, a0, h0, f1, target = u[:-1], v[:-1], a[:-1], h[:-1], f[1:], u[1:]
+            zero = torch.zeros_like(u0)
+            _, _, extra, _, _, _, start_pairs = self.step_start(u0, v0, a0, h0)
+            e = torch.zeros_like(u0)
+            scale = float(target.abs().max().clamp(min=1e-300))
+            miss = math.inf
+            self.forget()
+            try:
+                for _ in range(max_corrections):
+                    gap = target - self.step(u0, v0, a0, f1 + e, zero, zero, h0)[0]       # [S - 1, n] m
+                    miss = float(gap.abs().max()) / scale
+                    if miss <= rtol:
+                        break
+                    pairs = start_pairs
+                    if iterations > 1:                  # the last iteration's start: k − 1 iterations' end
+                        self.iterations = iterations - 1
+                        last = self.step(u0, v0, a0, f1 + e, zero, zero, h0)[0]
+                        self.iterations = iterations
+                        pairs = self.tangent_pairs(self.cells(last), self.iso_weight + self.c, 1.0 + self.c, extra)
+                    values, gap_np = self.sparse_values(pairs).cpu().numpy(), gap.cpu().numpy()   # [S - 1, nnz]
+                    e = e + torch.as_tensor(np.stack([self.pattern.matrix(values[i]) @ gap_np[i]
+                                                      for i in range(values.shape[0])]), dtype=e.dtype)
+            finally:
+                self.iterations = iterations
+                self.forget()
+                self.shortened.copy_(shortened)
+        return e, miss
 
     # --- the Prony history per cell (the FE's h_i) ----------------------------------------------
     def internal_variables(self, u: Tensor) -> Tensor:
