@@ -64,6 +64,9 @@ MAX_HALVINGS = 12
 BUDGET_RTOL = 1.0e-10
 #: ``budget_loads``: load corrections at most
 BUDGET_CORRECTIONS = 30
+#: ``budget_loads``: corrections in a row that do not lower the miss before it gives up (the
+#: shell's snap-through at 2 iterations a step: no load lands the step, docs/accuracy.md session 69)
+BUDGET_STALLED = 3
 
 
 def _eye(F: Tensor) -> Tensor:
@@ -443,7 +446,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         tangent; to first order in that start's residual), so e is corrected by
         e ← e + A (u[s + 1] − u1(e)), Newton's method for e: with one iteration a step the step is
         affine in its load and one correction is exact; with k, A is taken where k − 1 iterations
-        under the current e end (``max_corrections`` at most, until the miss is below ``rtol``)."""
+        under the current e end (``max_corrections`` at most, until the miss is below ``rtol``, or
+        ``BUDGET_STALLED`` corrections in a row have not lowered it)."""
         with torch.no_grad():
             shortened, iterations = self.shortened.clone(), self.iterations
             a = self.accelerations(u, v, f)
@@ -453,13 +457,15 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             _, _, extra, _, _, _, start_pairs = self.step_start(u0, v0, a0, h0)
             e = torch.zeros_like(u0)
             scale = float(target.abs().max().clamp(min=1e-300))
-            miss = math.inf
+            miss, best, stalled = math.inf, math.inf, 0
             self.forget()
             try:
                 for _ in range(max_corrections):
                     gap = target - self.step(u0, v0, a0, f1 + e, zero, zero, h0)[0]       # [S - 1, n] m
                     miss = float(gap.abs().max()) / scale
-                    if miss <= rtol:
+                    stalled = stalled + 1 if miss >= best else 0
+                    best = min(best, miss)
+                    if miss <= rtol or stalled >= BUDGET_STALLED:     # reached, or no load reaches it
                         break
                     pairs = start_pairs
                     if iterations > 1:                  # the last iteration's start: k − 1 iterations' end
