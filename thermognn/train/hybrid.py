@@ -514,27 +514,23 @@ def exact_remainders(model: LinearPriorModel, trajs) -> Tuple[List[Tensor], List
     return Gs, Hs
 
 
-def budget_remainders(model: LinearPriorModel, trajs) -> Tuple[List[Tensor], List[Tensor], List[float]]:
+def budget_remainders(model: LinearPriorModel, trajs) -> Tuple[List[Tensor], List[float]]:
     """The law prior's remainders of its Newton budget along each trajectory (``train.fit_target
-    = budget``): G [S, N, 3] N such that the model's step from each of the data's states, with
-    G0 = G[s] and G1 = G[s + 1] and ``model.prior_newton`` iterations, lands on the data's next
-    state (``HyperelasticNewmarkPrior.budget_loads`` e: (1 + c) G1 − c G0 = e, from G = 0 at the
-    unloaded start), and H as ``exact_remainders`` (σ − σ_law: round-off, the law's stress being
-    exact at the true displacement); float64. Also each trajectory's largest miss the load
-    corrections left (relative to its largest displacement; see ``BUDGET_MISS_TOL``)."""
+    = budget``): G [S, N, 3] N (float64) such that the model's step from each of the data's
+    states, with G0 = G[s] and G1 = G[s + 1] and ``model.prior_newton`` iterations, lands on the
+    data's next state (``HyperelasticNewmarkPrior.budget_loads`` e, carried into G as the step
+    does, ``NewmarkPrior.carried_remainders``); and each trajectory's largest miss the load
+    corrections left (relative to its largest displacement; see ``BUDGET_MISS_TOL``). H is the
+    exact remainders' (``exact_remainders``: round-off, the law's stress being exact at the true
+    displacement)."""
     P, X = model.prior, model.reference_positions
-    Gs, Hs, misses = [], [], []
+    Gs, misses = [], []
     for t in trajs:
-        z, f = t.z.double(), t.force.double()
-        U = z[..., 0:3] - X                                                          # [S, N, 3]
-        e, miss = P.budget_loads(P.gather(U), P.gather(z[..., 3:6]), P.gather(f))   # [S - 1, n]
-        misses.append(miss)
-        G = torch.zeros(z.shape[0], e.shape[1], dtype=torch.float64)
-        for s in range(e.shape[0]):
-            G[s + 1] = (e[s] + P.c * G[s]) / (1.0 + P.c)
-        Gs.append(P.scatter(G))
-        Hs.append(P.remainders(U, z[..., 3:6], z[..., 6:12], f)[1])
-    return Gs, Hs, misses
+        z = t.z.double()
+        e, miss = P.budget_loads(P.gather(z[..., 0:3] - X), P.gather(z[..., 3:6]), P.gather(t.force.double()))
+        misses.append(miss)                                                          # e: [S - 1, n]
+        Gs.append(P.scatter(P.carried_remainders(e)))
+    return Gs, misses
 
 
 #: a trajectory whose budget corrections leave a step's end further than this from the data's
@@ -874,7 +870,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
         raise ConfigError("train.fit_target = budget needs model=law_prior (model.prior_law=true): only the law "
                           "prior has a Newton budget whose misses the network can learn")
     if fit_target == "budget" and fit_epochs > 0:   # what the Newton budget leaves, not the converged law's round-off
-        G_true, H_true, misses = budget_remainders(model, fit_trajs)
+        G_true, misses = budget_remainders(model, fit_trajs)          # H_true: the exact one (round-off)
         reached = [i for i, m in enumerate(misses) if m <= BUDGET_MISS_TOL]
         if not reached:
             raise DataError(f"train.fit_target = budget: no load lands the {settings['law']}-iteration step on the "

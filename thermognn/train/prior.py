@@ -300,7 +300,6 @@ class NewmarkPrior(nn.Module):
         f [S, N, 3]. Assumes G = 0 at the first state (an unloaded start at rest, as generate's);
         the relaxing prior's internal variables follow the trajectory's own displacements."""
         uf, vf, ff = self.gather(u), self.gather(v), self.gather(f)
-        S = uf.shape[0]
         c = self.c
         a = self.accelerations(uf, vf, ff)
         h = self.internal_history(uf)                                              # [S, T, n + 6N]
@@ -313,10 +312,17 @@ class NewmarkPrior(nn.Module):
         # (1 + c) G1 − c G0 = M a1 + αM M v1 + c K (u1 − u0) + f_int,lin − f1 at every step's end
         lumped = (self.mass(a[1:] + self.alpha_m * vf[1:]) + c * (elastic[1:] - elastic[:-1]) + f_lin
                   - ff[1:] - self.body_force)                                      # [S - 1, n]
-        G = torch.zeros_like(uf)
-        for s in range(S - 1):
+        return self.carried_remainders(lumped), sigma - self.stress(u) - self.stress_relaxation(uf, h)
+
+    def carried_remainders(self, lumped: Tensor) -> Tensor:
+        """G [S, n] N along one trajectory from what each of its S − 1 steps adds to the load,
+        lumped [S − 1, n] N, by the step's own rule (1 + c) G1 − c G0 = lumped, from G = 0 at its
+        first state (an unloaded start at rest, as generate's)."""
+        c = self.c
+        G = lumped.new_zeros(lumped.shape[0] + 1, lumped.shape[1])
+        for s in range(lumped.shape[0]):
             G[s + 1] = (lumped[s] + c * G[s]) / (1.0 + c)
-        return G, sigma - self.stress(u) - self.stress_relaxation(uf, h)
+        return G
 
 
 #: what the RuntimeError of a cell-wise prior's step holds where its state stopped being finite
