@@ -907,10 +907,11 @@ def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.net.parameters() if p.requires_grad)
 
 
-def _carried_steps_follow_rollouts(prior, graph, width: int = 0):
-    """A LinearPriorModel on ``prior`` with a tiny seeded network, on the bent block's ``graph``
-    (``_bent_block_graph``): its carried step, eager and scripted, follows its batched rollout
-    (carried states [N, 12 + 6 + width]); returns (model, the batched rollout [S, N, 12])."""
+def _carried_steps_follow_rollouts(prior, graph, width: int = 0, inputs: str = "positions"):
+    """A LinearPriorModel on ``prior`` with a tiny seeded network seeing ``inputs``
+    (``model.prior_inputs``), on the bent block's ``graph`` (``_bent_block_graph``): its carried
+    step, eager and scripted, follows its batched rollout (carried states [N, 12 + 6 + width]);
+    returns (model, the batched rollout [S, N, 12])."""
     import torch
 
     from thermognn.train.hybrid import LinearPriorModel
@@ -921,7 +922,8 @@ def _carried_steps_follow_rollouts(prior, graph, width: int = 0):
     torch.manual_seed(0)
     net = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, velocity_edges=True)
     net.set_stats({"dzdt_std": torch.full((12,), 1e-2)})
-    model = LinearPriorModel(net, prior, torch.as_tensor(X), order=2)
+    model = LinearPriorModel(net, prior, torch.as_tensor(X), positions_only=inputs == "positions", order=2,
+                             correction=inputs == "correction")
     with torch.enable_grad():
         batched = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
         for stepper in (model, torch.jit.script(model)):
@@ -1214,3 +1216,95 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
         prior_settings(OmegaConf.create({"prior_law": True, "prior_corotated": True}))
     with pytest.raises(ConfigError, match="model.prior_newton = 0, expected an integer >= 1"):
         prior_settings(OmegaConf.create({"prior_law": True, "prior_newton": 0}))
+
+
+def test_correction_inputs_are_what_the_budgeted_step_moved_from_its_predictor():
+    """``model.prior_inputs = correction``: the network sees, in place of the velocity, the step's
+    correction from its predictor w = (u1 − u0) / Δt − v0. Along the FE data it is Newmark's
+    Δt ((1/2 − β) a0 + β a1) with the data's accelerations; the rollouts feed the network exactly
+    what ``trajectory_inputs`` (the fit's inputs) gives of the states they reach (the network's
+    output zeroed, so the predicted step is the step); w = 0 at a start; the carried step follows
+    the rollouts, scripted too; the config names the values."""
+    torch = pytest.importorskip("torch")
+    from omegaconf import OmegaConf
+
+    from thermognn.core.errors import ConfigError
+    from thermognn.core.hyperelastic import law_from_config
+    from thermognn.train.hybrid import LinearPriorModel, prior_settings
+    from thermognn.train.law_prior import HyperelasticNewmarkPrior
+    from thermognn.train.model import TIGNN
+
+    law = ("neo_hookean", {"C10": 1.0e4, "D1": 1.0e-5})
+    graph = _bent_block_graph(steps=8, law=law)
+    layout, traj, dt, X, linear, node_type, edges, z, f = graph
+    tets = _bent_block(1.0, "newmark", steps=2, law=law)[0].cells[:, :4]
+    lam, mu = linear.lame()
+    prior = HyperelasticNewmarkPrior(linear, len(X), dt, X, tets, lam, mu,
+                                     law_from_config({"law": law[0], **law[1]})[0], iterations=1)
+    ref = torch.as_tensor(X, dtype=torch.float32)
+    net = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, velocity_edges=True)
+    net.set_stats({"dzdt_std": torch.full((12,), 1e-30)})           # the network's output: zero
+    model = LinearPriorModel(net, prior, torch.as_tensor(X), positions_only=False, order=2, correction=True)
+    assert model.correction and not LinearPriorModel(net, prior, torch.as_tensor(X), correction=True).correction
+    seen = model.trajectory_inputs(z)                                                # [S, N, 12]
+    assert torch.equal(seen[..., 0:3], z[..., 0:3]) and torch.equal(seen[..., 6:], z[..., 6:])
+    w, a = prior.gather(seen[..., 3:6]), model.accelerations(z, f)                  # [S, n]
+    newmark = dt * ((0.5 - prior.beta) * a[:-1] + prior.beta * a[1:])
+    assert float(w[0].abs().max()) == 0.0
+    assert float((w[1:] - newmark).norm() / newmark.norm()) < 1e-9
+    assert float(w[1:].norm()) > 1e-3 * float(prior.gather(z[1:, :, 3:6]).norm())  # not the velocity's round-off
+    fed = []
+    remainders = model.remainders
+    model.remainders = lambda x, *rest: (fed.append(x.detach().clone()), remainders(x, *rest))[1]  # noqa: E731
+    with torch.enable_grad():
+        states = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]   # [S, N, 12]
+    del model.remainders
+    assert float(fed[0][..., 3:6].abs().max()) == 0.0                              # begin: no step behind it
+    fed_w = torch.cat(fed[1:])[..., 3:6]                                            # one call a step
+    assert float((fed_w - model.trajectory_inputs(states)[1:, :, 3:6]).norm() / fed_w.norm()) < 1e-12
+    net.set_stats({"dzdt_std": torch.full((12,), 1e-2)})
+    _carried_steps_follow_rollouts(prior, graph, inputs="correction")
+    assert prior_settings(OmegaConf.create({"prior": "linear", "prior_inputs": "correction"}))["inputs"] == "correction"
+    assert "inputs" not in prior_settings(OmegaConf.create({"prior": "linear", "prior_inputs": "state"}))
+    with pytest.raises(ConfigError, match=r"^model.prior_inputs = 'speed', expected positions \| state \| correction$"):
+        prior_settings(OmegaConf.create({"prior": "linear", "prior_inputs": "speed"}))
+
+
+def test_budget_fit_leaves_out_a_trajectory_no_load_lands():
+    """``train.fit_target = budget`` on a trajectory whose last state no budgeted step reaches (its
+    cells turned inside out, which every Newton update is shortened to avoid): the load
+    corrections stall (``BUDGET_STALLED`` in a row without progress, not all of
+    ``BUDGET_CORRECTIONS``), the miss stays far above ``BUDGET_MISS_TOL``, and the fit leaves that
+    trajectory out, by name, keeping the FE's own; with none left, a one-line error."""
+    torch = pytest.importorskip("torch")
+    from types import SimpleNamespace
+
+    from thermognn.core.errors import DataError
+    from thermognn.core.hyperelastic import law_from_config
+    from thermognn.train.hybrid import BUDGET_MISS_TOL, budget_fit_trajectories
+    from thermognn.train.law_prior import BUDGET_STALLED, HyperelasticNewmarkPrior
+
+    law = ("neo_hookean", {"C10": 1.0e4, "D1": 1.0e-5})
+    layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph(steps=4, law=law)
+    tets = _bent_block(1.0, "newmark", steps=2, law=law)[0].cells[:, :4]
+    lam, mu = linear.lame()
+    prior = HyperelasticNewmarkPrior(linear, len(X), dt, X, tets, lam, mu,
+                                     law_from_config({"law": law[0], **law[1]})[0], iterations=1)
+    Xt = torch.as_tensor(X)
+    inverted = z.clone()
+    inverted[-1, :, 0:3] = Xt.mean(0) - (Xt - Xt.mean(0))           # every free cell turned inside out
+    model = SimpleNamespace(prior=prior, reference_positions=Xt)
+    fe, bad = SimpleNamespace(z=z, force=f, name="fe"), SimpleNamespace(z=inverted, force=f, name="inverted")
+    H = [torch.zeros(len(z), len(X), 6, dtype=torch.float64)] * 2
+    kept, G, H_kept, unreached = budget_fit_trajectories(model, [bad, fe], H)
+    assert [t.name for t in kept] == ["fe"] and len(G) == len(H_kept) == 1 and G[0].shape == (len(z), len(X), 3)
+    assert [n for n, _ in unreached] == ["inverted"] and unreached[0][1] > 1e3 * BUDGET_MISS_TOL
+    calls = []
+    step = prior.step
+    prior.step = lambda *a: (calls.append(1), step(*a))[1]                          # noqa: E731
+    e, miss = prior.budget_loads(prior.gather(inverted[..., 0:3] - Xt), prior.gather(inverted[..., 3:6]), prior.gather(f))
+    assert miss > 1e3 * BUDGET_MISS_TOL and BUDGET_STALLED < len(calls) < 10 and bool(torch.isfinite(e).all())
+    del prior.step
+    with pytest.raises(DataError, match=r"^train.fit_target = budget: no load lands the 1-iteration step on the data "
+                                        r"in any training trajectory \(raise model.prior_newton\)$"):
+        budget_fit_trajectories(model, [bad], H[:1])

@@ -524,12 +524,18 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
     layout = json.loads(verify(out / "model.pt")["state_layout"])
     assert [g for g, _ in layout] == ["q", "v", "sigma", "a", "G"]
     # train.fit_target=budget: the fit learns the load each one-iteration step misses, which is no
-    # round-off (the exact remainders are); only the law prior has a budget to learn
+    # round-off (the exact remainders are); only the law prior has a budget to learn. The network
+    # sees each step's correction from its predictor (model.prior_inputs=correction), exported too
     budget = _train_prior(tmp_path / "budget", tiny_block, "model.prior_law=true", "model.prior_newton=1",
-                          "train.epochs=1", "train.rollout_epochs=0", "train.fit_target=budget")
+                          "train.epochs=1", "train.rollout_epochs=0", "train.fit_target=budget",
+                          "model.prior_inputs=correction")
     ratio = float(re.search(r"the fit phase learns what 1 Newton iteration\(s\) a step leave: RMS G (\S+) of the loads",
                             budget.stdout).group(1))
     assert 1e-8 < ratio < 0.1, budget.stdout[-2000:]
+    assert load_checkpoint(tmp_path / "budget" / "model.ckpt")["prior"]["inputs"] == "correction"
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={tmp_path / 'budget'}",
+                          f"paths.dataset={tiny_block}", "train.threads=1"], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0 and "export: scripted vs eager" in res.stdout, res.stdout[-2000:] + res.stderr[-3000:]
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'lin'}",
                           f"paths.dataset={tiny_block}", "model=linear_prior", "train.epochs=1", "train.fit_target=budget",
                           "train.threads=1"], capture_output=True, text=True, timeout=600)

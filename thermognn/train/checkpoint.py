@@ -16,7 +16,7 @@ A checkpoint is a ``torch.save``d dict of plain types and tensors (loadable with
                   "order" when 2 (``model.prior_order``), "relax" when true
                   (``model.prior_relax``), "corotated" (rotation sweeps, ``model.prior_corotated``),
                   "stress": "material" (``model.prior_stress``), "law" (Newton iterations a step,
-                  ``model.prior_law``): the weights are a
+                  ``model.prior_law``), "inputs": "correction" (``model.prior_inputs``): the weights are a
                   ``hybrid.LinearPriorModel``'s; its operators come from the dataset
     (the ``last`` checkpoint adds optimizer, scheduler, rng, history, best_val, stale_rounds)
 """

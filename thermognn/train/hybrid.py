@@ -11,7 +11,9 @@ The FE solid's step, with its internal force split as f_int(u) = K u − G(u) an
 The network's GENERIC rates at a state are read as the remainders: its v columns as G [N] (at
 the free DOFs), its σ columns as H [Pa], each times ``dzdt_std`` (set to the remainders' RMS in
 the training data). With ``positions_only`` the network sees the positions alone (G and H of a
-hyperelastic solid are functions of the displacement). With ``order`` 2 (``model.prior_order``,
+hyperelastic solid are functions of the displacement); with ``correction`` (``model.prior_inputs``)
+it sees the state with the step's correction from its predictor, w = (u1 − u0)/Δt − v0, in place
+of the velocity (``correction_view``: what a fixed Newton budget misses depends on it). With ``order`` 2 (``model.prior_order``,
 the ``model=linear_prior`` preset's) G and H are the network's second difference along the ray
 from the unloaded rest state (``network_remainders``), so they start at second order in the load
 as the true ones do, and gentle loads give the linearised FE model whatever the weights. A step: the linear step with the last G
@@ -51,6 +53,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
@@ -70,6 +73,10 @@ LAYOUT = ["q", "v", "sigma"]
 CARRIED = (("a", 3), ("G", 3))
 #: PRIORS: model.prior values
 PRIORS = ("none", "linear")
+#: model.prior_inputs values: what the network sees of a state (``LinearPriorModel``): the
+#: positions alone; the whole state; the state with the step's correction from its predictor in
+#: place of the velocity (``LinearPriorModel.correction_view``)
+PRIOR_INPUTS = ("positions", "state", "correction")
 #: model.prior_order values: the order at which the learned remainders start (LinearPriorModel.network_remainders)
 ORDERS = (1, 2)
 
@@ -81,7 +88,7 @@ class LinearPriorModel(nn.Module):
     Graph tensors (edge_index, node_type, ref_pos) are those of B disjoint copies of the mesh."""
 
     def __init__(self, net: TIGNN, prior: NewmarkPrior, reference_positions: Tensor,
-                 positions_only: bool = True, sweeps: int = 1, order: int = 1) -> None:
+                 positions_only: bool = True, sweeps: int = 1, order: int = 1, correction: bool = False) -> None:
         super().__init__()
         if net.dim != 12:
             raise ValueError(f"linear prior: state dimension {net.dim}, expected 12 (q, v, sigma)")
@@ -93,6 +100,9 @@ class LinearPriorModel(nn.Module):
         self.sweeps = int(sweeps)
         self.order = int(order)
         self.positions_only = bool(positions_only)
+        # ``model.prior_inputs = correction``: the network's v inputs are the step's correction from
+        # its predictor (``correction_view``), not the velocity
+        self.correction = bool(correction) and not self.positions_only
         self.register_buffer("reference_positions", reference_positions.to(torch.float64).contiguous(),
                              persistent=False)                                       # [N, 3] m
         seen = torch.ones(self.dim, dtype=net.z_mean.dtype)
@@ -221,9 +231,35 @@ class LinearPriorModel(nn.Module):
         the displacement were applied at once (``NewmarkPrior.internal_variables``)."""
         z, f = z.to(torch.float64), f.to(torch.float64)
         u, v, H = self.unpack(z)
-        G, _ = self.remainders(z, f, edge_index, node_type, ref_pos, create_graph, rest_rates)
+        seen = z
+        if self.correction:                      # no step behind a start: no correction
+            seen = torch.cat([z[:, :, 0:3], torch.zeros_like(z[:, :, 3:6]), z[:, :, 6:]], -1)
+        G, _ = self.remainders(seen, f, edge_index, node_type, ref_pos, create_graph, rest_rates)
         a = self.prior.initial_acceleration(u, v, self.prior.gather(f), G)
         return u, v, a, G, H, self.prior.internal_variables(u)
+
+    def correction_view(self, z1: Tensor, u0: Tensor, v0: Tensor, u1: Tensor) -> Tensor:
+        """What the network sees of a step's end with ``model.prior_inputs = correction``: the
+        physical state z1 [B, N, D] with its v columns replaced by the step's correction from its
+        predictor, w = (u1 − u0) / Δt − v0 [m/s] (free-DOF u0, v0, u1 [B, n]; zero at clamped
+        DOFs). The law prior's Newton iterations start from the predictor u0 + Δt v0, so what a
+        fixed budget misses is a function of where the step ends and how far it moved from there,
+        u1 − (u0 + Δt v0) = Δt w, which the velocity at the end does not give (the data's Newmark
+        rule: Δt w = Δt² ((1/2 − β) a0 + β a1))."""
+        w = (u1 - u0) / self.prior.dt - v0                                          # [B, n] m/s
+        return torch.cat([z1[:, :, 0:3], self.prior.scatter(w).to(z1.dtype), z1[:, :, 6:]], -1)
+
+    def trajectory_inputs(self, z: Tensor) -> Tensor:
+        """What the network sees at each state of one trajectory z [S, N, D] from its start (the
+        fit's inputs, the one-step errors'): z itself, or with ``correction`` its
+        ``correction_view`` of the step that ended there (none at the start: w = 0)."""
+        if not self.correction:
+            return z
+        x = z.to(torch.float64)
+        u, v = self.prior.gather(x[:, :, 0:3] - self.reference_positions.unsqueeze(0)), self.prior.gather(x[:, :, 3:6])
+        w = torch.zeros_like(u)                                                     # [S, n] m/s
+        w[1:] = (u[1:] - u[:-1]) / self.prior.dt - v[:-1]
+        return torch.cat([z[:, :, 0:3], self.prior.scatter(w).to(z.dtype), z[:, :, 6:]], -1)
 
     def unpack(self, z: Tensor, h: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor]:
         """(u, v [B, n], H [B, N, 6]) of float64 states z [B, N, D(+...)]: the inverse of ``state``
@@ -276,8 +312,10 @@ class LinearPriorModel(nn.Module):
         G1 = G
         for _ in range(self.sweeps):
             u1, v1, _a1, h1 = self.prior.step(u, v, a, f1_rows, G, G1, h)
-            G1, H = self.remainders(self.state(u1, v1, H, h1), f1, edge_index, node_type, ref_pos, create_graph,
-                                    rest_rates)
+            z1 = self.state(u1, v1, H, h1)
+            if self.correction:
+                z1 = self.correction_view(z1, u, v, u1)
+            G1, H = self.remainders(z1, f1, edge_index, node_type, ref_pos, create_graph, rest_rates)
         u1, v1, a1, h1 = self.prior.step(u, v, a, f1_rows, G, G1, h)
         return u1, v1, a1, G1, H, h1
 
@@ -369,8 +407,8 @@ def prior_settings(cfg_model) -> dict:
     """The checkpoint's ``prior`` entry from the ``model`` config group."""
     sweeps = _count(cfg_model, "prior_sweeps", 1, "network calls per step")
     inputs = str(OmegaConf.select(cfg_model, "prior_inputs", default="positions"))
-    if inputs not in ("positions", "state"):
-        raise ConfigError(f"model.prior_inputs = '{inputs}', expected positions | state")
+    if inputs not in PRIOR_INPUTS:
+        raise ConfigError(f"model.prior_inputs = '{inputs}', expected " + " | ".join(PRIOR_INPUTS))
     order = OmegaConf.select(cfg_model, "prior_order", default=1)
     if order not in ORDERS or isinstance(order, bool):
         raise ConfigError(f"model.prior_order = {order!r}, expected 1 | 2 (the order in the load at which "
@@ -395,6 +433,8 @@ def prior_settings(cfg_model) -> dict:
         raise ConfigError("model.prior_law = true steps the dataset's own law (its stress and Prony history "
                           "included): set model.prior_corotated=false and model.prior_stress=linear")
     settings = {"kind": "linear", "sweeps": sweeps, "positions_only": inputs == "positions"}
+    if inputs == "correction":                    # absent otherwise: older checkpoints keep their settings
+        settings["inputs"] = "correction"
     if order != 1:
         settings["order"] = int(order)
     if relax:                                     # absent when false: older checkpoints keep their settings
@@ -481,7 +521,8 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
                                              settings.get("stress", "linear") == "material",
                                              int(settings.get("law", 0))), X,
                             bool(settings.get("positions_only", True)),
-                            int(settings.get("sweeps", 1)), int(settings.get("order", 1)))
+                            int(settings.get("sweeps", 1)), int(settings.get("order", 1)),
+                            settings.get("inputs") == "correction")
 
 
 def carried_layout(layout_json: str, internal: Sequence[Tuple[str, int]] = ()) -> str:
@@ -538,6 +579,20 @@ def budget_remainders(model: LinearPriorModel, trajs) -> Tuple[List[Tensor], Lis
 #: step there (the shell at 2 iterations a step, where it snaps through: the corrections diverge,
 #: docs/accuracy.md session 69); the fit leaves it out
 BUDGET_MISS_TOL = 1.0e-6
+
+
+def budget_fit_trajectories(model: LinearPriorModel, trajs, H: List[Tensor]):
+    """(trajectories, G, H, [(name, miss)] left out) of the budget fit (``train.fit_target =
+    budget``): each trajectory's ``budget_remainders`` and its H, leaving out those whose load
+    corrections left a miss above ``BUDGET_MISS_TOL`` (no load lands the budgeted step there); a
+    one-line DataError where that leaves none."""
+    G, misses = budget_remainders(model, trajs)
+    keep = [i for i, m in enumerate(misses) if m <= BUDGET_MISS_TOL]
+    if not keep:
+        raise DataError(f"train.fit_target = budget: no load lands the {model.prior.iterations}-iteration step on "
+                        f"the data in any training trajectory (raise model.prior_newton)")
+    unreached = [(t.name, m) for t, m in zip(trajs, misses) if m > BUDGET_MISS_TOL]
+    return [trajs[i] for i in keep], [G[i] for i in keep], [H[i] for i in keep], unreached
 
 
 #: train.fit_target values: what the fit phase regresses the network's remainders on
@@ -612,7 +667,8 @@ class _FitPhase:
         self.weight = torch.zeros(N, D, dtype=dtype)                                     # q columns: unused
         self.weight[:, 3:] = 1.0
         self.weight[~free_nodes, 3:6] = 0.0
-        step_rms = torch.cat([t.z.diff(dim=0).reshape(-1, D) for t in trajs]).double().pow(2).mean(0).sqrt()
+        self.inputs = [model.trajectory_inputs(t.z) for t in trajs]                     # what the network sees
+        step_rms = torch.cat([x.diff(dim=0).reshape(-1, D) for x in self.inputs]).double().pow(2).mean(0).sqrt()
         self.noise = (step_rms * noise).to(dtype) * free_nodes.to(dtype).view(N, 1)      # [N, D]
         self.noisy = noise > 0
         self.samples = [(i, s) for i, t in enumerate(trajs) for s in range(t.z.shape[0])]
@@ -622,7 +678,7 @@ class _FitPhase:
         """(loss, data loss, degeneracy loss) of the samples ``chosen`` on the mesh copies g."""
         k = len(chosen)
         N, D = self.weight.shape
-        z = torch.stack([self.trajs[i].z[s] for i, s in chosen])                          # [k, N, D]
+        z = torch.stack([self.inputs[i][s] for i, s in chosen])                           # [k, N, D]
         f = torch.stack([self.trajs[i].force[s] for i, s in chosen])                      # [k, N, 3]
         y = torch.stack([self.targets[i][s] for i, s in chosen])
         if self.noisy:                       # (no draw without noise: the generator also orders the epochs)
@@ -721,8 +777,9 @@ class _RolloutPhase:
         states = truth[:, 1::STRESS_STRIDE]                                          # [k, s, N, D]
         s = states.shape[1]
         flat = states.reshape(k * s, N, D)                                           # [k s, N, D]
+        seen = torch.stack([self.model.trajectory_inputs(x) for x in truth])[:, 1::STRESS_STRIDE].reshape(k * s, N, D)
         g = self.mesh(k * s)
-        _, H = self.model.remainders(flat, forces[:, 1::STRESS_STRIDE].reshape(k * s, N, 3), g.edge_index,
+        _, H = self.model.remainders(seen, forces[:, 1::STRESS_STRIDE].reshape(k * s, N, 3), g.edge_index,
                                      g.node_type, g.ref_pos, True, rest_rates)        # [k s, N, 6] Pa
         h = (torch.stack([self.internal[i][first + 1::STRESS_STRIDE][:s] for i, first in chosen]).flatten(0, 1)
              if self.internal else None)                                             # [k s, T, n + 6N]
@@ -870,24 +927,22 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
         raise ConfigError("train.fit_target = budget needs model=law_prior (model.prior_law=true): only the law "
                           "prior has a Newton budget whose misses the network can learn")
     if fit_target == "budget" and fit_epochs > 0:   # what the Newton budget leaves, not the converged law's round-off
-        G_true, misses = budget_remainders(model, fit_trajs)          # H_true: the exact one (round-off)
-        reached = [i for i, m in enumerate(misses) if m <= BUDGET_MISS_TOL]
-        if not reached:
-            raise DataError(f"train.fit_target = budget: no load lands the {settings['law']}-iteration step on the "
-                            f"data in any training trajectory (raise model.prior_newton)")
-        if dist.main and len(reached) < len(fit_trajs):
-            print(f"train: no load lands the {settings['law']}-iteration step on the data in {len(fit_trajs) - len(reached)} "
-                  f"of {len(fit_trajs)} training trajectories (the corrections left up to {max(misses):.1e} of the "
-                  f"largest displacement); the fit leaves them out: "
-                  + ", ".join(t.name for t, m in zip(fit_trajs, misses) if m > BUDGET_MISS_TOL))
-        fit_trajs, G_true, H_true = ([x[i] for i in reached] for x in (fit_trajs, G_true, H_true))
+        n_fit = len(fit_trajs)
+        fit_trajs, G_true, H_true, unreached = budget_fit_trajectories(model, fit_trajs, H_true)
+        if dist.main and unreached:
+            print(f"train: no load lands the {settings['law']}-iteration step on the data in {len(unreached)} "
+                  f"of {n_fit} training trajectories (the corrections left up to {max(m for _, m in unreached):.1e} "
+                  f"of the largest displacement); the fit leaves them out: " + ", ".join(n for n, _ in unreached))
         if dist.main:
             free = model.prior.free_nodes()
             ratio = float(torch.cat([g[:, free] for g in G_true]).pow(2).mean().sqrt()
                           / torch.cat([t.force.double()[:, free] for t in fit_trajs]).pow(2).mean().sqrt())
             print(f"train: the fit phase learns what {settings['law']} Newton iteration(s) a step leave: RMS G "
                   f"{ratio:.3e} of the loads ({len(fit_trajs)} trajectories)")
-    stats = compute_stats(train_trajs, graph, ds.dt, hparams)
+    # the network's normalisation: of what it sees (with correction inputs, w in the v columns)
+    seen_trajs = (train_trajs if not model.correction
+                  else [SimpleNamespace(z=model.trajectory_inputs(t.z), force=t.force) for t in train_trajs])
+    stats = compute_stats(seen_trajs, graph, ds.dt, hparams)
     floor = law_scale_floor(train_trajs, model.prior.free_nodes(), model.dim) if "law" in settings else None
     stats["dzdt_std"] = remainder_scale(stats, G_true, H_true, model.prior.free_nodes(), floor)
     net.set_stats(stats)

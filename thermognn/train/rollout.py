@@ -177,6 +177,7 @@ def one_step_errors(model, graph: Graph, trajs: list[TrajectoryTensors], layout:
             if isinstance(model, LinearPriorModel):        # Newmark's a along the trajectory [S + 1, n]
                 accelerations = model.accelerations(t.z, t.force)
                 internal = model.trajectory_internal_variables(t.z)             # [S + 1, T, n + 6N]
+                seen = model.trajectory_inputs(t.z)           # what the network sees of each state [S + 1, N, D]
             for s0 in range(0, S, chunk):
                 k = min(chunk, S - s0)
                 if k not in copies:
@@ -194,7 +195,7 @@ def one_step_errors(model, graph: Graph, trajs: list[TrajectoryTensors], layout:
                         u, v, _, h = model.prior.step(u, v, accelerations[s0: s0 + k], f1, G0, G0, h)
                         H = torch.zeros_like(H)
                     else:
-                        G, _ = model.remainders(z, t.force[s0: s0 + k], *mesh, False)
+                        G, _ = model.remainders(seen[s0: s0 + k], t.force[s0: s0 + k], *mesh, False)
                         u, v, _, _, H, h = model.advance(u, v, accelerations[s0: s0 + k], G, H, h, f, *mesh,
                                                          False)
                     z_next = model.state(u, v, H, h).to(z.dtype)
