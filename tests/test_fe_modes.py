@@ -1222,8 +1222,9 @@ def test_correction_inputs_are_what_the_budgeted_step_moved_from_its_predictor()
     """``model.prior_inputs = correction``: the network sees, in place of the velocity, the step's
     correction from its predictor w = (u1 − u0) / Δt − v0. Along the FE data it is Newmark's
     Δt ((1/2 − β) a0 + β a1) with the data's accelerations; the rollouts feed the network exactly
-    what ``trajectory_inputs`` (the fit's inputs) gives of the states they reach (the network's
-    output zeroed, so the predicted step is the step); w = 0 at a start; the carried step follows
+    what ``trajectory_inputs`` gives of the states they reach (the network's output zeroed, so the
+    predicted step is the step); ``step_inputs`` (the fit's) is what the model's step from each
+    true state feeds it, not the data's next state; w = 0 at a start; the carried step follows
     the rollouts, scripted too; the config names the values."""
     torch = pytest.importorskip("torch")
     from omegaconf import OmegaConf
@@ -1258,10 +1259,23 @@ def test_correction_inputs_are_what_the_budgeted_step_moved_from_its_predictor()
     model.remainders = lambda x, *rest: (fed.append(x.detach().clone()), remainders(x, *rest))[1]  # noqa: E731
     with torch.enable_grad():
         states = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]   # [S, N, 12]
-    del model.remainders
     assert float(fed[0][..., 3:6].abs().max()) == 0.0                              # begin: no step behind it
     fed_w = torch.cat(fed[1:])[..., 3:6]                                            # one call a step
     assert float((fed_w - model.trajectory_inputs(states)[1:, :, 3:6]).norm() / fed_w.norm()) < 1e-12
+    # the fit's inputs (step_inputs): what the model's step from each true state shows the network
+    fed.clear()
+    h = model.trajectory_internal_variables(z)
+    u, v, H = model.unpack(z, h)
+    with torch.enable_grad():
+        for s in range(len(f) - 1):
+            model.advance(u[s:s + 1], v[s:s + 1], a[s:s + 1], torch.zeros_like(u[:1]), H[s:s + 1], h[s:s + 1],
+                          f[s + 1:s + 2], edges, node_type, ref, False)
+    del model.remainders
+    inputs = model.step_inputs(z, f, torch.zeros_like(z[..., 0:3]))                # [S, N, 12]
+    rel = lambda x, y: float((x - y).norm() / y.norm())                             # noqa: E731
+    assert rel(torch.cat(fed), inputs[1:]) < 1e-10 and rel(torch.cat(fed)[..., 3:6], inputs[1:, :, 3:6]) < 1e-9
+    assert float(inputs[0, :, 3:6].abs().max()) == 0.0 and torch.equal(inputs[0, :, 0:3], z[0, :, 0:3])
+    assert float((inputs[1:, :, 3:6] - seen[1:, :, 3:6]).norm()) > 1e-3 * float(seen[1:, :, 3:6].norm())  # the budget's w
     net.set_stats({"dzdt_std": torch.full((12,), 1e-2)})
     _carried_steps_follow_rollouts(prior, graph, inputs="correction")
     assert prior_settings(OmegaConf.create({"prior": "linear", "prior_inputs": "correction"}))["inputs"] == "correction"

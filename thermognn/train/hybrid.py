@@ -261,6 +261,30 @@ class LinearPriorModel(nn.Module):
         w[1:] = (u[1:] - u[:-1]) / self.prior.dt - v[:-1]
         return torch.cat([z[:, :, 0:3], self.prior.scatter(w).to(z.dtype), z[:, :, 6:]], -1)
 
+    @torch.jit.unused
+    def step_inputs(self, z: Tensor, f: Tensor, G: Tensor) -> Tensor:
+        """What the model's own step from each of a trajectory's true states shows the network
+        (the fit's inputs with ``correction``): states [S, N, D], the first ``begin``'s view of
+        z[0] (w = 0), then for s >= 1 the ``correction_view`` of the step's prediction from state
+        s − 1 with that state's true remainders, as ``advance`` predicts with the last G. The
+        data's own next state would show the network the converged correction instead of the
+        budgeted step's, which is what the network sees when it steps. z [S, N, D] physical
+        states under loads f [S, N, 3] N, G [S, N, 3] N the remainders the fit learns."""
+        P = self.prior
+        with torch.no_grad():
+            x = z.to(torch.float64)
+            h = self.trajectory_internal_variables(x)                               # [S, T, ...]
+            u, v, H = self.unpack(x, h)
+            a = self.accelerations(x, f)                                            # [S, n]
+            g = P.gather(G.to(torch.float64))                                       # [S, n] N
+            forget = getattr(P, "forget", lambda: None)        # the law prior's kept step start
+            forget()
+            u1, v1, _a1, h1 = P.step(u[:-1], v[:-1], a[:-1], P.gather(f[1:].to(torch.float64)), g[:-1], g[:-1], h[:-1])
+            forget()
+            ends = self.correction_view(self.state(u1, v1, H[:-1], h1), u[:-1], v[:-1], u1)    # [S - 1, N, D]
+        start = torch.cat([x[:1, :, 0:3], torch.zeros_like(x[:1, :, 3:6]), x[:1, :, 6:]], -1)
+        return torch.cat([start, ends]).to(z.dtype)
+
     def unpack(self, z: Tensor, h: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor]:
         """(u, v [B, n], H [B, N, 6]) of float64 states z [B, N, D(+...)]: the inverse of ``state``
         with the internal variables h [B, T, n + 6N] (None: those of a start, where the relaxing
@@ -656,7 +680,7 @@ class _FitPhase:
     the exact remainders, in its own units (``dzdt_std``); samples are (trajectory, snapshot)."""
 
     def __init__(self, model: LinearPriorModel, trajs, G: List[Tensor], H: List[Tensor], noise: float,
-                 lambda_data: float, lambda_degeneracy: float) -> None:
+                 lambda_data: float, lambda_degeneracy: float, inputs: Optional[List[Tensor]] = None) -> None:
         net = model.net
         dtype, N, D = net.z_mean.dtype, trajs[0].z.shape[1], model.dim
         free_nodes = model.prior.free_nodes()                                           # [N]
@@ -667,7 +691,9 @@ class _FitPhase:
         self.weight = torch.zeros(N, D, dtype=dtype)                                     # q columns: unused
         self.weight[:, 3:] = 1.0
         self.weight[~free_nodes, 3:6] = 0.0
-        self.inputs = [model.trajectory_inputs(t.z) for t in trajs]                     # what the network sees
+        # what the network sees at each sample: the states themselves, or (``correction``) the
+        # model's step ends from them (``LinearPriorModel.step_inputs``)
+        self.inputs = inputs if inputs is not None else [model.trajectory_inputs(t.z) for t in trajs]
         step_rms = torch.cat([x.diff(dim=0).reshape(-1, D) for x in self.inputs]).double().pow(2).mean(0).sqrt()
         self.noise = (step_rms * noise).to(dtype) * free_nodes.to(dtype).view(N, 1)      # [N, D]
         self.noisy = noise > 0
@@ -939,8 +965,12 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                           / torch.cat([t.force.double()[:, free] for t in fit_trajs]).pow(2).mean().sqrt())
             print(f"train: the fit phase learns what {settings['law']} Newton iteration(s) a step leave: RMS G "
                   f"{ratio:.3e} of the loads ({len(fit_trajs)} trajectories)")
-    # the network's normalisation: of what it sees (with correction inputs, w in the v columns)
-    seen_trajs = (train_trajs if not model.correction
+    # with correction inputs the fit shows the network the model's own step ends from the data's
+    # states (w of the budgeted step, not the converged one), and its normalisation is of those
+    fit_inputs = ([model.step_inputs(t.z, t.force, g) for t, g in zip(fit_trajs, G_true)]
+                  if model.correction and fit_epochs > 0 else None)
+    seen_trajs = (train_trajs if not model.correction else
+                  [SimpleNamespace(z=x, force=t.force) for t, x in zip(fit_trajs, fit_inputs)] if fit_inputs
                   else [SimpleNamespace(z=model.trajectory_inputs(t.z), force=t.force) for t in train_trajs])
     stats = compute_stats(seen_trajs, graph, ds.dt, hparams)
     floor = law_scale_floor(train_trajs, model.prior.free_nodes(), model.dim) if "law" in settings else None
@@ -977,7 +1007,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                    if whole_epochs else {})}
 
     fit = _FitPhase(model, fit_trajs, G_true, H_true, float(_sel(tc, "noise", 0.1)),
-                    float(_sel(tc, "lambda_data", 100.0)), float(_sel(tc, "lambda_degeneracy", 1.0)))
+                    float(_sel(tc, "lambda_data", 100.0)), float(_sel(tc, "lambda_degeneracy", 1.0)), fit_inputs)
     copies: Dict[int, object] = {}
 
     def mesh(k: int):
