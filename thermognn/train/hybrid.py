@@ -251,8 +251,9 @@ class LinearPriorModel(nn.Module):
 
     def trajectory_inputs(self, z: Tensor) -> Tensor:
         """What the network sees at each state of one trajectory z [S, N, D] from its start (the
-        fit's inputs, the one-step errors'): z itself, or with ``correction`` its
-        ``correction_view`` of the step that ended there (none at the start: w = 0)."""
+        one-step errors' carried G, the stress term's, and the fit's without ``correction``): z
+        itself, or with ``correction`` its ``correction_view`` of the data's step that ended there
+        (none at the start: w = 0); the fit's with ``correction`` are ``step_inputs``."""
         if not self.correction:
             return z
         x = z.to(torch.float64)
