@@ -231,9 +231,7 @@ class LinearPriorModel(nn.Module):
         the displacement were applied at once (``NewmarkPrior.internal_variables``)."""
         z, f = z.to(torch.float64), f.to(torch.float64)
         u, v, H = self.unpack(z)
-        seen = z
-        if self.correction:                      # no step behind a start: no correction
-            seen = torch.cat([z[:, :, 0:3], torch.zeros_like(z[:, :, 3:6]), z[:, :, 6:]], -1)
+        seen = self.with_correction(z, torch.zeros_like(u)) if self.correction else z   # no step behind a start
         G, _ = self.remainders(seen, f, edge_index, node_type, ref_pos, create_graph, rest_rates)
         a = self.prior.initial_acceleration(u, v, self.prior.gather(f), G)
         return u, v, a, G, H, self.prior.internal_variables(u)
@@ -246,8 +244,12 @@ class LinearPriorModel(nn.Module):
         fixed budget misses is a function of where the step ends and how far it moved from there,
         u1 − (u0 + Δt v0) = Δt w, which the velocity at the end does not give (the data's Newmark
         rule: Δt w = Δt² ((1/2 − β) a0 + β a1))."""
-        w = (u1 - u0) / self.prior.dt - v0                                          # [B, n] m/s
-        return torch.cat([z1[:, :, 0:3], self.prior.scatter(w).to(z1.dtype), z1[:, :, 6:]], -1)
+        return self.with_correction(z1, (u1 - u0) / self.prior.dt - v0)
+
+    def with_correction(self, z: Tensor, w: Tensor) -> Tensor:
+        """States z [B, N, D] with their v columns replaced by the free-DOF corrections w [B, n]
+        m/s (zero at clamped DOFs): what the network sees with ``correction``."""
+        return torch.cat([z[:, :, 0:3], self.prior.scatter(w).to(z.dtype), z[:, :, 6:]], -1)
 
     def trajectory_inputs(self, z: Tensor) -> Tensor:
         """What the network sees at each state of one trajectory z [S, N, D] from its start (the
@@ -260,7 +262,7 @@ class LinearPriorModel(nn.Module):
         u, v = self.prior.gather(x[:, :, 0:3] - self.reference_positions.unsqueeze(0)), self.prior.gather(x[:, :, 3:6])
         w = torch.zeros_like(u)                                                     # [S, n] m/s
         w[1:] = (u[1:] - u[:-1]) / self.prior.dt - v[:-1]
-        return torch.cat([z[:, :, 0:3], self.prior.scatter(w).to(z.dtype), z[:, :, 6:]], -1)
+        return self.with_correction(z, w)
 
     @torch.jit.unused
     def step_inputs(self, z: Tensor, f: Tensor, G: Tensor) -> Tensor:
@@ -283,7 +285,7 @@ class LinearPriorModel(nn.Module):
             u1, v1, _a1, h1 = P.step(u[:-1], v[:-1], a[:-1], P.gather(f[1:].to(torch.float64)), g[:-1], g[:-1], h[:-1])
             forget()
             ends = self.correction_view(self.state(u1, v1, H[:-1], h1), u[:-1], v[:-1], u1)    # [S - 1, N, D]
-        start = torch.cat([x[:1, :, 0:3], torch.zeros_like(x[:1, :, 3:6]), x[:1, :, 6:]], -1)
+        start = self.with_correction(x[:1], torch.zeros_like(u[:1]))                          # [1, N, D]
         return torch.cat([start, ends]).to(z.dtype)
 
     def unpack(self, z: Tensor, h: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor]:
@@ -968,11 +970,12 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
                   f"{ratio:.3e} of the loads ({len(fit_trajs)} trajectories)")
     # with correction inputs the fit shows the network the model's own step ends from the data's
     # states (w of the budgeted step, not the converged one), and its normalisation is of those
-    fit_inputs = ([model.step_inputs(t.z, t.force, g) for t, g in zip(fit_trajs, G_true)]
-                  if model.correction and fit_epochs > 0 else None)
-    seen_trajs = (train_trajs if not model.correction else
-                  [SimpleNamespace(z=x, force=t.force) for t, x in zip(fit_trajs, fit_inputs)] if fit_inputs
-                  else [SimpleNamespace(z=model.trajectory_inputs(t.z), force=t.force) for t in train_trajs])
+    fit_inputs, seen_trajs = None, train_trajs
+    if model.correction and fit_epochs > 0:
+        fit_inputs = [model.step_inputs(t.z, t.force, g) for t, g in zip(fit_trajs, G_true)]
+        seen_trajs = [SimpleNamespace(z=x, force=t.force) for t, x in zip(fit_trajs, fit_inputs)]
+    elif model.correction:
+        seen_trajs = [SimpleNamespace(z=model.trajectory_inputs(t.z), force=t.force) for t in train_trajs]
     stats = compute_stats(seen_trajs, graph, ds.dt, hparams)
     floor = law_scale_floor(train_trajs, model.prior.free_nodes(), model.dim) if "law" in settings else None
     stats["dzdt_std"] = remainder_scale(stats, G_true, H_true, model.prior.free_nodes(), floor)
