@@ -1218,6 +1218,73 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
         prior_settings(OmegaConf.create({"prior_law": True, "prior_newton": 0}))
 
 
+def test_law_prior_iterates_past_its_budget_until_the_step_converges():
+    """``model.prior_newton_max`` (``HyperelasticNewmarkPrior(max_iterations=...)``) on the FE
+    solid's own data (the damped 1 N bend, viscous Ogden): one Newton iteration a step and up to 8
+    more while the last update still moves the state is the converged FE rollout to round-off,
+    where one iteration always is not; it took more than one iteration a step but fewer than 8
+    (``newton_taken``), and at rest it stops at its budget. With the most equal to the budget it is
+    the fixed budget to the bit. What the budget leaves (``budget_loads``) is a fixed budget's.
+    A LinearPriorModel on it steps its carried state as its rollouts, scripted too; the config
+    records it and names what it cannot be."""
+    torch = pytest.importorskip("torch")
+    from omegaconf import OmegaConf
+
+    from thermognn.core.errors import ConfigError
+    from thermognn.core.hyperelastic import law_from_config
+    from thermognn.core.state import describe_step
+    from thermognn.train.checkpoint import model_step
+    from thermognn.train.hybrid import prior_settings
+    from thermognn.train.law_prior import HyperelasticNewmarkPrior
+
+    law, prony = ("ogden", {"mu": [2.0e4], "alpha": [8.0], "D": [1.0e-5]}), ((0.4, 4e-3),)
+    graph = _bent_block_graph(steps=12, prony=prony, law=law)
+    layout, traj, dt, X, linear, node_type, edges, z, f = graph
+    tets = _bent_block(1.0, "newmark", steps=2, prony=prony, law=law)[0].cells[:, :4]
+    material = {"law": law[0], **law[1], "prony": [{"g": g, "tau": t} for g, t in prony]}
+    lam, mu = linear.lame()
+    make = lambda k, most=None: HyperelasticNewmarkPrior(linear, len(X), dt, X, tets, lam, mu,  # noqa: E731
+                                                         law_from_config(material)[0], iterations=k,
+                                                         max_iterations=most)
+    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
+    u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
+    G0 = torch.zeros(len(f), int(linear.free.sum()), dtype=torch.float64)
+    fixed, adaptive = make(1), make(1, 8)
+    U1, V1, _ = _prior_rollout(fixed, u, v, f, G0, None)
+    U, V, Sig = _prior_rollout(adaptive, u, v, f, G0, None)
+    assert rel(V1, v) > 1e-4                                              # one iteration a step: not the FE's
+    assert rel(U, u) < 1e-11 and rel(V, v) < 1e-10 and rel(Sig, sigma) < 1e-10
+    taken, steps, unconverged = adaptive.newton_taken.tolist()
+    assert steps == len(f) - 1 and steps < taken < 8 * steps and unconverged == 0
+    assert fixed.newton_taken.tolist() == [len(f) - 1, len(f) - 1, 0]
+    short = make(1, 2)                                                    # 2 at most: not converged, counted
+    _prior_rollout(short, u, v, f, G0, None)
+    assert short.newton_taken.tolist()[2] > 0
+    same = make(1, 1)
+    assert torch.equal(_prior_rollout(same, u, v, f, G0, None)[1], V1)   # most = budget: the fixed budget
+    rest = make(2, 8)                                                     # at rest nothing moves: 2 iterations
+    n = G0.shape[1]
+    zero = torch.zeros(1, n, dtype=torch.float64)
+    h = rest.internal_variables(zero)
+    rest.step(zero, zero, zero, zero, zero, zero, h)
+    assert rest.newton_taken.tolist() == [2, 1, 0]
+    e_fixed, _ = make(2).budget_loads(fixed.gather(u), fixed.gather(v), fixed.gather(f))
+    e_most, _ = make(2, 8).budget_loads(fixed.gather(u), fixed.gather(v), fixed.gather(f))
+    assert torch.equal(e_fixed, e_most)                                  # a fixed budget's misses
+    _carried_steps_follow_rollouts(make(1, 8), graph, width=len(prony) * adaptive.cell_columns)
+
+    cfg = {"prior": "linear", "prior_law": True, "prior_newton": 2}
+    settings = prior_settings(OmegaConf.create({**cfg, "prior_newton_max": 6}))
+    assert settings["law"] == 2 and settings["law_max"] == 6
+    assert "law_max" not in prior_settings(OmegaConf.create({**cfg, "prior_newton_max": 2}))
+    assert "law_max" not in prior_settings(OmegaConf.create({**cfg, "prior_newton_max": None}))
+    assert "(2 Newton iterations, up to 6 until converged)" in describe_step(model_step({"prior": settings}))
+    with pytest.raises(ConfigError, match=r"model.prior_newton_max = 1, expected >= model.prior_newton = 2"):
+        prior_settings(OmegaConf.create({**cfg, "prior_newton_max": 1}))
+    with pytest.raises(ValueError, match="most Newton iterations a step: 1, expected >= its iterations"):
+        make(2, 1)
+
+
 def test_correction_inputs_are_what_the_budgeted_step_moved_from_its_predictor():
     """``model.prior_inputs = correction``: the network sees, in place of the velocity, the step's
     correction from its predictor w = (u1 − u0) / Δt − v0. Along the FE data it is Newmark's

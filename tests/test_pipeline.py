@@ -497,7 +497,8 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
     thermognn/train/law_prior.py) on the tiny block: a fit epoch and a rollout epoch (back-propagated
     through the Newton step's solves), evaluate (its whole rollouts nearer the data than the
     linearised FE model's, and at the linearly implicit FE model's, which it is with the remainders
-    at zero) and export (scripted against eager)."""
+    at zero) and export (scripted against eager); the same with the budget fit, and with more
+    iterations where a step has not converged (``model.prior_newton_max``)."""
     from thermognn.export.exporter import verify
     from thermognn.train.checkpoint import load_checkpoint
 
@@ -541,3 +542,25 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
                           "train.threads=1"], capture_output=True, text=True, timeout=600)
     assert res.returncode != 0 and res.stderr.strip().startswith("error: train.fit_target = budget needs model=law_prior"), \
         res.stderr[-2000:]
+    # model.prior_newton_max: past one iteration, more while a step has not converged; evaluate
+    # says what it spent, and its rollouts are the converged law's (nearer the data than one
+    # iteration's); exported too. The budget fit learns what a fixed budget leaves: refused with it
+    most = tmp_path / "most"
+    _train_prior(most, tiny_block, "model.prior_law=true", "model.prior_newton=1", "model.prior_newton_max=4",
+                 "train.epochs=1", "train.rollout_epochs=0")
+    for stage in ("evaluate", "export"):
+        res = subprocess.run([sys.executable, "-m", "thermognn.cli", stage, f"out={most}", f"paths.dataset={tiny_block}",
+                              "train.eval_max_train=1", "train.threads=1"], capture_output=True, text=True, timeout=600)
+        assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+        if stage == "evaluate":
+            assert re.search(r"the law prior took \S+ Newton iterations a step \(1 at least, 4 at most", res.stdout), \
+                res.stdout[-2000:]
+    converged = json.loads((most / "eval" / "rrmse.json").read_text())
+    assert 1.0 < converged["newton_iterations_per_step"] <= 4.0 and converged["unconverged_steps"] == 0
+    for g in ("q", "v", "sigma"):
+        assert converged[f"whole_{g}"] < 0.5 * converged[f"newton1_fe_whole_{g}"], (g, converged)
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'most_budget'}",
+                          f"paths.dataset={tiny_block}", "model=law_prior", "model.prior_newton_max=3", "train.epochs=1",
+                          "train.fit_target=budget", "train.threads=1"], capture_output=True, text=True, timeout=600)
+    assert res.returncode != 0 and res.stderr.strip().startswith(
+        "error: train.fit_target = budget with model.prior_newton_max = 3"), res.stderr[-2000:]

@@ -100,7 +100,9 @@ def describe_step(step) -> str:
                  else "linearised solid") + (", its stress the material's law" if step.get("stress") == "material" else "")
         if step.get("law"):
             iterations = int(step["law"])
-            solid = f"solid of the data's own law ({iterations} Newton iteration{'s' if iterations > 1 else ''})"
+            most = int(step.get("law_max", iterations))
+            solid = (f"solid of the data's own law ({iterations} Newton iteration{'s' if iterations > 1 else ''}"
+                     + (f", up to {most} until converged" if most > iterations else "") + ")")
         return (f"the data's Newmark step of the {solid} with learned remainders"
                 + (" of second order" if second else "")
                 + f" ({calls} network call{'s' if calls > 1 else ''} a step"

@@ -160,7 +160,7 @@ def model_step(ckpt: dict) -> dict:
     "prior": "linear", "sweeps": network calls per step, "kinematics": "exact"} (and "order": 2
     for second-order remainders, "corotated": the rotation sweeps of a corotated prior, "stress":
     "material" where its stress is the material's law, "law": the Newton iterations a step of the
-    law prior)."""
+    law prior, "law_max": the most it takes where a step has not converged)."""
     from .model import step_settings
 
     prior = ckpt.get("prior")
@@ -170,5 +170,6 @@ def model_step(ckpt: dict) -> dict:
                 **({"order": 2} if int(prior.get("order", 1)) == 2 else {}),
                 **({"corotated": int(prior["corotated"])} if prior.get("corotated") else {}),
                 **({"stress": "material"} if prior.get("stress") == "material" else {}),
-                **({"law": int(prior["law"])} if prior.get("law") else {})}
+                **({"law": int(prior["law"])} if prior.get("law") else {}),
+                **({"law_max": int(prior["law_max"])} if prior.get("law_max") else {})}
     return step_settings(ckpt.get("hparams", {}))

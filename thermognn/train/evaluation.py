@@ -189,6 +189,17 @@ def shortened_sentence(names: list[str], counts: list[int]) -> str:
             "are not the law's")
 
 
+def newton_sentence(budget: int, most: int, taken: int, steps: int, unconverged: int) -> str:
+    """"the law prior took 4.21 Newton iterations a step (3 at least, 8 at most); ..." from its
+    ``newton_taken`` counts (iterations, prior steps, steps that spent the most and still moved)."""
+    text = (f"the law prior took {taken / max(steps, 1):.2f} Newton iterations a step ({budget} at least, {most} "
+            f"at most, over {steps} prior steps)")
+    if unconverged:
+        text += (f"; {unconverged} step{'s' if unconverged > 1 else ''} had not converged after {most}: those "
+                 f"rollouts are not the law's (where the FE itself cut a step, no number of full steps converges)")
+    return text
+
+
 def _rollouts(model, data: LoadedData, trajs: list[TrajectoryTensors]):
     """Roll out each trajectory; returns predictions, per-step and per-trajectory RRMSE, the
     mean wall time per step [ms] and, per trajectory, how many updates the law prior shortened
@@ -584,7 +595,8 @@ def evaluate(cfg) -> dict:
     hyperelastic scenes the linearly implicit FE model's "newton1_fe_<group>", "newton1_fe_whole_<group>",
     "newton1_fe_ms_per_step" (``linear_baseline(newton=1)``), and for
     datasets that record their FE solve's cost "fe_ms_per_step", "fe_iterations_per_step"
-    (``Dataset.fe_cost``), and for a law prior whose rollouts shortened Newton updates
+    (``Dataset.fe_cost``), for a law prior with ``model.prior_newton_max`` its test rollouts'
+    "newton_iterations_per_step" and "unconverged_steps" (:func:`newton_sentence`), and for a law prior whose rollouts shortened Newton updates
     "shortened_updates" (their number over the test rollouts, :func:`shortened_updates`), and
     where test trajectories repeat training ones up to a mirror of the mesh "test_repeats_train"
     (their number, :func:`repeated_cases`), and for a stress readout that ``train`` checked on
@@ -616,7 +628,11 @@ def evaluate(cfg) -> dict:
     groups = data.layout.names
     test = data.of("test")
     train_trajs = [data.trajectories[n] for n in train_names]
+    newton = model.prior.newton_taken if prior and isinstance(model.prior, HyperelasticNewmarkPrior) else None
+    if newton is not None:
+        newton.zero_()
     preds, per_step, per_traj, ms, shortened = _rollouts(model, data, test)
+    newton_test = newton.tolist() if newton is not None else None          # [iterations, steps, unconverged]
     preds_train, _, per_traj_train, _, _ = _rollouts(model, data, train_trajs)
     mean_test, mean_train = _mean_groups(per_traj, groups), _mean_groups(per_traj_train, groups)
     whole_traj = [trajectory_error(p, t.z, data.layout) for p, t in zip(preds, test)]
@@ -831,6 +847,10 @@ def evaluate(cfg) -> dict:
         print(f"evaluate: at {load:g} N peak load ({int(e['trajectories'])} test trajectories): per snapshot "
               + ", ".join(f"{g} {_fmt(e[g])}" for g in groups) + "; whole rollout "
               + ", ".join(f"{g} {_fmt(e['whole_' + g])}" for g in groups))
+    if newton_test is not None and model.prior.max_iterations > model.prior.iterations:
+        mean_test["newton_iterations_per_step"] = newton_test[0] / max(newton_test[1], 1)
+        mean_test["unconverged_steps"] = float(newton_test[2])
+        print(f"evaluate: {newton_sentence(model.prior.iterations, model.prior.max_iterations, *newton_test)} (test)")
     if any(shortened):
         mean_test["shortened_updates"] = float(sum(shortened))
         print(f"evaluate: {shortened_sentence([t.name for t in test], shortened)} (test)")

@@ -456,6 +456,13 @@ def prior_settings(cfg_model) -> dict:
     law = _flag(cfg_model, "prior_law", "the prior is the dataset's own hyperelastic law, stepped with "
                 "model.prior_newton Newton iterations")
     newton = _count(cfg_model, "prior_newton", 1, "Newton iterations a step of the law prior")
+    most = OmegaConf.select(cfg_model, "prior_newton_max", default=None)
+    if most is not None:
+        most = _count(cfg_model, "prior_newton_max", 1, "the most Newton iterations a step of the law prior, "
+                      "past prior_newton while the step has not converged; null: prior_newton always")
+        if most < newton:
+            raise ConfigError(f"model.prior_newton_max = {most}, expected >= model.prior_newton = {newton} "
+                              f"(or null: prior_newton iterations always)")
     if law and (corotated or stress == "material"):
         raise ConfigError("model.prior_law = true steps the dataset's own law (its stress and Prony history "
                           "included): set model.prior_corotated=false and model.prior_stress=linear")
@@ -472,6 +479,8 @@ def prior_settings(cfg_model) -> dict:
         settings["stress"] = "material"
     if law:                                       # the law prior's Newton iterations a step
         settings["law"] = int(newton)
+        if most is not None and most > newton:    # and the most, where the step has not converged
+            settings["law_max"] = int(most)
     return settings
 
 
@@ -493,12 +502,13 @@ def neo_hookean_of(ds) -> Tuple[float, float]:
 
 
 def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material: bool = False,
-                law: int = 0) -> NewmarkPrior:
+                law: int = 0, law_max: Optional[int] = None) -> NewmarkPrior:
     """The dataset's ``/linear`` as a NewmarkPrior (float64), relaxing as its viscous solid does
     with ``relax``, or corotated per cell with ``corotated`` > 0 fixed-point sweeps a step
     (:class:`CorotatedNewmarkPrior`), its stress the material's law with ``material``, or with
-    ``law`` > 0 the dataset's own hyperelastic law stepped with that many Newton iterations
-    (:class:`thermognn.train.law_prior.HyperelasticNewmarkPrior`); one-line errors where it cannot be."""
+    ``law`` > 0 the dataset's own hyperelastic law stepped with that many Newton iterations, and up
+    to ``law_max`` where a step has not converged (:class:`thermognn.train.law_prior.HyperelasticNewmarkPrior`);
+    one-line errors where it cannot be."""
     names = list(ds.layout.names)
     if names != LAYOUT:
         raise ConfigError(f"model.prior = linear: {ds.path} has state variables {names}, expected {LAYOUT} "
@@ -530,7 +540,7 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
             if not np.allclose(np.asarray(prony).reshape(-1, 2), np.asarray(linear.prony).reshape(-1, 2)):
                 raise ValueError(f"scene.material.prony {prony} is not /linear's {tuple(linear.prony)}")
             return HyperelasticNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
-                                            solid_law, iterations=int(law))
+                                            solid_law, iterations=int(law), max_iterations=law_max)
         if corotated:
             return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                          sweeps=int(corotated), neo_hookean=neo_hookean_of(ds) if material else None,
@@ -546,7 +556,7 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
     return LinearPriorModel(net, build_prior(ds, dt, bool(settings.get("relax", False)),
                                              int(settings.get("corotated", 0)),
                                              settings.get("stress", "linear") == "material",
-                                             int(settings.get("law", 0))), X,
+                                             int(settings.get("law", 0)), settings.get("law_max")), X,
                             bool(settings.get("positions_only", True)),
                             int(settings.get("sweeps", 1)), int(settings.get("order", 1)),
                             settings.get("inputs") == "correction")
@@ -955,6 +965,9 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     if fit_target == "budget" and "law" not in settings:
         raise ConfigError("train.fit_target = budget needs model=law_prior (model.prior_law=true): only the law "
                           "prior has a Newton budget whose misses the network can learn")
+    if fit_target == "budget" and "law_max" in settings:
+        raise ConfigError(f"train.fit_target = budget with model.prior_newton_max = {settings['law_max']}: the fit "
+                          f"learns what a fixed budget leaves (set model.prior_newton_max=null)")
     if fit_target == "budget" and fit_epochs > 0:   # what the Newton budget leaves, not the converged law's round-off
         n_fit = len(fit_trajs)
         fit_trajs, G_true, H_true, unreached = budget_fit_trajectories(model, fit_trajs, H_true)

@@ -64,6 +64,11 @@ MAX_HALVINGS = 12
 BUDGET_RTOL = 1.0e-10
 #: ``budget_loads``: load corrections at most
 BUDGET_CORRECTIONS = 30
+#: ``max_iterations``: a step past its ``iterations`` stops once a Newton update moves no DOF by
+#: more than this share of the step's largest displacement (the data's FE: residual rtol 1e-8)
+NEWTON_RTOL = 1.0e-8
+#: ... or by less than this [m] (a body at rest, where the displacement gives no scale)
+NEWTON_ATOL = 1.0e-14
 #: ``budget_loads``: corrections in a row that do not lower the miss before it gives up (the
 #: shell's snap-through at 2 iterations a step: no load lands the step, docs/accuracy.md session 69)
 BUDGET_STALLED = 3
@@ -161,13 +166,20 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
 
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
                  lam: float, mu: float, law: NeoHookean | Ogden, iterations: int = 1,
-                 dtype: torch.dtype = torch.float64) -> None:
+                 max_iterations: Optional[int] = None, dtype: torch.dtype = torch.float64) -> None:
         if not isinstance(law, (NeoHookean, Ogden)):
             raise ValueError(f"the law prior steps a NeoHookean or Ogden law, not {law!r}")
         if int(iterations) < 1:
             raise ValueError(f"the law prior's Newton iterations a step: {iterations!r}, expected >= 1")
+        if max_iterations is not None and int(max_iterations) < int(iterations):
+            raise ValueError(f"the law prior's most Newton iterations a step: {max_iterations!r}, expected >= "
+                             f"its iterations ({iterations})")
         super().__init__(linear, n_nodes, dt, X, tets, lam, mu, sweeps=1, dtype=dtype, relax=bool(linear.prony))
         self.iterations = int(iterations)
+        # past ``iterations``, more (up to this many) while the last update still moved the state
+        # by more than NEWTON_RTOL of its largest displacement (``step``); equal: a fixed budget
+        self.max_iterations = int(max_iterations) if max_iterations is not None else self.iterations
+        self.newton_rtol, self.newton_atol = NEWTON_RTOL, NEWTON_ATOL
         self.ogden = isinstance(law, Ogden)
         if isinstance(law, Ogden):
             self.ogden_mu, self.ogden_alpha, self.ogden_d = list(law.mu), list(law.alpha), list(law.d)
@@ -196,6 +208,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         # how many updates ``admissible`` has shortened (samples x updates), since it was last zeroed:
         # where the budget does not hold a step (evaluate names such rollouts)
         self.register_buffer("shortened", torch.zeros((), dtype=torch.int64), persistent=False)
+        # since they were last zeroed: the Newton iterations taken (a batch's step counts once), the
+        # steps taken, and the steps that spent ``max_iterations`` > ``iterations`` and still moved:
+        # what the most spent, and where it did not converge (evaluate reports them)
+        self.register_buffer("newton_taken", torch.zeros(3, dtype=torch.int64), persistent=False)
 
     # --- the law per cell -----------------------------------------------------------------------
     def pk2(self, F: Tensor) -> Tuple[Tensor, Tensor]:
@@ -412,25 +428,45 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
              G1: Tensor, h0: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
         """(u1, v1, a1, h1) as :meth:`NewmarkPrior.step`: ``iterations`` Newton iterations on
         R(u1) = 0 (module docstring) from the predictor u0 + Δt v0 (the first one
-        ``first_iteration``'s)."""
+        ``first_iteration``'s), then, up to ``max_iterations`` in all, more while the last update
+        moved some DOF of the batch by more than NEWTON_RTOL of its largest displacement (and
+        NEWTON_ATOL): a step the budget does not converge (the shell's snap-through) takes the
+        iterations it needs, the others cost nothing more than the check."""
         # what R takes from outside the step's start: loads and remainders
         loads = f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0                  # [B, n] N
         u1, predictor, S_iso0, extra, damping0 = self.first_iteration(u0, v0, a0, h0, loads)
         fixed = loads + damping0
         w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
-        for _ in range(self.iterations - 1):
+        taken = 1
+        moved = u1.detach() - u0.detach() - self.dt * v0.detach()        # the first update: from the predictor
+        for it in range(1, self.max_iterations):
+            if it >= self.iterations and not self.moves(moved, u1.detach()):
+                break
             a1 = self.c0 * u1 - predictor
             v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
             F = self.cells(u1)
             residual = (self.mass(a1 + self.alpha_m * v1) + self.assemble(self.pk1(F, w_iso, w_vol, extra))
                         - fixed)                                                           # [B, n] N
             self.require_finite(residual)
+            last = u1.detach()
             u1 = self.admissible(u1, self.solve(self.tangent_pairs(F.detach(), w_iso, w_vol,
                                                                    None if extra is None else extra.detach()),
                                                 residual))
+            moved = u1.detach() - last
+            taken += 1
+        unconverged = int(self.max_iterations > self.iterations and taken == self.max_iterations
+                          and self.moves(moved, u1.detach()))
+        self.newton_taken.add_(torch.tensor([taken, 1, unconverged], dtype=torch.int64,
+                                            device=self.newton_taken.device))
         a1 = self.c0 * u1 - predictor
         v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
         return u1, v1, a1, self.relax_from(S_iso0, u1, h0)
+
+    def moves(self, update: Tensor, u: Tensor) -> bool:
+        """Whether a Newton update [B, n] m still moved some DOF by more than NEWTON_RTOL of the
+        largest displacement u [B, n] m of its sample (and more than NEWTON_ATOL)."""
+        scale = self.newton_rtol * u.abs().amax(1) + self.newton_atol                     # [B] m
+        return bool((update.abs().amax(1) > scale).any())
 
     @torch.jit.unused
     def budget_loads(self, u: Tensor, v: Tensor, f: Tensor, rtol: float = BUDGET_RTOL,
@@ -449,7 +485,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         under the current e end (``max_corrections`` at most, until the miss is below ``rtol``, or
         ``BUDGET_STALLED`` corrections in a row have not lowered it)."""
         with torch.no_grad():
-            shortened, iterations = self.shortened.clone(), self.iterations
+            shortened, taken = self.shortened.clone(), self.newton_taken.clone()
+            iterations, most = self.iterations, self.max_iterations
             a = self.accelerations(u, v, f)
             h = self.internal_history(u)
             u0, v0, a0, h0, f1, target = u[:-1], v[:-1], a[:-1], h[:-1], f[1:], u[1:]
@@ -460,6 +497,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             miss, best, stalled = math.inf, math.inf, 0
             self.forget()
             try:
+                self.max_iterations = iterations        # what a fixed budget of ``iterations`` leaves
                 for _ in range(max_corrections):
                     gap = target - self.step(u0, v0, a0, f1 + e, zero, zero, h0)[0]       # [S - 1, n] m
                     miss = float(gap.abs().max()) / scale
@@ -469,17 +507,18 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                         break
                     pairs = start_pairs
                     if iterations > 1:                  # the last iteration's start: k − 1 iterations' end
-                        self.iterations = iterations - 1
+                        self.iterations = self.max_iterations = iterations - 1
                         last = self.step(u0, v0, a0, f1 + e, zero, zero, h0)[0]
-                        self.iterations = iterations
+                        self.iterations = self.max_iterations = iterations
                         pairs = self.tangent_pairs(self.cells(last), self.iso_weight + self.c, 1.0 + self.c, extra)
                     values, gap_np = self.sparse_values(pairs).cpu().numpy(), gap.cpu().numpy()   # [S - 1, nnz]
                     e = e + torch.as_tensor(np.stack([self.pattern.matrix(values[i]) @ gap_np[i]
                                                       for i in range(values.shape[0])]), dtype=e.dtype)
             finally:
-                self.iterations = iterations
+                self.iterations, self.max_iterations = iterations, most
                 self.forget()
                 self.shortened.copy_(shortened)
+                self.newton_taken.copy_(taken)
         return e, miss
 
     # --- the Prony history per cell (the FE's h_i) ----------------------------------------------
