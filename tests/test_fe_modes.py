@@ -1257,6 +1257,10 @@ def test_law_prior_iterates_past_its_budget_until_the_step_converges():
     taken, steps, unconverged = adaptive.newton_taken.tolist()
     assert steps == len(f) - 1 and steps < taken < 8 * steps and unconverged == 0
     assert fixed.newton_taken.tolist() == [len(f) - 1, len(f) - 1, 0]
+    looser = HyperelasticNewmarkPrior(linear, len(X), dt, X, tets, lam, mu, law_from_config(material)[0],
+                                      iterations=1, max_iterations=8, newton_rtol=1e-3)
+    V3 = _prior_rollout(looser, u, v, f, G0, None)[1]                     # a looser tolerance: fewer, less exact
+    assert looser.newton_taken.tolist()[0] < taken and rel(V, v) < rel(V3, v) < rel(V1, v)
     short = make(1, 2)                                                    # 2 at most: not converged, counted
     _prior_rollout(short, u, v, f, G0, None)
     assert short.newton_taken.tolist()[2] > 0
@@ -1278,7 +1282,13 @@ def test_law_prior_iterates_past_its_budget_until_the_step_converges():
     assert settings["law"] == 2 and settings["law_max"] == 6
     assert "law_max" not in prior_settings(OmegaConf.create({**cfg, "prior_newton_max": 2}))
     assert "law_max" not in prior_settings(OmegaConf.create({**cfg, "prior_newton_max": None}))
-    assert "(2 Newton iterations, up to 6 until converged)" in describe_step(model_step({"prior": settings}))
+    assert "(2 Newton iterations, up to 6 until converged to 1e-08)" in describe_step(model_step({"prior": settings}))
+    loose = prior_settings(OmegaConf.create({**cfg, "prior_newton_max": 6, "prior_newton_rtol": 1e-4}))
+    assert loose["law_rtol"] == 1e-4 and "converged to 0.0001" in describe_step(model_step({"prior": loose}))
+    with pytest.raises(ConfigError, match=r"model.prior_newton_rtol = 0, expected a number in \(0, 1\)"):
+        prior_settings(OmegaConf.create({**cfg, "prior_newton_max": 6, "prior_newton_rtol": 0}))
+    with pytest.raises(ConfigError, match=r"model.prior_newton_rtol = 0.001 needs model.prior_newton_max > "):
+        prior_settings(OmegaConf.create({**cfg, "prior_newton_rtol": 1e-3}))
     with pytest.raises(ConfigError, match=r"model.prior_newton_max = 1, expected >= model.prior_newton = 2"):
         prior_settings(OmegaConf.create({**cfg, "prior_newton_max": 1}))
     with pytest.raises(ValueError, match="most Newton iterations a step: 1, expected >= its iterations"):

@@ -102,7 +102,8 @@ def describe_step(step) -> str:
             iterations = int(step["law"])
             most = int(step.get("law_max", iterations))
             solid = (f"solid of the data's own law ({iterations} Newton iteration{'s' if iterations > 1 else ''}"
-                     + (f", up to {most} until converged" if most > iterations else "") + ")")
+                     + (f", up to {most} until converged to {float(step.get('law_rtol', 1e-8)):g}" if most > iterations
+                        else "") + ")")
         return (f"the data's Newmark step of the {solid} with learned remainders"
                 + (" of second order" if second else "")
                 + f" ({calls} network call{'s' if calls > 1 else ''} a step"

@@ -463,6 +463,13 @@ def prior_settings(cfg_model) -> dict:
         if most < newton:
             raise ConfigError(f"model.prior_newton_max = {most}, expected >= model.prior_newton = {newton} "
                               f"(or null: prior_newton iterations always)")
+    rtol = OmegaConf.select(cfg_model, "prior_newton_rtol", default=None)
+    if rtol is not None and (isinstance(rtol, bool) or not isinstance(rtol, (int, float)) or not 0 < rtol < 1):
+        raise ConfigError(f"model.prior_newton_rtol = {rtol!r}, expected a number in (0, 1) (the largest Newton "
+                          f"update past prior_newton, as a share of the largest displacement, at which a step stops)")
+    if rtol is not None and not (most is not None and most > newton):
+        raise ConfigError(f"model.prior_newton_rtol = {rtol!r} needs model.prior_newton_max > model.prior_newton "
+                          f"(= {newton}): with a fixed budget no step stops early")
     if law and (corotated or stress == "material"):
         raise ConfigError("model.prior_law = true steps the dataset's own law (its stress and Prony history "
                           "included): set model.prior_corotated=false and model.prior_stress=linear")
@@ -481,6 +488,8 @@ def prior_settings(cfg_model) -> dict:
         settings["law"] = int(newton)
         if most is not None and most > newton:    # and the most, where the step has not converged
             settings["law_max"] = int(most)
+            if rtol is not None:
+                settings["law_rtol"] = float(rtol)
     return settings
 
 
@@ -502,12 +511,13 @@ def neo_hookean_of(ds) -> Tuple[float, float]:
 
 
 def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material: bool = False,
-                law: int = 0, law_max: Optional[int] = None) -> NewmarkPrior:
+                law: int = 0, law_max: Optional[int] = None, law_rtol: Optional[float] = None) -> NewmarkPrior:
     """The dataset's ``/linear`` as a NewmarkPrior (float64), relaxing as its viscous solid does
     with ``relax``, or corotated per cell with ``corotated`` > 0 fixed-point sweeps a step
     (:class:`CorotatedNewmarkPrior`), its stress the material's law with ``material``, or with
     ``law`` > 0 the dataset's own hyperelastic law stepped with that many Newton iterations, and up
-    to ``law_max`` where a step has not converged (:class:`thermognn.train.law_prior.HyperelasticNewmarkPrior`);
+    to ``law_max`` where a step has not converged to ``law_rtol`` (None: ``law_prior.NEWTON_RTOL``)
+    (:class:`thermognn.train.law_prior.HyperelasticNewmarkPrior`);
     one-line errors where it cannot be."""
     names = list(ds.layout.names)
     if names != LAYOUT:
@@ -532,7 +542,7 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
         if law:
             from thermognn.core.hyperelastic import law_from_config
 
-            from .law_prior import HyperelasticNewmarkPrior
+            from .law_prior import NEWTON_RTOL, HyperelasticNewmarkPrior
 
             if "law" not in ds.material:
                 raise DataError(f"{ds.path}: no scene.material in the dataset's config (model.prior_law = true)")
@@ -540,7 +550,8 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
             if not np.allclose(np.asarray(prony).reshape(-1, 2), np.asarray(linear.prony).reshape(-1, 2)):
                 raise ValueError(f"scene.material.prony {prony} is not /linear's {tuple(linear.prony)}")
             return HyperelasticNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
-                                            solid_law, iterations=int(law), max_iterations=law_max)
+                                            solid_law, iterations=int(law), max_iterations=law_max,
+                                            newton_rtol=NEWTON_RTOL if law_rtol is None else float(law_rtol))
         if corotated:
             return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                          sweeps=int(corotated), neo_hookean=neo_hookean_of(ds) if material else None,
@@ -556,7 +567,8 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
     return LinearPriorModel(net, build_prior(ds, dt, bool(settings.get("relax", False)),
                                              int(settings.get("corotated", 0)),
                                              settings.get("stress", "linear") == "material",
-                                             int(settings.get("law", 0)), settings.get("law_max")), X,
+                                             int(settings.get("law", 0)), settings.get("law_max"),
+                                             settings.get("law_rtol")), X,
                             bool(settings.get("positions_only", True)),
                             int(settings.get("sweeps", 1)), int(settings.get("order", 1)),
                             settings.get("inputs") == "correction")

@@ -65,7 +65,8 @@ BUDGET_RTOL = 1.0e-10
 #: ``budget_loads``: load corrections at most
 BUDGET_CORRECTIONS = 30
 #: ``max_iterations``: a step past its ``iterations`` stops once a Newton update moves no DOF by
-#: more than this share of the step's largest displacement (the data's FE: residual rtol 1e-8)
+#: more than this share of the step's largest displacement (the default of ``newton_rtol``,
+#: ``model.prior_newton_rtol``; the data's FE: residual rtol 1e-8)
 NEWTON_RTOL = 1.0e-8
 #: ... or by less than this [m] (a body at rest, where the displacement gives no scale)
 NEWTON_ATOL = 1.0e-14
@@ -166,20 +167,23 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
 
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
                  lam: float, mu: float, law: NeoHookean | Ogden, iterations: int = 1,
-                 max_iterations: Optional[int] = None, dtype: torch.dtype = torch.float64) -> None:
+                 max_iterations: Optional[int] = None, newton_rtol: float = NEWTON_RTOL,
+                 dtype: torch.dtype = torch.float64) -> None:
         if not isinstance(law, (NeoHookean, Ogden)):
             raise ValueError(f"the law prior steps a NeoHookean or Ogden law, not {law!r}")
         if int(iterations) < 1:
             raise ValueError(f"the law prior's Newton iterations a step: {iterations!r}, expected >= 1")
+        if not float(newton_rtol) > 0.0:
+            raise ValueError(f"the law prior's Newton tolerance: {newton_rtol!r}, expected > 0")
         if max_iterations is not None and int(max_iterations) < int(iterations):
             raise ValueError(f"the law prior's most Newton iterations a step: {max_iterations!r}, expected >= "
                              f"its iterations ({iterations})")
         super().__init__(linear, n_nodes, dt, X, tets, lam, mu, sweeps=1, dtype=dtype, relax=bool(linear.prony))
         self.iterations = int(iterations)
         # past ``iterations``, more (up to this many) while the last update still moved the state
-        # by more than NEWTON_RTOL of its largest displacement (``step``); equal: a fixed budget
+        # by more than ``newton_rtol`` of its largest displacement (``step``); equal: a fixed budget
         self.max_iterations = int(max_iterations) if max_iterations is not None else self.iterations
-        self.newton_rtol, self.newton_atol = NEWTON_RTOL, NEWTON_ATOL
+        self.newton_rtol, self.newton_atol = float(newton_rtol), NEWTON_ATOL
         self.ogden = isinstance(law, Ogden)
         if isinstance(law, Ogden):
             self.ogden_mu, self.ogden_alpha, self.ogden_d = list(law.mu), list(law.alpha), list(law.d)
@@ -429,7 +433,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         """(u1, v1, a1, h1) as :meth:`NewmarkPrior.step`: ``iterations`` Newton iterations on
         R(u1) = 0 (module docstring) from the predictor u0 + Δt v0 (the first one
         ``first_iteration``'s), then, up to ``max_iterations`` in all, more while the last update
-        moved some DOF of the batch by more than NEWTON_RTOL of its largest displacement (and
+        moved some DOF of the batch by more than ``newton_rtol`` of its largest displacement (and
         NEWTON_ATOL): a step the budget does not converge (the shell's snap-through) takes the
         iterations it needs, the others cost nothing more than the check."""
         # what R takes from outside the step's start: loads and remainders
@@ -463,7 +467,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         return u1, v1, a1, self.relax_from(S_iso0, u1, h0)
 
     def moves(self, update: Tensor, u: Tensor) -> bool:
-        """Whether a Newton update [B, n] m still moved some DOF by more than NEWTON_RTOL of the
+        """Whether a Newton update [B, n] m still moved some DOF by more than ``newton_rtol`` of the
         largest displacement u [B, n] m of its sample (and more than NEWTON_ATOL)."""
         scale = self.newton_rtol * u.abs().amax(1) + self.newton_atol                     # [B] m
         return bool((update.abs().amax(1) > scale).any())
