@@ -1264,6 +1264,10 @@ def test_law_prior_iterates_past_its_budget_until_the_step_converges():
     short = make(1, 2)                                                    # 2 at most: not converged, counted
     _prior_rollout(short, u, v, f, G0, None)
     assert short.newton_taken.tolist()[2] > 0
+    from thermognn.train.evaluation import newton_sentence
+    assert newton_sentence(1, 8, 42, 10, 0) == ("the law prior took 4.20 Newton iterations a step (1 at least, 8 at "
+                                                "most, over 10 prior steps)")
+    assert "; 3 steps had not converged after 8: those rollouts are not the law's" in newton_sentence(1, 8, 60, 10, 3)
     same = make(1, 1)
     assert torch.equal(_prior_rollout(same, u, v, f, G0, None)[1], V1)   # most = budget: the fixed budget
     rest = make(2, 8)                                                     # at rest nothing moves: 2 iterations
@@ -1279,8 +1283,8 @@ def test_law_prior_iterates_past_its_budget_until_the_step_converges():
 
     cfg = {"prior": "linear", "prior_law": True, "prior_newton": 2}
     settings = prior_settings(OmegaConf.create({**cfg, "prior_newton_max": 6}))
-    assert settings["law"] == 2 and settings["law_max"] == 6
-    assert "law_max" not in prior_settings(OmegaConf.create({**cfg, "prior_newton_max": 2}))
+    assert settings["law"] == 2 and settings["law_max"] == 6 and settings["law_rtol"] == 1e-8
+    assert "law_max" not in prior_settings(OmegaConf.create({**cfg, "prior_newton_max": 2}))   # = the budget
     assert "law_max" not in prior_settings(OmegaConf.create({**cfg, "prior_newton_max": None}))
     assert "(2 Newton iterations, up to 6 until converged to 1e-08)" in describe_step(model_step({"prior": settings}))
     loose = prior_settings(OmegaConf.create({**cfg, "prior_newton_max": 6, "prior_newton_rtol": 1e-4}))

@@ -102,7 +102,7 @@ def describe_step(step) -> str:
             iterations = int(step["law"])
             most = int(step.get("law_max", iterations))
             solid = (f"solid of the data's own law ({iterations} Newton iteration{'s' if iterations > 1 else ''}"
-                     + (f", up to {most} until converged to {float(step.get('law_rtol', 1e-8)):g}" if most > iterations
+                     + (f", up to {most} until converged to {float(step['law_rtol']):g}" if most > iterations
                         else "") + ")")
         return (f"the data's Newmark step of the {solid} with learned remainders"
                 + (" of second order" if second else "")

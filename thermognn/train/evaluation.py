@@ -190,8 +190,9 @@ def shortened_sentence(names: list[str], counts: list[int]) -> str:
 
 
 def newton_sentence(budget: int, most: int, taken: int, steps: int, unconverged: int) -> str:
-    """"the law prior took 4.21 Newton iterations a step (3 at least, 8 at most); ..." from its
-    ``newton_taken`` counts (iterations, prior steps, steps that spent the most and still moved)."""
+    """"the law prior took 4.21 Newton iterations a step (1 at least, 8 at most, over 1360 prior
+    steps)", and how many steps spent the most without converging where any did, from the law
+    prior's ``newton_taken`` counts (iterations, prior steps, such steps)."""
     text = (f"the law prior took {taken / max(steps, 1):.2f} Newton iterations a step ({budget} at least, {most} "
             f"at most, over {steps} prior steps)")
     if unconverged:

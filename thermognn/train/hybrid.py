@@ -486,10 +486,11 @@ def prior_settings(cfg_model) -> dict:
         settings["stress"] = "material"
     if law:                                       # the law prior's Newton iterations a step
         settings["law"] = int(newton)
-        if most is not None and most > newton:    # and the most, where the step has not converged
+        if most is not None and most > newton:    # and the most, where the step has not converged, to what
+            from .law_prior import NEWTON_RTOL
+
             settings["law_max"] = int(most)
-            if rtol is not None:
-                settings["law_rtol"] = float(rtol)
+            settings["law_rtol"] = float(NEWTON_RTOL if rtol is None else rtol)
     return settings
 
 
@@ -516,7 +517,7 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
     with ``relax``, or corotated per cell with ``corotated`` > 0 fixed-point sweeps a step
     (:class:`CorotatedNewmarkPrior`), its stress the material's law with ``material``, or with
     ``law`` > 0 the dataset's own hyperelastic law stepped with that many Newton iterations, and up
-    to ``law_max`` where a step has not converged to ``law_rtol`` (None: ``law_prior.NEWTON_RTOL``)
+    to ``law_max`` where a step has not converged to ``law_rtol`` (``prior_settings`` records both)
     (:class:`thermognn.train.law_prior.HyperelasticNewmarkPrior`);
     one-line errors where it cannot be."""
     names = list(ds.layout.names)
@@ -542,7 +543,7 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
         if law:
             from thermognn.core.hyperelastic import law_from_config
 
-            from .law_prior import NEWTON_RTOL, HyperelasticNewmarkPrior
+            from .law_prior import NEWTON_RTOL, HyperelasticNewmarkPrior   # (the default where law_max is None)
 
             if "law" not in ds.material:
                 raise DataError(f"{ds.path}: no scene.material in the dataset's config (model.prior_law = true)")
