@@ -543,7 +543,7 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
         if law:
             from thermognn.core.hyperelastic import law_from_config
 
-            from .law_prior import NEWTON_RTOL, HyperelasticNewmarkPrior   # (the default where law_max is None)
+            from .law_prior import HyperelasticNewmarkPrior
 
             if "law" not in ds.material:
                 raise DataError(f"{ds.path}: no scene.material in the dataset's config (model.prior_law = true)")
@@ -552,7 +552,7 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
                 raise ValueError(f"scene.material.prony {prony} is not /linear's {tuple(linear.prony)}")
             return HyperelasticNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                             solid_law, iterations=int(law), max_iterations=law_max,
-                                            newton_rtol=NEWTON_RTOL if law_rtol is None else float(law_rtol))
+                                            newton_rtol=law_rtol)
         if corotated:
             return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                          sweeps=int(corotated), neo_hookean=neo_hookean_of(ds) if material else None,

@@ -167,12 +167,13 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
 
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
                  lam: float, mu: float, law: NeoHookean | Ogden, iterations: int = 1,
-                 max_iterations: Optional[int] = None, newton_rtol: float = NEWTON_RTOL,
+                 max_iterations: Optional[int] = None, newton_rtol: Optional[float] = None,
                  dtype: torch.dtype = torch.float64) -> None:
         if not isinstance(law, (NeoHookean, Ogden)):
             raise ValueError(f"the law prior steps a NeoHookean or Ogden law, not {law!r}")
         if int(iterations) < 1:
             raise ValueError(f"the law prior's Newton iterations a step: {iterations!r}, expected >= 1")
+        newton_rtol = NEWTON_RTOL if newton_rtol is None else newton_rtol
         if not float(newton_rtol) > 0.0:
             raise ValueError(f"the law prior's Newton tolerance: {newton_rtol!r}, expected > 0")
         if max_iterations is not None and int(max_iterations) < int(iterations):
@@ -442,9 +443,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         fixed = loads + damping0
         w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
         taken = 1
-        moved = u1.detach() - u0.detach() - self.dt * v0.detach()        # the first update: from the predictor
+        last = u0.detach() + self.dt * v0.detach()          # where the last update started: the predictor
         for it in range(1, self.max_iterations):
-            if it >= self.iterations and not self.moves(moved, u1.detach()):
+            if it >= self.iterations and not self.moves(u1.detach() - last, u1.detach()):
                 break
             a1 = self.c0 * u1 - predictor
             v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
@@ -456,10 +457,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             u1 = self.admissible(u1, self.solve(self.tangent_pairs(F.detach(), w_iso, w_vol,
                                                                    None if extra is None else extra.detach()),
                                                 residual))
-            moved = u1.detach() - last
             taken += 1
         unconverged = int(self.max_iterations > self.iterations and taken == self.max_iterations
-                          and self.moves(moved, u1.detach()))
+                          and self.moves(u1.detach() - last, u1.detach()))
         self.newton_taken.add_(torch.tensor([taken, 1, unconverged], dtype=torch.int64,
                                             device=self.newton_taken.device))
         a1 = self.c0 * u1 - predictor
