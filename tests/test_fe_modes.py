@@ -1254,9 +1254,9 @@ def test_law_prior_iterates_past_its_budget_until_the_step_converges():
     U, V, Sig = _prior_rollout(adaptive, u, v, f, G0, None)
     assert rel(V1, v) > 1e-4                                              # one iteration a step: not the FE's
     assert rel(U, u) < 1e-11 and rel(V, v) < 1e-10 and rel(Sig, sigma) < 1e-10
-    taken, steps, unconverged = adaptive.newton_taken.tolist()
-    assert steps == len(f) - 1 and steps < taken < 8 * steps and unconverged == 0
-    assert fixed.newton_taken.tolist() == [len(f) - 1, len(f) - 1, 0]
+    taken, steps, unconverged, cut = adaptive.newton_taken.tolist()
+    assert steps == len(f) - 1 and steps < taken < 8 * steps and unconverged == 0 and cut == 0
+    assert fixed.newton_taken.tolist() == [len(f) - 1, len(f) - 1, 0, 0]
     looser = HyperelasticNewmarkPrior(linear, len(X), dt, X, tets, lam, mu, law_from_config(material)[0],
                                       iterations=1, max_iterations=8, newton_rtol=1e-3)
     V3 = _prior_rollout(looser, u, v, f, G0, None)[1]                     # a looser tolerance: fewer, less exact
@@ -1266,7 +1266,7 @@ def test_law_prior_iterates_past_its_budget_until_the_step_converges():
     assert short.newton_taken.tolist()[2] > 0
     from thermognn.train.evaluation import newton_sentence
     assert newton_sentence(1, 8, 42, 10, 0) == ("the law prior took 4.20 Newton iterations a step (1 at least, 8 at "
-                                                "most, over 10 prior steps)")
+                                                "most a solve, over 10 prior steps)")
     assert "; 3 steps had not converged after 8: those rollouts are not the law's" in newton_sentence(1, 8, 60, 10, 3)
     same = make(1, 1)
     assert torch.equal(_prior_rollout(same, u, v, f, G0, None)[1], V1)   # most = budget: the fixed budget
@@ -1275,7 +1275,7 @@ def test_law_prior_iterates_past_its_budget_until_the_step_converges():
     zero = torch.zeros(1, n, dtype=torch.float64)
     h = rest.internal_variables(zero)
     rest.step(zero, zero, zero, zero, zero, zero, h)
-    assert rest.newton_taken.tolist() == [2, 1, 0]
+    assert rest.newton_taken.tolist() == [2, 1, 0, 0]
     e_fixed, _ = make(2).budget_loads(fixed.gather(u), fixed.gather(v), fixed.gather(f))
     e_most, _ = make(2, 8).budget_loads(fixed.gather(u), fixed.gather(v), fixed.gather(f))
     assert torch.equal(e_fixed, e_most)                                  # a fixed budget's misses
@@ -1297,6 +1297,86 @@ def test_law_prior_iterates_past_its_budget_until_the_step_converges():
         prior_settings(OmegaConf.create({**cfg, "prior_newton_max": 1}))
     with pytest.raises(ValueError, match="most Newton iterations a step: 1, expected >= its iterations"):
         make(2, 1)
+
+
+def test_law_prior_cuts_a_step_that_has_not_converged_into_the_fe_s_half_steps():
+    """``model.prior_step_cuts`` (``HyperelasticNewmarkPrior(step_cuts=...)``) on the FE solid's own
+    data (the damped 1 N bend, viscous Ogden): a step still not converged after its most
+    iterations is stepped again from its start as two halves, down to Δt / 2^cuts, as the FE
+    cuts its steps. Told to converge to round-off in 2 iterations it never does, so every step is
+    cut to the floor: it is then, to round-off, two steps of the prior built for Δt/2 (its Newmark
+    constants and Prony decays) under the step's end load, with the remainders G interpolated
+    linearly over the step, and ``newton_taken`` counts the cuts. Steps that converge are never
+    cut (the same rollout as without). A LinearPriorModel on it steps its carried state as its
+    rollouts, scripted too; the config records it and names what it cannot be."""
+    torch = pytest.importorskip("torch")
+    from omegaconf import OmegaConf
+
+    from thermognn.core.errors import ConfigError
+    from thermognn.core.hyperelastic import law_from_config
+    from thermognn.core.state import describe_step
+    from thermognn.train.checkpoint import model_step
+    from thermognn.train.evaluation import newton_sentence
+    from thermognn.train.hybrid import prior_settings
+    from thermognn.train.law_prior import HyperelasticNewmarkPrior
+
+    law, prony = ("ogden", {"mu": [2.0e4], "alpha": [8.0], "D": [1.0e-5]}), ((0.4, 4e-3),)
+    graph = _bent_block_graph(steps=8, prony=prony, law=law)
+    layout, traj, dt, X, linear, node_type, edges, z, f = graph
+    tets = _bent_block(1.0, "newmark", steps=2, prony=prony, law=law)[0].cells[:, :4]
+    material = {"law": law[0], **law[1], "prony": [{"g": g, "tau": t} for g, t in prony]}
+    lam, mu = linear.lame()
+    make = lambda step, most, rtol=None, cuts=0: HyperelasticNewmarkPrior(  # noqa: E731
+        linear, len(X), step, X, tets, lam, mu, law_from_config(material)[0], iterations=1,
+        max_iterations=most, newton_rtol=rtol, step_cuts=cuts)
+    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
+    u, v = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6]
+    n = int(linear.free.sum())
+    # remainders that change over the rollout, ~1e-3 of the loads
+    G = 1e-3 * float(f.abs().max()) * torch.randn(len(f), n, dtype=torch.float64,
+                                                   generator=torch.Generator().manual_seed(1))
+    never = 1e-300                                      # no update is that small: 2 iterations never converge
+    cut, half = make(dt, 2, never, cuts=1), make(dt / 2, 2, never)
+    U, V, _ = _prior_rollout(cut, u, v, f, G, None)
+    # (measured 6.0 %: the bend's load ramps over its 8 steps, and every step cut here holds it at its end)
+    assert torch.isfinite(U).all() and rel(V, v) < 0.1
+    uf, vf = half.gather(u[:1]), half.gather(v[:1])
+    h = half.internal_variables(uf)
+    a = half.initial_acceleration(uf, vf, half.gather(f[:1]), G[:1])
+    assert rel(a, cut.initial_acceleration(uf, vf, cut.gather(f[:1]), G[:1])) < 1e-12   # (dt-free)
+    us, vs = [uf], [vf]
+    for k in range(1, len(f)):
+        f1, Gm = half.gather(f[k:k + 1]), 0.5 * (G[k - 1:k] + G[k:k + 1])
+        uf, vf, a, h = half.step(uf, vf, a, f1, G[k - 1:k], Gm, h)
+        uf, vf, a, h = half.step(uf, vf, a, f1, Gm, G[k:k + 1], h)
+        us, vs = us + [uf], vs + [vf]
+    assert rel(U, half.scatter(torch.cat(us))) < 1e-10 and rel(V, half.scatter(torch.cat(vs))) < 1e-9
+    steps = len(f) - 1
+    # each step: the full step's 2, then the two halves' 2 each; none converged at the floor
+    assert cut.newton_taken.tolist() == [6 * steps, steps, steps, steps]
+    assert cut.dt == dt and cut.c0 == make(dt, 2).c0                  # the step's own constants put back
+    # steps that converge are never cut: the rollout without cuts, to the bit
+    plain, cutting = make(dt, 8), make(dt, 8, cuts=4)
+    assert torch.equal(_prior_rollout(plain, u, v, f, G, None)[1], _prior_rollout(cutting, u, v, f, G, None)[1])
+    assert cutting.newton_taken.tolist()[3] == 0
+    _carried_steps_follow_rollouts(make(dt, 2, never, cuts=2), graph, width=len(prony) * cut.cell_columns)
+
+    sentence = newton_sentence(1, 2, 6 * steps, steps, steps, steps, step_cuts=1)
+    assert f"; it cut {steps} steps that had not converged after 2 into sub-steps (down to Δt/2)" in sentence
+    assert f"; {steps} steps had not converged after 2 (at Δt/2): those rollouts are not the law's" in sentence
+    cfg = {"prior": "linear", "prior_law": True, "prior_newton": 1, "prior_newton_max": 8}
+    settings = prior_settings(OmegaConf.create({**cfg, "prior_step_cuts": 4}))
+    assert settings["law_cuts"] == 4 and model_step({"prior": settings})["law_cuts"] == 4
+    assert ", halved down to Δt/16 where not)" in describe_step(model_step({"prior": settings}))
+    assert "law_cuts" not in prior_settings(OmegaConf.create({**cfg, "prior_step_cuts": 0}))
+    assert "law_cuts" not in prior_settings(OmegaConf.create(cfg))
+    with pytest.raises(ConfigError, match=r"model.prior_step_cuts = 5, expected an integer 0 to 4"):
+        prior_settings(OmegaConf.create({**cfg, "prior_step_cuts": 5}))
+    with pytest.raises(ConfigError, match=r"model.prior_step_cuts = 2 needs model.prior_law = true and "
+                                          r"model.prior_newton_max > model.prior_newton"):
+        prior_settings(OmegaConf.create({**cfg, "prior_newton_max": 1, "prior_step_cuts": 2}))
+    with pytest.raises(ValueError, match="the law prior's step cuts: 1, expected 0 to 4, and more than 0 only with"):
+        make(dt, 1, cuts=1)
 
 
 def test_correction_inputs_are_what_the_budgeted_step_moved_from_its_predictor():

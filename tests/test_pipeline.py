@@ -498,7 +498,8 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
     through the Newton step's solves), evaluate (its whole rollouts nearer the data than the
     linearised FE model's, and at the linearly implicit FE model's, which it is with the remainders
     at zero) and export (scripted against eager); the same with the budget fit, and with more
-    iterations where a step has not converged (``model.prior_newton_max``)."""
+    iterations where a step has not converged (``model.prior_newton_max``, and cut into sub-steps where
+    it still has not: ``model.prior_step_cuts``)."""
     from thermognn.export.exporter import verify
     from thermognn.train.checkpoint import load_checkpoint
 
@@ -547,7 +548,8 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
     # iteration's); exported too. The budget fit learns what a fixed budget leaves: refused with it
     most = tmp_path / "most"
     _train_prior(most, tiny_block, "model.prior_law=true", "model.prior_newton=1", "model.prior_newton_max=4",
-                 "train.epochs=1", "train.rollout_epochs=0")
+                 "model.prior_step_cuts=4", "train.epochs=1", "train.rollout_epochs=0")
+    assert load_checkpoint(most / "model.ckpt")["prior"]["law_cuts"] == 4         # (no step here needs a cut)
     for stage in ("evaluate", "export"):
         res = subprocess.run([sys.executable, "-m", "thermognn.cli", stage, f"out={most}", f"paths.dataset={tiny_block}",
                               "train.eval_max_train=1", "train.threads=1"], capture_output=True, text=True, timeout=600)
@@ -557,6 +559,7 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
                 res.stdout[-2000:]
     converged = json.loads((most / "eval" / "rrmse.json").read_text())
     assert 1.0 < converged["newton_iterations_per_step"] <= 4.0 and converged["unconverged_steps"] == 0
+    assert converged["cut_steps"] == 0
     for g in ("q", "v", "sigma"):
         assert converged[f"whole_{g}"] < 0.5 * converged[f"newton1_fe_whole_{g}"], (g, converged)
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'most_budget'}",

@@ -103,7 +103,9 @@ def describe_step(step) -> str:
             most = int(step.get("law_max", iterations))
             solid = (f"solid of the data's own law ({iterations} Newton iteration{'s' if iterations > 1 else ''}"
                      + (f", up to {most} until converged to {float(step['law_rtol']):g}" if most > iterations
-                        else "") + ")")
+                        else "")
+                     + (f", halved down to Δt/{2 ** int(step['law_cuts'])} where not" if step.get("law_cuts") else "")
+                     + ")")
         return (f"the data's Newmark step of the {solid} with learned remainders"
                 + (" of second order" if second else "")
                 + f" ({calls} network call{'s' if calls > 1 else ''} a step"

@@ -160,7 +160,8 @@ def model_step(ckpt: dict) -> dict:
     "prior": "linear", "sweeps": network calls per step, "kinematics": "exact"} (and "order": 2
     for second-order remainders, "corotated": the rotation sweeps of a corotated prior, "stress":
     "material" where its stress is the material's law, "law": the Newton iterations a step of the
-    law prior, "law_max": the most it takes where a step has not converged, "law_rtol": to what)."""
+    law prior, "law_max": the most it takes where a step has not converged, "law_rtol": to what,
+    "law_cuts": how many times a step that still has not is halved)."""
     from .model import step_settings
 
     prior = ckpt.get("prior")
@@ -172,5 +173,6 @@ def model_step(ckpt: dict) -> dict:
                 **({"stress": "material"} if prior.get("stress") == "material" else {}),
                 **({"law": int(prior["law"])} if prior.get("law") else {}),
                 **({"law_max": int(prior["law_max"])} if prior.get("law_max") else {}),
-                **({"law_rtol": float(prior["law_rtol"])} if prior.get("law_rtol") else {})}
+                **({"law_rtol": float(prior["law_rtol"])} if prior.get("law_rtol") else {}),
+                **({"law_cuts": int(prior["law_cuts"])} if prior.get("law_cuts") else {})}
     return step_settings(ckpt.get("hparams", {}))

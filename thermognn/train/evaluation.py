@@ -189,15 +189,22 @@ def shortened_sentence(names: list[str], counts: list[int]) -> str:
             "are not the law's")
 
 
-def newton_sentence(budget: int, most: int, taken: int, steps: int, unconverged: int) -> str:
-    """"the law prior took 4.21 Newton iterations a step (1 at least, 8 at most, over 1360 prior
-    steps)", and how many steps spent the most without converging where any did, from the law
-    prior's ``newton_taken`` counts (iterations, prior steps, such steps)."""
+def newton_sentence(budget: int, most: int, taken: int, steps: int, unconverged: int, cut: int = 0,
+                    step_cuts: int = 0) -> str:
+    """"the law prior took 4.21 Newton iterations a step (1 at least, 8 at most a solve, over 1360
+    prior steps)", how many steps it cut into sub-steps (``model.prior_step_cuts``; their tries'
+    iterations included), and how many spent the most without converging where any did, from the
+    law prior's ``newton_taken`` counts (iterations, prior steps, such steps, cut steps)."""
     text = (f"the law prior took {taken / max(steps, 1):.2f} Newton iterations a step ({budget} at least, {most} "
-            f"at most, over {steps} prior steps)")
+            f"at most a solve, over {steps} prior steps)")
+    if cut:
+        text += (f"; it cut {cut} step{'s' if cut > 1 else ''} that had not converged after {most} into "
+                 f"sub-steps (down to Δt/{2 ** step_cuts}), their tries' iterations included")
     if unconverged:
-        text += (f"; {unconverged} step{'s' if unconverged > 1 else ''} had not converged after {most}: those "
-                 f"rollouts are not the law's (where the FE itself cut a step, no number of full steps converges)")
+        where = f" (at Δt/{2 ** step_cuts})" if step_cuts else ""
+        text += (f"; {unconverged} step{'s' if unconverged > 1 else ''} had not converged after {most}{where}: those "
+                 f"rollouts are not the law's" + ("" if step_cuts else " (where the FE itself cut a step, no number "
+                                                 "of full steps converges: model.prior_step_cuts)"))
     return text
 
 
@@ -597,7 +604,8 @@ def evaluate(cfg) -> dict:
     "newton1_fe_ms_per_step" (``linear_baseline(newton=1)``), and for
     datasets that record their FE solve's cost "fe_ms_per_step", "fe_iterations_per_step"
     (``Dataset.fe_cost``), for a law prior with ``model.prior_newton_max`` its test rollouts'
-    "newton_iterations_per_step" and "unconverged_steps" (:func:`newton_sentence`), and for a law prior whose rollouts shortened Newton updates
+    "newton_iterations_per_step" and "unconverged_steps" (and with ``model.prior_step_cuts``
+    "cut_steps"; :func:`newton_sentence`), and for a law prior whose rollouts shortened Newton updates
     "shortened_updates" (their number over the test rollouts, :func:`shortened_updates`), and
     where test trajectories repeat training ones up to a mirror of the mesh "test_repeats_train"
     (their number, :func:`repeated_cases`), and for a stress readout that ``train`` checked on
@@ -633,7 +641,7 @@ def evaluate(cfg) -> dict:
     if newton is not None:
         newton.zero_()
     preds, per_step, per_traj, ms, shortened = _rollouts(model, data, test)
-    newton_test = newton.tolist() if newton is not None else None          # [iterations, steps, unconverged]
+    newton_test = newton.tolist() if newton is not None else None          # [iterations, steps, unconverged, cut]
     preds_train, _, per_traj_train, _, _ = _rollouts(model, data, train_trajs)
     mean_test, mean_train = _mean_groups(per_traj, groups), _mean_groups(per_traj_train, groups)
     whole_traj = [trajectory_error(p, t.z, data.layout) for p, t in zip(preds, test)]
@@ -851,7 +859,9 @@ def evaluate(cfg) -> dict:
     if newton_test is not None and model.prior.max_iterations > model.prior.iterations:
         mean_test["newton_iterations_per_step"] = newton_test[0] / max(newton_test[1], 1)
         mean_test["unconverged_steps"] = float(newton_test[2])
-        print(f"evaluate: {newton_sentence(model.prior.iterations, model.prior.max_iterations, *newton_test)} (test)")
+        if model.prior.step_cuts:
+            mean_test["cut_steps"] = float(newton_test[3])
+        print(f"evaluate: {newton_sentence(model.prior.iterations, model.prior.max_iterations, *newton_test, step_cuts=model.prior.step_cuts)} (test)")
     if any(shortened):
         mean_test["shortened_updates"] = float(sum(shortened))
         print(f"evaluate: {shortened_sentence([t.name for t in test], shortened)} (test)")

@@ -470,6 +470,15 @@ def prior_settings(cfg_model) -> dict:
     if rtol is not None and not (most is not None and most > newton):
         raise ConfigError(f"model.prior_newton_rtol = {rtol!r} needs model.prior_newton_max > model.prior_newton "
                           f"(= {newton}): with a fixed budget no step stops early")
+    cuts = OmegaConf.select(cfg_model, "prior_step_cuts", default=0)
+    if cuts is None:
+        cuts = 0
+    if isinstance(cuts, bool) or not isinstance(cuts, int) or not 0 <= cuts <= 4:
+        raise ConfigError(f"model.prior_step_cuts = {cuts!r}, expected an integer 0 to 4 (how many times the law "
+                          f"prior halves a step that has not converged: down to Δt/2^k, the FE's own floor Δt/16)")
+    if cuts and not (law and most is not None and most > newton):
+        raise ConfigError(f"model.prior_step_cuts = {cuts} needs model.prior_law = true and model.prior_newton_max > "
+                          f"model.prior_newton (= {newton}): only then can a step tell it has not converged")
     if law and (corotated or stress == "material"):
         raise ConfigError("model.prior_law = true steps the dataset's own law (its stress and Prony history "
                           "included): set model.prior_corotated=false and model.prior_stress=linear")
@@ -491,6 +500,8 @@ def prior_settings(cfg_model) -> dict:
 
             settings["law_max"] = int(most)
             settings["law_rtol"] = float(NEWTON_RTOL if rtol is None else rtol)
+            if cuts:                              # and how often a step that has not is halved
+                settings["law_cuts"] = int(cuts)
     return settings
 
 
@@ -512,12 +523,14 @@ def neo_hookean_of(ds) -> Tuple[float, float]:
 
 
 def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material: bool = False,
-                law: int = 0, law_max: Optional[int] = None, law_rtol: Optional[float] = None) -> NewmarkPrior:
+                law: int = 0, law_max: Optional[int] = None, law_rtol: Optional[float] = None,
+                law_cuts: int = 0) -> NewmarkPrior:
     """The dataset's ``/linear`` as a NewmarkPrior (float64), relaxing as its viscous solid does
     with ``relax``, or corotated per cell with ``corotated`` > 0 fixed-point sweeps a step
     (:class:`CorotatedNewmarkPrior`), its stress the material's law with ``material``, or with
     ``law`` > 0 the dataset's own hyperelastic law stepped with that many Newton iterations, and up
-    to ``law_max`` where a step has not converged to ``law_rtol`` (``prior_settings`` records both)
+    to ``law_max`` where a step has not converged to ``law_rtol``, halved up to ``law_cuts`` times
+    where it still has not (``prior_settings`` records them)
     (:class:`thermognn.train.law_prior.HyperelasticNewmarkPrior`);
     one-line errors where it cannot be."""
     names = list(ds.layout.names)
@@ -552,7 +565,7 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
                 raise ValueError(f"scene.material.prony {prony} is not /linear's {tuple(linear.prony)}")
             return HyperelasticNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                             solid_law, iterations=int(law), max_iterations=law_max,
-                                            newton_rtol=law_rtol)
+                                            newton_rtol=law_rtol, step_cuts=int(law_cuts))
         if corotated:
             return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                          sweeps=int(corotated), neo_hookean=neo_hookean_of(ds) if material else None,
@@ -569,7 +582,7 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
                                              int(settings.get("corotated", 0)),
                                              settings.get("stress", "linear") == "material",
                                              int(settings.get("law", 0)), settings.get("law_max"),
-                                             settings.get("law_rtol")), X,
+                                             settings.get("law_rtol"), int(settings.get("law_cuts", 0))), X,
                             bool(settings.get("positions_only", True)),
                             int(settings.get("sweeps", 1)), int(settings.get("order", 1)),
                             settings.get("inputs") == "correction")

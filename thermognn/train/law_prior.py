@@ -70,6 +70,9 @@ BUDGET_CORRECTIONS = 30
 NEWTON_RTOL = 1.0e-8
 #: ... or by less than this [m] (a body at rest, where the displacement gives no scale)
 NEWTON_ATOL = 1.0e-14
+#: ``step_cuts``: the FE's own floor of a cut step (``thermognn.generate.solid``'s
+#: ``min_step_fraction`` 1/16): a step is halved at most this many times
+MAX_STEP_CUTS = 4
 #: ``budget_loads``: corrections in a row that do not lower the miss before it gives up (the
 #: shell's snap-through at 2 iterations a step: no load lands the step, docs/accuracy.md session 69)
 BUDGET_STALLED = 3
@@ -168,7 +171,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
                  lam: float, mu: float, law: NeoHookean | Ogden, iterations: int = 1,
                  max_iterations: Optional[int] = None, newton_rtol: Optional[float] = None,
-                 dtype: torch.dtype = torch.float64) -> None:
+                 step_cuts: int = 0, dtype: torch.dtype = torch.float64) -> None:
         if not isinstance(law, (NeoHookean, Ogden)):
             raise ValueError(f"the law prior steps a NeoHookean or Ogden law, not {law!r}")
         if int(iterations) < 1:
@@ -179,6 +182,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         if max_iterations is not None and int(max_iterations) < int(iterations):
             raise ValueError(f"the law prior's most Newton iterations a step: {max_iterations!r}, expected >= "
                              f"its iterations ({iterations})")
+        if not 0 <= int(step_cuts) <= MAX_STEP_CUTS or (int(step_cuts) > 0 and not (
+                max_iterations is not None and int(max_iterations) > int(iterations))):
+            raise ValueError(f"the law prior's step cuts: {step_cuts!r}, expected 0 to {MAX_STEP_CUTS}, and more "
+                             f"than 0 only with max_iterations > iterations (a step it can tell has not converged)")
         super().__init__(linear, n_nodes, dt, X, tets, lam, mu, sweeps=1, dtype=dtype, relax=bool(linear.prony))
         self.iterations = int(iterations)
         # past ``iterations``, more (up to this many) while the last update still moved the state
@@ -194,6 +201,24 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             self.c10, self.d1 = law.c10, law.d1
         # S_iso's weight in a relaxing step: g∞ + Σ ḡ_i w_i (1 elastic)
         self.iso_weight = 1.0 - self._shrink()
+        # a step that has not converged after ``max_iterations`` is stepped again as two halves, each
+        # cut again where it does not converge, down to Δt / 2^step_cuts (``step``), as the FE cuts
+        # its steps (``thermognn.generate.solid``): per level k (a sub-step Δt / 2^k) the constants
+        # that depend on Δt, which ``use_level`` puts in place (level 0: the step's own, to the bit)
+        self.step_cuts = int(step_cuts)
+        alpha_m, beta_k = (float(r) for r in linear.rayleigh)
+        # per level [Δt s, c, c0, mass_factor, iso_weight]
+        self.level_constants: List[List[float]] = [[self.dt, self.c, self.c0, self.mass_factor, self.iso_weight]]
+        decay, increment = [self.prony_decay], [self.prony_increment]                      # [T_p] each
+        for k in range(1, self.step_cuts + 1):
+            h = self.dt / 2 ** k
+            terms = linear.relaxation(h) if self.n_terms else []          # [(ḡ_i, d_i, w_i)]
+            self.level_constants.append([h, beta_k / h, 1.0 / (self.beta * h**2), 1.0 + alpha_m * self.gamma * h,
+                                         1.0 - sum(g * (1.0 - w) for g, _, w in terms)])
+            decay.append(torch.tensor([d for _, d, _ in terms], dtype=torch.float64).to(dtype))
+            increment.append(torch.tensor([w for _, _, w in terms], dtype=torch.float64).to(dtype))
+        self.register_buffer("level_decay", torch.stack(decay), persistent=False)             # [levels, T_p]
+        self.register_buffer("level_increment", torch.stack(increment), persistent=False)     # [levels, T_p]
         self.fd_step = FD_STEP
         self.j_floor, self.max_halvings = J_FLOOR, MAX_HALVINGS
         # the nine unit directions E_kl, ±FD_STEP: [18, 1, 1, 3, 3] (F [B, T, 3, 3] + each)
@@ -213,10 +238,11 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         # how many updates ``admissible`` has shortened (samples x updates), since it was last zeroed:
         # where the budget does not hold a step (evaluate names such rollouts)
         self.register_buffer("shortened", torch.zeros((), dtype=torch.int64), persistent=False)
-        # since they were last zeroed: the Newton iterations taken (a batch's step counts once), the
-        # steps taken, and the steps that spent ``max_iterations`` > ``iterations`` and still moved:
-        # what the most spent, and where it did not converge (evaluate reports them)
-        self.register_buffer("newton_taken", torch.zeros(3, dtype=torch.int64), persistent=False)
+        # since they were last zeroed: the Newton iterations taken (a batch's step counts once, its
+        # sub-steps' all), the steps taken, the steps that spent ``max_iterations`` > ``iterations``
+        # and still moved (cut: at Δt / 2^step_cuts), and the steps cut into sub-steps: what the
+        # most spent, and where it did not converge (evaluate reports them)
+        self.register_buffer("newton_taken", torch.zeros(4, dtype=torch.int64), persistent=False)
 
     # --- the law per cell -----------------------------------------------------------------------
     def pk2(self, F: Tensor) -> Tuple[Tensor, Tensor]:
@@ -305,8 +331,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
 
     def require_finite(self, residual: Tensor) -> None:
         """Raise where a residual [B, n] N is not finite (a cell inverted, or the remainders blew
-        up): the message training and validation catch (``prior.DIVERGED``)."""
+        up): the message training and validation catch (``prior.DIVERGED``); a sub-step's
+        constants are put back first (``use_level``)."""
         if not bool(torch.isfinite(residual).all()):
+            self.use_level(0)
             raise RuntimeError("law prior: a non-finite state (a cell inverted, or the remainders diverged)")
 
     # --- the step -------------------------------------------------------------------------------
@@ -429,18 +457,20 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             extra_kept = self.memo_extra
         return self.admissible(self.memo_u1, du), self.memo_predictor, self.memo_S_iso0, extra_kept, self.memo_damping0
 
-    def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
-             G1: Tensor, h0: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
-        """(u1, v1, a1, h1) as :meth:`NewmarkPrior.step`: ``iterations`` Newton iterations on
-        R(u1) = 0 (module docstring) from the predictor u0 + Δt v0 (the first one
-        ``first_iteration``'s), then, up to ``max_iterations`` in all, more while the last update
-        moved some DOF of the batch by more than ``newton_rtol`` of its largest displacement (and
-        NEWTON_ATOL): a step the budget does not converge (the shell's snap-through) takes the
-        iterations it needs, the others cost nothing more than the check."""
-        # what R takes from outside the step's start: loads and remainders
-        loads = f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0                  # [B, n] N
-        u1, predictor, S_iso0, extra, damping0 = self.first_iteration(u0, v0, a0, h0, loads)
-        fixed = loads + damping0
+    def use_level(self, level: int) -> None:
+        """Put in place the constants of a sub-step Δt / 2^level (``level_constants``; 0: the step's
+        own): Δt, c = βK / Δt, c0, the mass factor, S_iso's weight and the Prony decays and weights."""
+        k = self.level_constants[level]
+        self.dt, self.c, self.c0, self.mass_factor, self.iso_weight = k[0], k[1], k[2], k[3], k[4]
+        self.prony_decay, self.prony_increment = self.level_decay[level], self.level_increment[level]
+
+    def iterate(self, u1: Tensor, u0: Tensor, v0: Tensor, a0: Tensor, predictor: Tensor, extra: Optional[Tensor],
+                fixed: Tensor) -> Tuple[Tensor, int, bool]:
+        """(u1 [B, n] m, the Newton iterations taken in all, whether it converged) after a step's
+        first iteration u1 from (u0, v0, a0 [B, n]) with ``step_start``'s predictor and history
+        stress ``extra``, ``fixed`` = its loads + c f_el(u0) [B, n] N: ``iterations`` in all, then up
+        to ``max_iterations`` while the last update moved some DOF by more than ``newton_rtol`` of
+        the largest displacement. A fixed budget always counts as converged."""
         w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
         taken = 1
         last = u0.detach() + self.dt * v0.detach()          # where the last update started: the predictor
@@ -458,13 +488,71 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                                                                    None if extra is None else extra.detach()),
                                                 residual))
             taken += 1
-        unconverged = int(self.max_iterations > self.iterations and taken == self.max_iterations
-                          and self.moves(u1.detach() - last, u1.detach()))
-        self.newton_taken.add_(torch.tensor([taken, 1, unconverged], dtype=torch.int64,
+        converged = not (self.max_iterations > self.iterations and taken == self.max_iterations
+                         and self.moves(u1.detach() - last, u1.detach()))
+        return u1, taken, converged
+
+    def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
+             G1: Tensor, h0: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(u1, v1, a1, h1) as :meth:`NewmarkPrior.step`: ``iterations`` Newton iterations on
+        R(u1) = 0 (module docstring) from the predictor u0 + Δt v0 (the first one
+        ``first_iteration``'s), then, up to ``max_iterations`` in all, more while the last update
+        moved some DOF of the batch by more than ``newton_rtol`` of its largest displacement (and
+        NEWTON_ATOL): a step the budget does not converge (the shell's snap-through) takes the
+        iterations it needs, the others cost nothing more than the check.
+
+        With ``step_cuts`` > 0 a step that still has not converged is stepped again from its start
+        as the FE steps it (``thermognn.generate.solid``'s ``step``): as two halves, each cut
+        again where it does not converge, down to Δt / 2^step_cuts, whose last try is kept. A
+        sub-step holds the step's end loads f1 (the FE's loads at the sub-step's end: the same
+        where they are constant over the step, as after a ramp) and remainders interpolated
+        linearly from G0 to G1."""
+        self.use_level(0)                   # (a step an error left mid-way does not leave its constants)
+        # what R takes from outside the step's start: loads and remainders
+        loads = f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0                  # [B, n] N
+        u1, predictor, S_iso0, extra, damping0 = self.first_iteration(u0, v0, a0, h0, loads)
+        u1, taken, converged = self.iterate(u1, u0, v0, a0, predictor, extra, loads + damping0)
+        if converged or self.step_cuts == 0:
+            a1 = self.c0 * u1 - predictor
+            v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
+            self.count_step(taken, int(not converged), 0)
+            return u1, v1, a1, self.relax_from(S_iso0, u1, h0)
+        u, v, a, h = u0, v0, a0, h0
+        pending: List[int] = [1, 1]          # the sub-steps still to take, in order, by level
+        done = 0.0                           # how much of Δt they have taken
+        unconverged = 0
+        while len(pending) > 0:
+            level = pending[0]
+            part = 0.5 ** level
+            self.use_level(level)
+            Gs, Ge = G0 + done * (G1 - G0), G0 + (done + part) * (G1 - G0)                 # [B, n] N
+            sub_loads = f1 + self.body_force + (1.0 + self.c) * Ge - self.c * Gs
+            predictor, S_iso0, extra, damping0, u1, internal, pairs = self.step_start(u, v, a, h)
+            residual = internal - sub_loads
+            self.require_finite(residual)
+            u1 = self.admissible(u1, self.solve(pairs, residual))
+            u1, t, converged = self.iterate(u1, u, v, a, predictor, extra, sub_loads + damping0)
+            taken += t
+            if converged or level == self.step_cuts:         # taken: the next sub-step starts here
+                a1 = self.c0 * u1 - predictor
+                v = v + self.dt * ((1.0 - self.gamma) * a + self.gamma * a1)
+                h = self.relax_from(S_iso0, u1, h)
+                u, a = u1, a1
+                done += part
+                unconverged = max(unconverged, int(not converged))
+                pending.pop(0)
+            else:                                            # cut: two halves in its place
+                pending[0] = level + 1
+                pending.insert(0, level + 1)
+        self.use_level(0)
+        self.count_step(taken, unconverged, 1)
+        return u, v, a, h
+
+    def count_step(self, taken: int, unconverged: int, cut: int) -> None:
+        """Add a step to ``newton_taken``: its Newton iterations, whether it did not converge,
+        whether it was cut."""
+        self.newton_taken.add_(torch.tensor([taken, 1, unconverged, cut], dtype=torch.int64,
                                             device=self.newton_taken.device))
-        a1 = self.c0 * u1 - predictor
-        v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
-        return u1, v1, a1, self.relax_from(S_iso0, u1, h0)
 
     def moves(self, update: Tensor, u: Tensor) -> bool:
         """Whether a Newton update [B, n] m still moved some DOF by more than ``newton_rtol`` of the
