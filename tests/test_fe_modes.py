@@ -1218,6 +1218,27 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
         prior_settings(OmegaConf.create({"prior_law": True, "prior_newton": 0}))
 
 
+def _ogden_bend_priors(steps: int):
+    """The FE's damped 1 N bend of a viscous Ogden block (``_bent_block_graph``, ``steps`` steps),
+    its Prony terms, and ``build(dt=the data's, iterations=1, **options)``: a
+    HyperelasticNewmarkPrior of its law on its mesh (options: ``max_iterations``, ``newton_rtol``,
+    ``step_cuts``)."""
+    from thermognn.core.hyperelastic import law_from_config
+    from thermognn.train.law_prior import HyperelasticNewmarkPrior
+
+    law, prony = ("ogden", {"mu": [2.0e4], "alpha": [8.0], "D": [1.0e-5]}), ((0.4, 4e-3),)
+    graph = _bent_block_graph(steps=steps, prony=prony, law=law)
+    dt, X, linear = graph[2], graph[3], graph[4]
+    tets = _bent_block(1.0, "newmark", steps=2, prony=prony, law=law)[0].cells[:, :4]
+    material = {"law": law[0], **law[1], "prony": [{"g": g, "tau": t} for g, t in prony]}
+    lam, mu = linear.lame()
+
+    def build(step: float = dt, iterations: int = 1, **options):
+        return HyperelasticNewmarkPrior(linear, len(X), step, X, tets, lam, mu, law_from_config(material)[0],
+                                        iterations=iterations, **options)
+    return graph, prony, build
+
+
 def test_law_prior_iterates_past_its_budget_until_the_step_converges():
     """``model.prior_newton_max`` (``HyperelasticNewmarkPrior(max_iterations=...)``) on the FE
     solid's own data (the damped 1 N bend, viscous Ogden): one Newton iteration a step and up to 8
@@ -1231,21 +1252,13 @@ def test_law_prior_iterates_past_its_budget_until_the_step_converges():
     from omegaconf import OmegaConf
 
     from thermognn.core.errors import ConfigError
-    from thermognn.core.hyperelastic import law_from_config
     from thermognn.core.state import describe_step
     from thermognn.train.checkpoint import model_step
     from thermognn.train.hybrid import prior_settings
-    from thermognn.train.law_prior import HyperelasticNewmarkPrior
 
-    law, prony = ("ogden", {"mu": [2.0e4], "alpha": [8.0], "D": [1.0e-5]}), ((0.4, 4e-3),)
-    graph = _bent_block_graph(steps=12, prony=prony, law=law)
+    graph, prony, build = _ogden_bend_priors(steps=12)
     layout, traj, dt, X, linear, node_type, edges, z, f = graph
-    tets = _bent_block(1.0, "newmark", steps=2, prony=prony, law=law)[0].cells[:, :4]
-    material = {"law": law[0], **law[1], "prony": [{"g": g, "tau": t} for g, t in prony]}
-    lam, mu = linear.lame()
-    make = lambda k, most=None: HyperelasticNewmarkPrior(linear, len(X), dt, X, tets, lam, mu,  # noqa: E731
-                                                         law_from_config(material)[0], iterations=k,
-                                                         max_iterations=most)
+    make = lambda k, most=None: build(iterations=k, max_iterations=most)  # noqa: E731
     rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
     G0 = torch.zeros(len(f), int(linear.free.sum()), dtype=torch.float64)
@@ -1257,8 +1270,7 @@ def test_law_prior_iterates_past_its_budget_until_the_step_converges():
     taken, steps, unconverged, cut = adaptive.newton_taken.tolist()
     assert steps == len(f) - 1 and steps < taken < 8 * steps and unconverged == 0 and cut == 0
     assert fixed.newton_taken.tolist() == [len(f) - 1, len(f) - 1, 0, 0]
-    looser = HyperelasticNewmarkPrior(linear, len(X), dt, X, tets, lam, mu, law_from_config(material)[0],
-                                      iterations=1, max_iterations=8, newton_rtol=1e-3)
+    looser = build(iterations=1, max_iterations=8, newton_rtol=1e-3)
     V3 = _prior_rollout(looser, u, v, f, G0, None)[1]                     # a looser tolerance: fewer, less exact
     assert looser.newton_taken.tolist()[0] < taken and rel(V, v) < rel(V3, v) < rel(V1, v)
     short = make(1, 2)                                                    # 2 at most: not converged, counted
@@ -1313,22 +1325,15 @@ def test_law_prior_cuts_a_step_that_has_not_converged_into_the_fe_s_half_steps()
     from omegaconf import OmegaConf
 
     from thermognn.core.errors import ConfigError
-    from thermognn.core.hyperelastic import law_from_config
     from thermognn.core.state import describe_step
     from thermognn.train.checkpoint import model_step
     from thermognn.train.evaluation import newton_sentence
     from thermognn.train.hybrid import prior_settings
-    from thermognn.train.law_prior import HyperelasticNewmarkPrior
 
-    law, prony = ("ogden", {"mu": [2.0e4], "alpha": [8.0], "D": [1.0e-5]}), ((0.4, 4e-3),)
-    graph = _bent_block_graph(steps=8, prony=prony, law=law)
+    graph, prony, build = _ogden_bend_priors(steps=8)
     layout, traj, dt, X, linear, node_type, edges, z, f = graph
-    tets = _bent_block(1.0, "newmark", steps=2, prony=prony, law=law)[0].cells[:, :4]
-    material = {"law": law[0], **law[1], "prony": [{"g": g, "tau": t} for g, t in prony]}
-    lam, mu = linear.lame()
-    make = lambda step, most, rtol=None, cuts=0: HyperelasticNewmarkPrior(  # noqa: E731
-        linear, len(X), step, X, tets, lam, mu, law_from_config(material)[0], iterations=1,
-        max_iterations=most, newton_rtol=rtol, step_cuts=cuts)
+    make = lambda step, most, rtol=None, cuts=0: build(  # noqa: E731
+        step, max_iterations=most, newton_rtol=rtol, step_cuts=cuts)
     rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     u, v = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6]
     n = int(linear.free.sum())
