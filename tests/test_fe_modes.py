@@ -1360,6 +1360,20 @@ def test_law_prior_cuts_a_step_that_has_not_converged_into_the_fe_s_half_steps()
     # each step: the full step's 2, then the two halves' 2 each; none converged at the floor
     assert cut.newton_taken.tolist() == [6 * steps, steps, steps, steps]
     assert cut.dt == dt and cut.c0 == make(dt, 2).c0                  # the step's own constants put back
+    # in a batch only the samples that have not converged are cut: a step of the data beside one
+    # under 300 times its load, which 8 iterations do not converge
+    batch = make(dt, 8, cuts=2)
+    ub, vb = torch.cat([us[3], us[3]]), torch.cat([vs[3], vs[3]])
+    hb = batch.internal_variables(ub)
+    ab = batch.initial_acceleration(ub, vb, batch.gather(f[3:4]), G[3:4])
+    fb = torch.cat([batch.gather(f[4:5]), 300.0 * batch.gather(f[4:5])])
+    both = batch.step(ub, vb, ab, fb, G[3:4], G[4:5], hb)
+    assert batch.newton_taken.tolist()[3] == 1
+    for k in (0, 1):
+        batch.forget()
+        alone = batch.step(ub[k:k + 1], vb[k:k + 1], ab[k:k + 1], fb[k:k + 1], G[3:4], G[4:5], hb[k:k + 1])
+        assert all(rel(x[k:k + 1], y) < 1e-11 for x, y in zip(both, alone)), k
+    assert batch.newton_taken.tolist()[3] == 2                         # the second alone: cut again
     # steps that converge are never cut: the rollout without cuts, to the bit
     plain, cutting = make(dt, 8), make(dt, 8, cuts=4)
     assert torch.equal(_prior_rollout(plain, u, v, f, G, None)[1], _prior_rollout(cutting, u, v, f, G, None)[1])

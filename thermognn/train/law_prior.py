@@ -465,12 +465,13 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.prony_decay, self.prony_increment = self.level_decay[level], self.level_increment[level]
 
     def iterate(self, u1: Tensor, u0: Tensor, v0: Tensor, a0: Tensor, predictor: Tensor, extra: Optional[Tensor],
-                fixed: Tensor) -> Tuple[Tensor, int, bool]:
-        """(u1 [B, n] m, the Newton iterations taken in all, whether it converged) after a step's
-        first iteration u1 from (u0, v0, a0 [B, n]) with ``step_start``'s predictor and history
-        stress ``extra``, ``fixed`` = its loads + c f_el(u0) [B, n] N: ``iterations`` in all, then up
-        to ``max_iterations`` while the last update moved some DOF by more than ``newton_rtol`` of
-        the largest displacement. A fixed budget always counts as converged."""
+                fixed: Tensor) -> Tuple[Tensor, int, Tensor]:
+        """(u1 [B, n] m, the Newton iterations taken in all, which samples had not converged [B]
+        bool) after a step's first iteration u1 from (u0, v0, a0 [B, n]) with ``step_start``'s
+        predictor and history stress ``extra``, ``fixed`` = its loads + c f_el(u0) [B, n] N:
+        ``iterations`` in all, then up to ``max_iterations`` while the last update moved some DOF
+        of the batch by more than ``newton_rtol`` of its sample's largest displacement. A fixed
+        budget always counts as converged."""
         w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
         taken = 1
         last = u0.detach() + self.dt * v0.detach()          # where the last update started: the predictor
@@ -488,9 +489,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                                                                    None if extra is None else extra.detach()),
                                                 residual))
             taken += 1
-        converged = not (self.max_iterations > self.iterations and taken == self.max_iterations
-                         and self.moves(u1.detach() - last, u1.detach()))
-        return u1, taken, converged
+        if self.max_iterations > self.iterations and taken == self.max_iterations:
+            return u1, taken, self.moving(u1.detach() - last, u1.detach())
+        return u1, taken, torch.zeros(u1.shape[0], dtype=torch.bool, device=u1.device)
 
     def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
              G1: Tensor, h0: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -501,38 +502,58 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         NEWTON_ATOL): a step the budget does not converge (the shell's snap-through) takes the
         iterations it needs, the others cost nothing more than the check.
 
-        With ``step_cuts`` > 0 a step that still has not converged is stepped again from its start
-        as the FE steps it (``thermognn.generate.solid``'s ``step``): as two halves, each cut
-        again where it does not converge, down to Δt / 2^step_cuts, whose last try is kept. A
-        sub-step holds the step's end loads f1 (the FE's loads at the sub-step's end: the same
-        where they are constant over the step, as after a ramp) and remainders interpolated
-        linearly from G0 to G1."""
+        With ``step_cuts`` > 0 the samples whose step still has not converged are stepped again
+        from their start as the FE steps it (``cut_step``); the others keep their whole step."""
         self.use_level(0)                   # (a step an error left mid-way does not leave its constants)
         # what R takes from outside the step's start: loads and remainders
         loads = f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0                  # [B, n] N
         u1, predictor, S_iso0, extra, damping0 = self.first_iteration(u0, v0, a0, h0, loads)
-        u1, taken, converged = self.iterate(u1, u0, v0, a0, predictor, extra, loads + damping0)
-        if converged or self.step_cuts == 0:
-            a1 = self.c0 * u1 - predictor
-            v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
-            self.count_step(taken, int(not converged), 0)
-            return u1, v1, a1, self.relax_from(S_iso0, u1, h0)
+        u1, taken, still = self.iterate(u1, u0, v0, a0, predictor, extra, loads + damping0)
+        a1 = self.c0 * u1 - predictor
+        v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
+        h1 = self.relax_from(S_iso0, u1, h0)
+        if self.step_cuts == 0 or not bool(still.any()):
+            self.count_step(taken, int(bool(still.any())), 0)
+            return u1, v1, a1, h1
+        cut = still.nonzero().squeeze(1)                                                   # [b] samples
+        B = u0.shape[0]
+        u, v, a, h, t, unconverged = self.cut_step(
+            self.rows(u0, B, cut), self.rows(v0, B, cut), self.rows(a0, B, cut), self.rows(f1, B, cut),
+            self.rows(G0, B, cut), self.rows(G1, B, cut), self.rows(h0, B, cut))
+        self.count_step(taken + t, unconverged, 1)
+        return u1.index_copy(0, cut, u), v1.index_copy(0, cut, v), a1.index_copy(0, cut, a), h1.index_copy(0, cut, h)
+
+    @staticmethod
+    def rows(x: Tensor, batch: int, rows: Tensor) -> Tensor:
+        """The samples ``rows`` [b] of x [B or 1, ...] (one sample stands for all B)."""
+        return x.expand([batch] + list(x.shape[1:])).index_select(0, rows)
+
+    def cut_step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor, G1: Tensor,
+                 h0: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor, int, int]:
+        """``step`` from (u0, v0, a0, h0) under f1, G0, G1 [b, ...] as the FE steps it where a
+        whole step fails (``thermognn.generate.solid``'s ``step``): as two halves, each cut again
+        where it does not converge, down to Δt / 2^step_cuts, whose last try is kept. A sub-step
+        holds the step's end loads f1 (the FE's loads at the sub-step's end: the same where they
+        are constant over the step, as after a ramp) and its remainders go linearly from G0 to
+        G1. Returns (u1, v1, a1, h1, the Newton iterations taken, whether a sub-step at the
+        floor had not converged)."""
         u, v, a, h = u0, v0, a0, h0
         pending: List[int] = [1, 1]          # the sub-steps still to take, in order, by level
         done = 0.0                           # how much of Δt they have taken
-        unconverged = 0
+        taken, unconverged = 0, 0
         while len(pending) > 0:
             level = pending[0]
             part = 0.5 ** level
             self.use_level(level)
-            Gs, Ge = G0 + done * (G1 - G0), G0 + (done + part) * (G1 - G0)                 # [B, n] N
+            Gs, Ge = G0 + done * (G1 - G0), G0 + (done + part) * (G1 - G0)                 # [b, n] N
             sub_loads = f1 + self.body_force + (1.0 + self.c) * Ge - self.c * Gs
             predictor, S_iso0, extra, damping0, u1, internal, pairs = self.step_start(u, v, a, h)
             residual = internal - sub_loads
             self.require_finite(residual)
             u1 = self.admissible(u1, self.solve(pairs, residual))
-            u1, t, converged = self.iterate(u1, u, v, a, predictor, extra, sub_loads + damping0)
+            u1, t, still = self.iterate(u1, u, v, a, predictor, extra, sub_loads + damping0)
             taken += t
+            converged = not bool(still.any())
             if converged or level == self.step_cuts:         # taken: the next sub-step starts here
                 a1 = self.c0 * u1 - predictor
                 v = v + self.dt * ((1.0 - self.gamma) * a + self.gamma * a1)
@@ -545,8 +566,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                 pending[0] = level + 1
                 pending.insert(0, level + 1)
         self.use_level(0)
-        self.count_step(taken, unconverged, 1)
-        return u, v, a, h
+        return u, v, a, h, taken, unconverged
 
     def count_step(self, taken: int, unconverged: int, cut: int) -> None:
         """Add a step to ``newton_taken``: its Newton iterations, whether it did not converge,
@@ -554,11 +574,15 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.newton_taken.add_(torch.tensor([taken, 1, unconverged, cut], dtype=torch.int64,
                                             device=self.newton_taken.device))
 
-    def moves(self, update: Tensor, u: Tensor) -> bool:
-        """Whether a Newton update [B, n] m still moved some DOF by more than ``newton_rtol`` of the
-        largest displacement u [B, n] m of its sample (and more than NEWTON_ATOL)."""
+    def moving(self, update: Tensor, u: Tensor) -> Tensor:
+        """Per sample [B] bool, whether a Newton update [B, n] m still moved some DOF by more than
+        ``newton_rtol`` of the sample's largest displacement u [B, n] m (and more than NEWTON_ATOL)."""
         scale = self.newton_rtol * u.abs().amax(1) + self.newton_atol                     # [B] m
-        return bool((update.abs().amax(1) > scale).any())
+        return update.abs().amax(1) > scale
+
+    def moves(self, update: Tensor, u: Tensor) -> bool:
+        """Whether a Newton update [B, n] m still moved some DOF of some sample (``moving``)."""
+        return bool(self.moving(update, u).any())
 
     @torch.jit.unused
     def budget_loads(self, u: Tensor, v: Tensor, f: Tensor, rtol: float = BUDGET_RTOL,
