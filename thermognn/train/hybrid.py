@@ -470,12 +470,15 @@ def prior_settings(cfg_model) -> dict:
     if rtol is not None and not (most is not None and most > newton):
         raise ConfigError(f"model.prior_newton_rtol = {rtol!r} needs model.prior_newton_max > model.prior_newton "
                           f"(= {newton}): with a fixed budget no step stops early")
+    from .law_prior import MAX_STEP_CUTS
+
     cuts = OmegaConf.select(cfg_model, "prior_step_cuts", default=0)
     if cuts is None:
         cuts = 0
-    if isinstance(cuts, bool) or not isinstance(cuts, int) or not 0 <= cuts <= 4:
-        raise ConfigError(f"model.prior_step_cuts = {cuts!r}, expected an integer 0 to 4 (how many times the law "
-                          f"prior halves a step that has not converged: down to Δt/2^k, the FE's own floor Δt/16)")
+    if isinstance(cuts, bool) or not isinstance(cuts, int) or not 0 <= cuts <= MAX_STEP_CUTS:
+        raise ConfigError(f"model.prior_step_cuts = {cuts!r}, expected an integer 0 to {MAX_STEP_CUTS} (how many times "
+                          f"the law prior halves a step that has not converged: down to Δt/2^k, the FE's own floor "
+                          f"Δt/{2 ** MAX_STEP_CUTS})")
     if cuts and not (law and most is not None and most > newton):
         raise ConfigError(f"model.prior_step_cuts = {cuts} needs model.prior_law = true and model.prior_newton_max > "
                           f"model.prior_newton (= {newton}): only then can a step tell it has not converged")

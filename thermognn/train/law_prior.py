@@ -415,6 +415,15 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.memo_damping0, self.memo_u1, self.memo_internal, self.memo_lu = empty, empty, empty, empty
         self.memo_pivots = self.memo_pivots.new_zeros(0)
 
+    def fresh_first_iteration(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor, loads: Tensor
+                              ) -> Tuple[Tensor, Tensor, Tensor, Optional[Tensor], Tensor]:
+        """``first_iteration`` from scratch, nothing kept: ``step_start`` and one solve with its
+        tangent (training's differentiable path; a cut step's sub-steps, at their own Δt)."""
+        predictor, S_iso0, extra, damping0, u1, internal, pairs = self.step_start(u0, v0, a0, h0)
+        residual = internal - loads
+        self.require_finite(residual)
+        return self.admissible(u1, self.solve(pairs, residual)), predictor, S_iso0, extra, damping0
+
     def first_iteration(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor, loads: Tensor
                         ) -> Tuple[Tensor, Tensor, Tensor, Optional[Tensor], Tensor]:
         """(u1 after the first Newton iteration [B, n] m, predictor, S_iso,0, extra, c f_el(u0))
@@ -426,11 +435,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         if not torch.jit.is_scripting() and self.sparse_cpu and u0.device.type == "cpu":
             return self._eager_first_iteration(u0, v0, a0, h0, loads)
         if u0.requires_grad or v0.requires_grad or a0.requires_grad or h0.requires_grad or loads.requires_grad:
-            # training: one solve, differentiable
-            predictor, S_iso0, extra, damping0, u1, internal, pairs = self.step_start(u0, v0, a0, h0)
-            residual = internal - loads
-            self.require_finite(residual)
-            return self.admissible(u1, self.solve(pairs, residual)), predictor, S_iso0, extra, damping0
+            return self.fresh_first_iteration(u0, v0, a0, h0, loads)      # training: one solve, differentiable
         key = torch.cat([u0.reshape(-1), v0.reshape(-1), a0.reshape(-1), h0.reshape(-1)])
         if not (self.memo_key.shape == key.shape and bool(torch.equal(self.memo_key, key))):
             predictor, S_iso0, extra, damping0, u1, internal, pairs = self.step_start(u0, v0, a0, h0)
@@ -504,7 +509,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
 
         With ``step_cuts`` > 0 the samples whose step still has not converged are stepped again
         from their start as the FE steps it (``cut_step``); the others keep their whole step."""
-        self.use_level(0)                   # (a step an error left mid-way does not leave its constants)
+        if self.step_cuts > 0:              # (a cut an error left mid-way does not leave its constants)
+            self.use_level(0)
         # what R takes from outside the step's start: loads and remainders
         loads = f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0                  # [B, n] N
         u1, predictor, S_iso0, extra, damping0 = self.first_iteration(u0, v0, a0, h0, loads)
@@ -512,8 +518,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         a1 = self.c0 * u1 - predictor
         v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
         h1 = self.relax_from(S_iso0, u1, h0)
-        if self.step_cuts == 0 or not bool(still.any()):
-            self.count_step(taken, int(bool(still.any())), 0)
+        unconverged = bool(still.any())
+        if self.step_cuts == 0 or not unconverged:
+            self.count_step(taken, int(unconverged), 0)
             return u1, v1, a1, h1
         cut = still.nonzero().squeeze(1)                                                   # [b] samples
         B = u0.shape[0]
@@ -547,10 +554,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             self.use_level(level)
             Gs, Ge = G0 + done * (G1 - G0), G0 + (done + part) * (G1 - G0)                 # [b, n] N
             sub_loads = f1 + self.body_force + (1.0 + self.c) * Ge - self.c * Gs
-            predictor, S_iso0, extra, damping0, u1, internal, pairs = self.step_start(u, v, a, h)
-            residual = internal - sub_loads
-            self.require_finite(residual)
-            u1 = self.admissible(u1, self.solve(pairs, residual))
+            u1, predictor, S_iso0, extra, damping0 = self.fresh_first_iteration(u, v, a, h, sub_loads)
             u1, t, still = self.iterate(u1, u, v, a, predictor, extra, sub_loads + damping0)
             taken += t
             converged = not bool(still.any())
