@@ -364,15 +364,14 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         A model step with the network's remainders steps the prior twice from the same start
         (``LinearPriorModel.advance``): with one Newton iteration all of it is shared but one
         back-substitution (``first_iteration`` keeps it with the tangent's factors)."""
-        predictor = self.c0 * (u0 + self.dt * v0) + self.c1 * a0                          # a1 = c0 u1 − predictor
+        predictor = self.newmark_predictor(u0, v0, a0)                                    # a1 = c0 u1 − predictor
         F0 = self.cells(u0)
         S_iso0, S_vol0 = self.pk2(F0)
         extra = self.history_stress(S_iso0, h0)
         # f_int(u1; h0) + c f_el(u1) in one law evaluation: P = F ((1 + c) S_vol + (w_iso + c) S_iso + extra)
         w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
         u1 = self.admissible(u0, -self.dt * v0)                 # the FE's predictor u0 + Δt v0 (shortened if it crushes)
-        a1 = self.c0 * u1 - predictor
-        v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
+        a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
         F = self.cells(u1)
         damping0 = self.c * self.assemble(F0 @ (S_iso0 + S_vol0))                        # c f_el(u0): [B, n] N
         internal = self.mass(a1 + self.alpha_m * v1) + self.assemble(self.pk1(F, w_iso, w_vol, extra)) - damping0
@@ -483,8 +482,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         for it in range(1, self.max_iterations):
             if it >= self.iterations and not self.moves(u1.detach() - last, u1.detach()):
                 break
-            a1 = self.c0 * u1 - predictor
-            v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
+            a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
             F = self.cells(u1)
             residual = (self.mass(a1 + self.alpha_m * v1) + self.assemble(self.pk1(F, w_iso, w_vol, extra))
                         - fixed)                                                           # [B, n] N
@@ -515,8 +513,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         loads = f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0                  # [B, n] N
         u1, predictor, S_iso0, extra, damping0 = self.first_iteration(u0, v0, a0, h0, loads)
         u1, taken, still = self.iterate(u1, u0, v0, a0, predictor, extra, loads + damping0)
-        a1 = self.c0 * u1 - predictor
-        v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
+        a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
         h1 = self.relax_from(S_iso0, u1, h0)
         unconverged = bool(still.any())
         if self.step_cuts == 0 or not unconverged:
@@ -559,8 +556,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             taken += t
             converged = not bool(still.any())
             if converged or level == self.step_cuts:         # taken: the next sub-step starts here
-                a1 = self.c0 * u1 - predictor
-                v = v + self.dt * ((1.0 - self.gamma) * a + self.gamma * a1)
+                a1, v = self.newmark_rates(u1, v, a, predictor)
                 h = self.relax_from(S_iso0, u1, h)
                 u, a = u1, a1
                 done += part

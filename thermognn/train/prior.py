@@ -164,6 +164,18 @@ class NewmarkPrior(nn.Module):
         (unrelaxed; :class:`CorotatedNewmarkPrior`: corotated per cell)."""
         return self.stiffness(u)
 
+    def newmark_predictor(self, u0: Tensor, v0: Tensor, a0: Tensor) -> Tensor:
+        """c0 (u0 + Δt v0) + c1 a0 [B, n] m/s² from a step's start (u0 [m], v0 [m/s], a0 [m/s²]
+        [B, n]): what Newmark's a1 = (u1 − u0 − Δt v0)/(β Δt²) − (1/(2β) − 1) a0 takes from the
+        start, so that a1 = c0 u1 − predictor (``newmark_rates``)."""
+        return self.c0 * (u0 + self.dt * v0) + self.c1 * a0
+
+    def newmark_rates(self, u1: Tensor, v0: Tensor, a0: Tensor, predictor: Tensor) -> Tuple[Tensor, Tensor]:
+        """(a1 [m/s²], v1 [m/s]) [B, n] of a step ending at u1 [B, n] m from v0, a0 with
+        ``newmark_predictor``'s predictor: a1 = c0 u1 − predictor, v1 = v0 + Δt ((1 − γ) a0 + γ a1)."""
+        a1 = self.c0 * u1 - predictor
+        return a1, v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
+
     def initial_acceleration(self, u0: Tensor, v0: Tensor, f0: Tensor, G0: Tensor) -> Tensor:
         """a0 [B, n] from the equation of motion at the start, M a0 = f0 − K u0 + G0 − αM M v0
         (the FE starts from its own balance too)."""
@@ -175,14 +187,13 @@ class NewmarkPrior(nn.Module):
         """(u1, v1, a1, h1) [B, n] (h1 [B, T, n + 6N]) from (u0, v0, a0), the Prony internal
         variables h0 at the step's start ([B, 0, 0] for the unrelaxed prior), the external force f1 at
         the step's end and the internal-force remainders G0, G1 at its start and end (all [B, n])."""
-        predictor = self.c0 * (u0 + self.dt * v0) + self.c1 * a0
+        predictor = self.newmark_predictor(u0, v0, a0)
         inertia = self.mass(self.mass_factor * predictor - self.alpha_m * v0
                             - self.alpha_m * self.dt * (1.0 - self.gamma) * a0)
         rhs = (inertia + self.c * self.stiffness(u0) + f1 + self.body_force + (1.0 + self.c) * G1
                - self.c * G0 - self.history_force(u0, h0))                                 # [B, n] N
         u1 = rhs @ self.step_inverse.T
-        a1 = self.c0 * u1 - predictor
-        v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
+        a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
         return u1, v1, a1, self.relax(u0, u1, h0)
 
     def inverted(self, x: Tensor) -> Tensor:
@@ -584,7 +595,7 @@ class CorotatedNewmarkPrior(NewmarkPrior):
         """(u1, v1, a1, h1) as :meth:`NewmarkPrior.step`, with the corotated internal force:
         M a1 + αM M v1 + c (f(u1) − f(u0)) + f(u1) = f1 + (1 + c) G1 − c G0, f(u1) = K_R u1 +
         Σ_e R_e K_e (R_eᵀ X_e − X_e) with R at the latest iterate of u1 (``sweeps`` solves)."""
-        predictor = self.c0 * (u0 + self.dt * v0) + self.c1 * a0
+        predictor = self.newmark_predictor(u0, v0, a0)
         inertia = self.mass(self.mass_factor * predictor - self.alpha_m * v0
                             - self.alpha_m * self.dt * (1.0 - self.gamma) * a0)
         x0 = self.positions(u0)
@@ -611,8 +622,7 @@ class CorotatedNewmarkPrior(NewmarkPrior):
             else:
                 mass = self.c0 * self.mass_factor * self.mass_dense                          # [n, n] kg/s²
                 u1 = solve_each(mass + self.rotated_stiffness(R, self.cell_K_step), b)     # A [B, n, n] N/m
-        a1 = self.c0 * u1 - predictor
-        v1 = v0 + self.dt * ((1.0 - self.gamma) * a0 + self.gamma * a1)
+        a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
         return u1, v1, a1, self.relax(u0, u1, h0)
 
     # --- the Prony history per cell (``relax``; class docstring) ---------------------------------
