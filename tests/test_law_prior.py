@@ -9,7 +9,7 @@ torch = pytest.importorskip("torch")
 
 from thermognn.core.hyperelastic import NeoHookean, Ogden  # noqa: E402
 from thermognn.train.law_prior import (HyperelasticNewmarkPrior, cofactor, neo_hookean_pk2,  # noqa: E402
-                                       ogden_isochoric_pk2, ogden_volumetric_pk2)
+                                       neo_hookean_tangent, ogden_isochoric_pk2, ogden_volumetric_pk2)
 
 
 def _gradients() -> np.ndarray:
@@ -54,6 +54,29 @@ def test_ogden_stress_is_smooth_for_autograd_where_stretches_coincide():
         def f(G):
             return (ogden_isochoric_pk2(G.transpose(-1, -2) @ G, [2000.0], [16.19]) ** 2).sum()
         assert float((f(F + E) - f(F - E)) / 2e-6) == pytest.approx(float(grad[0, 1, 2]), rel=1e-5)
+
+
+def test_the_neo_hookean_tangent_is_the_derivative_of_its_stress_and_the_numpy_laws():
+    """``neo_hookean_tangent``'s closed form is ∂P/∂F of P = F (w_vol S_vol + w_iso S_iso + extra)
+    as autograd takes it, to round-off, at random F, at F = I and at a uniaxial stretch, with a
+    relaxing step's weights and history stress; and the numpy law's ``pk1_tangent``."""
+    F = torch.as_tensor(_gradients())                                               # [52, 3, 3]
+    extra = 50.0 * torch.randn(52, 3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    extra = extra + extra.transpose(-1, -2)
+    c10, d1, w_iso, w_vol = 1e4, 1e-5, 0.7, 1.3
+
+    def pk1(G):
+        s_iso, s_vol = neo_hookean_pk2(G, c10, d1)
+        return G @ (w_vol * s_vol + w_iso * s_iso + extra)
+    jac = torch.autograd.functional.jacobian(pk1, F)                               # [52, 3, 3, 52, 3, 3]
+    cells = torch.arange(52)
+    auto = jac[cells, :, :, cells]                                                  # [52, 3, 3, 3, 3]
+    A = neo_hookean_tangent(F, c10, d1, w_iso, w_vol, extra)
+    assert float((A - auto).abs().max()) < 1e-12 * float(auto.abs().max())
+    law = NeoHookean(c10, d1)
+    _, A_np = law.pk1_tangent(F.numpy(), 1.0, extra.numpy())                        # [52, i, j, k, l]
+    A1 = neo_hookean_tangent(F, c10, d1, 1.0, 1.0, extra).numpy()
+    assert np.abs(A1 - A_np).max() < 1e-12 * np.abs(A_np).max()
 
 
 def test_the_law_prior_names_a_law_it_does_not_step():

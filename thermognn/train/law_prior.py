@@ -153,6 +153,37 @@ def ogden_volumetric_pk2(F: Tensor, C: Tensor, d: List[float]) -> Tensor:
     return dU * J * torch.linalg.inv(C)
 
 
+def neo_hookean_tangent(F: Tensor, c10: float, d1: float, w_iso: float, w_vol: float,
+                        extra: Optional[Tensor]) -> Tensor:
+    """∂P/∂F [..., 3, 3, 3, 3] Pa (P_ij by F_kl) of P = F (w_vol S_vol + w_iso S_iso + extra) with
+    the neo-Hookean law (:func:`neo_hookean_pk2`) at deformation gradients F [..., 3, 3], in closed
+    form (the numpy law's ``NeoHookean.pk1_tangent``, as UFL differentiates the FE's form). With
+    G = F⁻ᵀ, a = J^(-2/3), I1 = F : F, k = 2/D1 and ``extra`` [..., 3, 3] Pa a stress constant in F:
+
+        F S_iso = 2 C10 a (F − I1/3 G),  F S_vol = k (J − 1) J G,
+        ∂G_ij/∂F_kl = −G_il G_kj,  ∂J/∂F_kl = J G_kl,  ∂a/∂F_kl = −2/3 a G_kl,  ∂I1/∂F_kl = 2 F_kl,
+
+        ∂P_ij/∂F_kl = w_iso 2 C10 a (δ_ik δ_jl − 2/3 G_kl (F_ij − I1/3 G_ij) − 2/3 G_ij F_kl
+                                     + I1/3 G_il G_kj)
+                      + w_vol k ((2J − 1) J G_ij G_kl − (J − 1) J G_il G_kj) + δ_ik extra_lj."""
+    eye = _eye(F)
+    G = torch.linalg.inv(F).transpose(-1, -2)                                          # F⁻ᵀ
+    J = torch.linalg.det(F)[..., None, None, None, None]
+    I1 = (F * F).sum((-2, -1))[..., None, None, None, None]
+    a = J.pow(-2.0 / 3.0)
+    k = 2.0 / d1
+    Gij_Gkl = G[..., :, :, None, None] * G[..., None, None, :, :]                       # [..., i, j, k, l]
+    Gil_Gkj = G[..., :, None, None, :] * G.transpose(-1, -2)[..., None, :, :, None]    # G_il G_kj
+    dik_djl = eye[:, None, :, None] * eye[None, :, None, :]
+    iso = dik_djl - 2.0 / 3.0 * (G[..., None, None, :, :] * F[..., :, :, None, None]
+                                 + G[..., :, :, None, None] * F[..., None, None, :, :]) \
+        + 2.0 / 9.0 * I1 * Gij_Gkl + I1 / 3.0 * Gil_Gkj
+    A = (w_iso * 2.0 * c10) * a * iso + (w_vol * k) * ((2.0 * J - 1.0) * J * Gij_Gkl - (J - 1.0) * J * Gil_Gkj)
+    if extra is not None:
+        A = A + eye[:, None, :, None] * extra.transpose(-1, -2)[..., None, :, None, :]
+    return A
+
+
 class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     """The scene's hyperelastic FE step with ``iterations`` Newton iterations (module docstring)
     over the n free DOFs of an N-node P1 mesh (X [N, 3] m, tets [T, 4]); the law ``law``
@@ -296,13 +327,18 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
 
     def tangent_pairs(self, F: Tensor, w_iso: float, w_vol: float, extra: Optional[Tensor]) -> Tensor:
         """The cells' tangent stiffness V_e Grad φ_a · ∂P/∂F · Grad φ_b on the pairs of free DOFs
-        [B, k] N/m (``pair_keep``; as ``rotated_pairs``), ∂P/∂F by central differences, detached."""
+        [B, k] N/m (``pair_keep``; as ``rotated_pairs``), detached: ∂P/∂F in closed form for the
+        neo-Hookean law (:func:`neo_hookean_tangent`), by central differences for Ogden's (18 law
+        evaluations, as the numpy Ogden law's)."""
         with torch.no_grad():
             B, T = F.shape[0], F.shape[1]
-            P = self.pk1(F.unsqueeze(0) + self.fd_steps, w_iso, w_vol,
-                         None if extra is None else extra.unsqueeze(0))                  # [18, B, T, 3, 3]
-            dP = (P[:9] - P[9:]) / (2.0 * self.fd_step)                                         # [9 (k l), B, T, i, j]
-            A = dP.reshape(3, 3, B, T, 3, 3).permute(2, 3, 4, 5, 0, 1)                    # [B, T, i, j, k, l]
+            if self.ogden:
+                P = self.pk1(F.unsqueeze(0) + self.fd_steps, w_iso, w_vol,
+                             None if extra is None else extra.unsqueeze(0))              # [18, B, T, 3, 3]
+                dP = (P[:9] - P[9:]) / (2.0 * self.fd_step)                                     # [9 (k l), B, T, i, j]
+                A = dP.reshape(3, 3, B, T, 3, 3).permute(2, 3, 4, 5, 0, 1)                # [B, T, i, j, k, l]
+            else:
+                A = neo_hookean_tangent(F, self.c10, self.d1, w_iso, w_vol, extra)         # [B, T, i, j, k, l]
             Ke = torch.einsum("taj,btijkl,tcl->btaick", self.shape_grad, A, self.shape_grad)
             Ke = Ke * self.cell_volume.view(1, -1, 1, 1, 1, 1)                             # [B, T, 4, 3, 4, 3]
             return Ke.reshape(B, T * 144).index_select(1, self.pair_keep)
@@ -690,5 +726,5 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         return cell if H is None else cell + H
 
 
-__all__ = ["HyperelasticNewmarkPrior", "cofactor", "neo_hookean_pk2", "ogden_isochoric_pk2",
+__all__ = ["HyperelasticNewmarkPrior", "cofactor", "neo_hookean_pk2", "neo_hookean_tangent", "ogden_isochoric_pk2",
            "ogden_volumetric_pk2"]
