@@ -24,8 +24,9 @@ compiles them): the neo-Hookean law's, and the Ogden law's isochoric stress as t
 derivative of the FE's regularised trigonometric eigenvalues of C̄
 (``thermognn.generate.materials.regularised_eigenvalues``), written out by the chain rule
 (:func:`ogden_isochoric_pk2`; tests/test_law_prior.py checks it against the numpy law's
-complex-step derivative). The tangent ∂P/∂F per cell is by central differences (as the numpy
-Ogden law's) and is held fixed in back-propagation: a rollout's gradients pass through each
+complex-step derivative). The tangent ∂P/∂F per cell is in closed form for the neo-Hookean law
+(:func:`neo_hookean_tangent`) and by central differences for Ogden's (as the numpy laws'), and is
+held fixed in back-propagation: a rollout's gradients pass through each
 iteration's residual and linear solve, not through its matrix (exact for a converged step's
 dependence on the load and the remainders).
 
