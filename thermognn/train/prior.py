@@ -359,8 +359,9 @@ class SparsePattern:
 #: rotated stiffness, the mass and stiffness damping): a minimum-degree ordering of A + Aᵀ and
 #: diagonal pivots unless one is below 1 % of its column's largest entry. Against COLAMD with
 #: partial pivoting (min–median of repeated factors, 2 threads) it factors the shell's 1032 DOFs
-#: in 2.7–3.6 ms against 5.1–6.7, the liver's 1278 in 6.7–12.8 against 8.6–15.5 and the bunny's
-#: 5319 in 126–177 against 160–221 (docs/accuracy.md, session 73), to the same solution within 1e-13
+#: in 2.9–3.6 ms against 5.3–6.7, the liver's 1278 in 6.7–12.6 against 8.6–15.3 and the bunny's
+#: 5319 in 148–177 against 205–221 (docs/accuracy.md, session 73), to the same solution within
+#: 1e-13 relative
 SUPERLU_OPTIONS = {"permc_spec": "MMD_AT_PLUS_A", "diag_pivot_thresh": 0.01, "options": {"SymmetricMode": True}}
 
 
