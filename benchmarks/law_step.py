@@ -51,10 +51,7 @@ def roll_law(prior, X: torch.Tensor, z: torch.Tensor, f: torch.Tensor) -> tuple[
             us.append(uf)
             vs.append(vf)
             hs.append(h)
-    Uf, Hs = torch.cat(us), torch.cat(hs)                                   # [S, n], [S, T_p, 6 T]
-    U = prior.scatter(Uf)                                                   # [S, N, 3] m
-    sigma = prior.stress(U, None) + prior.stress_relaxation(Uf, Hs)         # [S, N, 6] Pa
-    return torch.cat([U + X, prior.scatter(torch.cat(vs)), sigma], -1), times
+    return prior.physical_state(X, torch.cat(us), torch.cat(vs), None, torch.cat(hs)), times
 
 
 def main() -> None:

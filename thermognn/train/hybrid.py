@@ -219,9 +219,7 @@ class LinearPriorModel(nn.Module):
     def state(self, u: Tensor, v: Tensor, H: Tensor, h: Tensor) -> Tensor:
         """Physical states [B, N, D] (q = X + u, v, σ = σ_lin + H) from free-DOF u, v [B, n] and
         the prior's Prony internal variables h [B, T, n + 6N] (σ_lin = Σ u unless it relaxes)."""
-        U = self.prior.scatter(u)                                                   # [B, N, 3]
-        return torch.cat([self.reference_positions.unsqueeze(0) + U, self.prior.scatter(v),
-                          self.prior.stress(U, H) + self.prior.stress_relaxation(u, h)], -1)
+        return self.prior.physical_state(self.reference_positions, u, v, H, h)
 
     def begin(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
               create_graph: bool, rest_rates: Optional[Tensor] = None

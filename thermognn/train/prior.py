@@ -269,6 +269,13 @@ class NewmarkPrior(nn.Module):
         from iso [B, m] and those rows h [B, T, m] of the internal variables."""
         return (self.prony_weight.view(1, -1, 1) * (h - iso.unsqueeze(1))).sum(1)
 
+    def physical_state(self, X: Tensor, u: Tensor, v: Tensor, H: Optional[Tensor], h: Tensor) -> Tensor:
+        """Physical states [B, N, 12] (q = X + u m, v m/s, σ = stress(u) + H + the relaxation's Pa)
+        of the mesh's reference positions X [N, 3] m, free-DOF u, v [B, n], the stress remainder H
+        [B, N, 6] Pa (None: none) and the Prony internal variables h."""
+        U = self.scatter(u)                                                         # [B, N, 3]
+        return torch.cat([X.unsqueeze(0) + U, self.scatter(v), self.stress(U, H) + self.stress_relaxation(u, h)], -1)
+
     def stress_relaxation(self, u: Tensor, h: Tensor) -> Tensor:
         """Σ ḡ_i (h_i^σ − Σ_iso u) [B, N, 6] Pa: what relaxation takes off the linearised stress
         at displacements u [B, n] with internal variables h (zero for the unrelaxed prior)."""
