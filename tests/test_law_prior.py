@@ -9,7 +9,8 @@ torch = pytest.importorskip("torch")
 
 from thermognn.core.hyperelastic import NeoHookean, Ogden  # noqa: E402
 from thermognn.train.law_prior import (HyperelasticNewmarkPrior, cofactor, neo_hookean_pk2,  # noqa: E402
-                                       neo_hookean_tangent, ogden_isochoric_pk2, ogden_volumetric_pk2)
+                                       neo_hookean_tangent, ogden_isochoric_pk2, ogden_tangent,
+                                       ogden_volumetric_pk2)
 
 
 def _gradients() -> np.ndarray:
@@ -105,3 +106,30 @@ def test_the_law_prior_fits_only_trajectories_the_fe_stepped_once_a_step():
     assert [n for n, _ in cut] == ["traj_1"] and cut[0][1] == pytest.approx(0.3) and cut[0][1] > LAW_STEP_TOL
     with pytest.raises(DataError, match="every training trajectory's FE cut its steps"):
         law_fit_trajectories(trajs[1:2], G[1:2], H[1:2], free)
+
+
+def test_the_ogden_tangent_is_the_derivative_of_its_stress_and_the_numpy_laws():
+    """``ogden_tangent``'s closed form (the regularised eigenvalues' chain rule differentiated line
+    by line) is ∂P/∂F of P = F (w_vol S_vol + w_iso S_iso + extra) as autograd takes it, to
+    round-off, at random F, at F = I and at a uniaxial stretch, with two terms (one of negative α),
+    two volumetric terms, a relaxing step's weights and a history stress; and the numpy law's
+    central differences to their truncation error."""
+    F = torch.as_tensor(_gradients())                                               # [52, 3, 3]
+    extra = 50.0 * torch.randn(52, 3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    extra = extra + extra.transpose(-1, -2)
+    mu, alpha, d, w_iso, w_vol = [2000.0, -500.0], [16.19, -3.0], [1e-4, 1e-3], 0.7, 1.3
+
+    def pk1(G):
+        C = G.transpose(-1, -2) @ G
+        return G @ (w_vol * ogden_volumetric_pk2(G, C, d) + w_iso * ogden_isochoric_pk2(C, mu, alpha) + extra)
+    jac = torch.autograd.functional.jacobian(pk1, F)                               # [52, 3, 3, 52, 3, 3]
+    cells = torch.arange(52)
+    auto = jac[cells, :, :, cells]                                                  # [52, 3, 3, 3, 3]
+    A = ogden_tangent(F, mu, alpha, d, w_iso, w_vol, extra)
+    scale = float(auto.abs().max())
+    assert float((A - auto).abs().max()) < 1e-13 * scale
+    assert float((A[-2:] - auto[-2:]).abs().max()) < 1e-13 * scale                # F = I, uniaxial
+    _, A_np = Ogden(mu, alpha, d).pk1_tangent(F.numpy(), 1.0, extra.numpy())        # [52, i, j, k, l]
+    A1 = ogden_tangent(F, mu, alpha, d, 1.0, 1.0, extra).numpy()
+    assert np.abs(A1 - A_np).max() < 1e-8 * np.abs(A_np).max()
+    assert ogden_tangent(F[:2].reshape(1, 2, 3, 3), mu, alpha, d, w_iso, w_vol, None).shape == (1, 2, 3, 3, 3, 3)

@@ -24,8 +24,9 @@ compiles them): the neo-Hookean law's, and the Ogden law's isochoric stress as t
 derivative of the FE's regularised trigonometric eigenvalues of C̄
 (``thermognn.generate.materials.regularised_eigenvalues``), written out by the chain rule
 (:func:`ogden_isochoric_pk2`; tests/test_law_prior.py checks it against the numpy law's
-complex-step derivative). The tangent ∂P/∂F per cell is in closed form for the neo-Hookean law
-(:func:`neo_hookean_tangent`) and by central differences for Ogden's (as the numpy laws'), and is
+complex-step derivative). The tangent ∂P/∂F per cell is in closed form too: the neo-Hookean
+law's (:func:`neo_hookean_tangent`) and Ogden's, the chain rule's differential line by line
+(:func:`ogden_isochoric`, :func:`ogden_tangent`; the numpy laws take central differences). It is
 held fixed in back-propagation: a rollout's gradients pass through each
 iteration's residual and linear solve, not through its matrix (exact for a converged step's
 dependence on the load and the remainders).
@@ -53,8 +54,6 @@ from .prior import CorotatedNewmarkPrior, FactoredSolve, SparseSolve, _matrix, _
 
 #: the FE's regularisation of the deviatoric norm (``thermognn.generate.materials.EIGEN_EPS``)
 EIGEN_EPS = 1.0e-6
-#: central-difference step of the tangent ∂P/∂F (F is dimensionless, ~1), as the numpy Ogden law's
-FD_STEP = 1.0e-6
 #: the smallest cell volume ratio J a Newton update may leave (or half the smallest one it starts
 #: from, if less): below it the update is halved (``admissible``), so that a sudden load (a haptic
 #: tool's contact) cannot turn a cell inside out in one iteration; the data's cells stay far above
@@ -90,6 +89,17 @@ def cofactor(B: Tensor) -> Tensor:
     return torch.stack([torch.linalg.cross(r1, r2), torch.linalg.cross(r2, r0), torch.linalg.cross(r0, r1)], -2)
 
 
+def cofactor_differential(B: Tensor, dB: Tensor) -> Tensor:
+    """d cof B [D, ..., 3, 3] along directions dB [D, ..., 3, 3] of B [..., 3, 3] (cof B's rows are
+    cross products of B's other two rows, so each row's differential is two cross products)."""
+    r0, r1, r2 = B[..., 0, :], B[..., 1, :], B[..., 2, :]
+    d0, d1, d2 = dB[..., 0, :], dB[..., 1, :], dB[..., 2, :]
+    r0, r1, r2 = r0.expand(d0.shape), r1.expand(d0.shape), r2.expand(d0.shape)
+    return torch.stack([torch.linalg.cross(d1, r2) + torch.linalg.cross(r1, d2),
+                        torch.linalg.cross(d2, r0) + torch.linalg.cross(r2, d0),
+                        torch.linalg.cross(d0, r1) + torch.linalg.cross(r0, d1)], -2)
+
+
 def neo_hookean_pk2(F: Tensor, c10: float, d1: float) -> Tuple[Tensor, Tensor]:
     """(S_iso, S_vol) [..., 3, 3] Pa of Ψ = C10 (J^(-2/3) I1 − 3) + (J − 1)²/D1 at deformation
     gradients F [..., 3, 3]: S_iso = 2 C10 J^(-2/3) (I − I1/3 C⁻¹), S_vol = (2/D1)(J − 1) J C⁻¹."""
@@ -104,6 +114,16 @@ def neo_hookean_pk2(F: Tensor, c10: float, d1: float) -> Tuple[Tensor, Tensor]:
 def ogden_isochoric_pk2(C: Tensor, mu: List[float], alpha: List[float], eps: float = EIGEN_EPS) -> Tensor:
     """S_iso = 2 ∂Ψ_iso/∂C [..., 3, 3] Pa of the Ogden law Ψ_iso = Σ_i 2 μ_i/α_i² (Σ_a λ̄_a^α_i − 3)
     with the FE's regularised eigenvalues λ̄_a² of C̄ = J^(-2/3) C (C [..., 3, 3]):
+    :func:`ogden_isochoric` without directions."""
+    return ogden_isochoric(C, mu, alpha, eps, None)[0]
+
+
+def ogden_isochoric(C: Tensor, mu: List[float], alpha: List[float], eps: float,
+                    dC: Optional[Tensor]) -> Tuple[Tensor, Optional[Tensor]]:
+    """(S_iso [..., 3, 3] Pa, its derivatives dS_iso [D, ..., 3, 3] Pa along the D directions dC
+    [D, ..., 3, 3] of C, or None without them) of the Ogden law
+    Ψ_iso = Σ_i 2 μ_i/α_i² (Σ_a λ̄_a^α_i − 3) with the FE's regularised eigenvalues λ̄_a² of
+    C̄ = J^(-2/3) C (C [..., 3, 3]):
 
         m = tr C̄ / 3,  B = C̄ − m I,  p = sqrt(B:B/6 + ε²),  r = det B / (2 p³) (clipped to [−1, 1]),
         φ = arccos(r)/3,  λ̄_k² = m + 2 p cos(φ + 2πk/3)
@@ -111,20 +131,26 @@ def ogden_isochoric_pk2(C: Tensor, mu: List[float], alpha: List[float], eps: flo
     differentiated by the chain rule: ∂Ψ/∂λ̄_k² = Σ_i μ_i/α_i λ̄_k^(α_i − 2); through m (I/3), p
     (B/(6p)), r (cof B/(2p³) and −3r/p through p) and φ (−1/(3 sqrt(1 − r²)), zero where r is
     clipped, as the FE's max/min is flat there); then ∂Ψ/∂C = a (Ψ_C̄ − (Ψ_C̄ : C)/3 C⁻¹),
-    a = J^(-2/3)."""
+    a = J^(-2/3). The derivatives (the tangent's, as UFL differentiates the FE's form twice) take
+    the differential of each line of that chain in turn, ``d`` before its name."""
     eye = _eye(C)
+    Ci = torch.linalg.inv(C)
     a = torch.linalg.det(C).pow(-1.0 / 3.0)[..., None, None]                       # J^(-2/3)
     Cb = a * C
     m = Cb.diagonal(dim1=-2, dim2=-1).sum(-1) / 3.0                                   # [...]
     B = Cb - m[..., None, None] * eye
     p = torch.sqrt((B * B).sum((-2, -1)) / 6.0 + eps * eps)                          # [...]
-    r = torch.linalg.det(B) / (2.0 * p**3)
+    cof_B = cofactor(B)
+    r = (B * cof_B).sum((-2, -1)) / 3.0 / (2.0 * p**3)                               # det B = B : cof B / 3
     inside = (r > -1.0) & (r < 1.0)
     rc = torch.clamp(r, -1.0, 1.0)
     phi = torch.acos(rc) / 3.0
     psi_m = torch.zeros_like(m)
     psi_p = torch.zeros_like(m)
     psi_phi = torch.zeros_like(m)
+    thetas: List[Tensor] = []
+    l2s: List[Tensor] = []
+    ds: List[Tensor] = []
     for k in range(3):
         theta = phi + 2.0 * math.pi * k / 3.0
         l2 = m + 2.0 * p * torch.cos(theta)                                           # λ̄_k²
@@ -134,15 +160,55 @@ def ogden_isochoric_pk2(C: Tensor, mu: List[float], alpha: List[float], eps: flo
         psi_m = psi_m + d
         psi_p = psi_p + 2.0 * d * torch.cos(theta)
         psi_phi = psi_phi - 2.0 * p * d * torch.sin(theta)
-    dphi_dr = torch.where(inside, -1.0 / (3.0 * torch.sqrt(torch.clamp(1.0 - rc * rc, min=1e-300))),
-                          torch.zeros_like(rc))
+        thetas.append(theta)
+        l2s.append(l2)
+        ds.append(d)
+    one_r2 = torch.clamp(1.0 - rc * rc, min=1e-300)
+    dphi_dr = torch.where(inside, -1.0 / (3.0 * torch.sqrt(one_r2)), torch.zeros_like(rc))
     psi_r = psi_phi * dphi_dr
-    psi_p = psi_p - 3.0 * psi_r * rc / p                                               # r's own p
-    psi_B = (psi_p / (6.0 * p))[..., None, None] * B + (psi_r / (2.0 * p**3))[..., None, None] * cofactor(B)
+    psi_pr = psi_p - 3.0 * psi_r * rc / p                                              # r's own p
+    psi_B = (psi_pr / (6.0 * p))[..., None, None] * B + (psi_r / (2.0 * p**3))[..., None, None] * cof_B
     tr_B = psi_B.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
     psi_Cb = (psi_m / 3.0)[..., None, None] * eye + psi_B - tr_B / 3.0 * eye          # I/3 Ψ_m + dev Ψ_B
     inner = (psi_Cb * C).sum((-2, -1))[..., None, None]
-    return 2.0 * a * (psi_Cb - inner / 3.0 * torch.linalg.inv(C))
+    S = 2.0 * a * (psi_Cb - inner / 3.0 * Ci)
+    if dC is None:
+        return S, None
+    # the differentials along dC [D, ..., 3, 3]; scalars [D, ...], matrices [D, ..., 3, 3]
+    dCi = -Ci @ dC @ Ci
+    da = -a / 3.0 * (Ci.transpose(-1, -2) * dC).sum((-2, -1))[..., None, None]       # d det C = det C Ci : dCᵀ
+    dCb = da * C + a * dC
+    dm = dCb.diagonal(dim1=-2, dim2=-1).sum(-1) / 3.0
+    dB = dCb - dm[..., None, None] * eye
+    dp = (B * dB).sum((-2, -1)) / (6.0 * p)
+    dcof_B = cofactor_differential(B, dB)
+    dr = torch.where(inside, (cof_B * dB).sum((-2, -1)) / (2.0 * p**3) - 3.0 * r * dp / p, torch.zeros_like(dp))
+    dphi = dphi_dr * dr
+    # d(dφ/dr)/dr = −r / (3 (1 − r²)^(3/2)) inside, 0 where clipped
+    ddphi_dr = torch.where(inside, -rc / (3.0 * one_r2 * torch.sqrt(one_r2)), torch.zeros_like(rc)) * dr
+    dpsi_m = torch.zeros_like(dm)
+    dpsi_p = torch.zeros_like(dm)
+    dpsi_phi = torch.zeros_like(dm)
+    for k in range(3):
+        cos_t, sin_t, l2, d = torch.cos(thetas[k]), torch.sin(thetas[k]), l2s[k], ds[k]
+        dl2 = dm + 2.0 * dp * cos_t - 2.0 * p * sin_t * dphi
+        dd = torch.zeros_like(dl2)
+        for mu_i, alpha_i in zip(mu, alpha):
+            dd = dd + mu_i / alpha_i * (alpha_i / 2.0 - 1.0) * l2.pow(alpha_i / 2.0 - 2.0) * dl2
+        dpsi_m = dpsi_m + dd
+        dpsi_p = dpsi_p + 2.0 * (dd * cos_t - d * sin_t * dphi)
+        dpsi_phi = dpsi_phi - 2.0 * (dp * d * sin_t + p * dd * sin_t + p * d * cos_t * dphi)
+    dpsi_r = dpsi_phi * dphi_dr + psi_phi * ddphi_dr
+    dpsi_pr = dpsi_p - 3.0 * (dpsi_r * rc + psi_r * dr - psi_r * rc * dp / p) / p
+    dpsi_B = ((dpsi_pr / (6.0 * p) - psi_pr * dp / (6.0 * p * p))[..., None, None] * B
+              + (psi_pr / (6.0 * p))[..., None, None] * dB
+              + (dpsi_r / (2.0 * p**3) - 1.5 * psi_r * dp / p**4)[..., None, None] * cof_B
+              + (psi_r / (2.0 * p**3))[..., None, None] * dcof_B)
+    dtr_B = dpsi_B.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
+    dpsi_Cb = (dpsi_m / 3.0)[..., None, None] * eye + dpsi_B - dtr_B / 3.0 * eye
+    dinner = (dpsi_Cb * C + psi_Cb * dC).sum((-2, -1))[..., None, None]
+    dS = 2.0 * da * (psi_Cb - inner / 3.0 * Ci) + 2.0 * a * (dpsi_Cb - dinner / 3.0 * Ci - inner / 3.0 * dCi)
+    return S, dS
 
 
 def ogden_volumetric_pk2(F: Tensor, C: Tensor, d: List[float]) -> Tensor:
@@ -183,6 +249,60 @@ def neo_hookean_tangent(F: Tensor, c10: float, d1: float, w_iso: float, w_vol: f
     if extra is not None:
         A = A + eye[:, None, :, None] * extra.transpose(-1, -2)[..., None, :, None, :]
     return A
+
+
+def symmetric_index() -> Tuple[List[int], List[int]]:
+    """(rows, columns) of a symmetric 3×3 matrix's six entries: the diagonal, then above it."""
+    return [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]
+
+
+def symmetric_directions(like: Tensor) -> Tensor:
+    """The unit directions of symmetric 3×3 matrices [6, 3, 3], as ``like``: E_cc, then
+    E_cd + E_dc (c < d), in ``symmetric_index``'s order (a symmetric C = Σ C_cd E_(cd) over them)."""
+    rows, columns = symmetric_index()
+    E = like.new_zeros(6, 3, 3)
+    for n in range(6):
+        E[n, rows[n], columns[n]] = 1.0
+        E[n, columns[n], rows[n]] = 1.0
+    return E
+
+
+def ogden_tangent(F: Tensor, mu: List[float], alpha: List[float], d: List[float], w_iso: float, w_vol: float,
+                  extra: Optional[Tensor], eps: float = EIGEN_EPS) -> Tensor:
+    """∂P/∂F [..., 3, 3, 3, 3] Pa (P_ij by F_kl) of P = F (w_vol S_vol + w_iso S_iso + extra) with
+    the Ogden law (:func:`ogden_isochoric`, :func:`ogden_volumetric_pk2`) at deformation gradients
+    F [..., 3, 3], in closed form (``extra`` [..., 3, 3] Pa a stress constant in F). S's
+    derivatives along C's six symmetric directions E (``symmetric_directions``) give, with
+    dC = E_klᵀ F + Fᵀ E_kl for F's direction E_kl (entries δ_cl F_kd + F_kc δ_dl),
+
+        ∂P_ij/∂F_kl = δ_ik S_lj + Σ_(c≤d) (δ_cl F_kd + F_kc δ_dl) (F ∂S/∂E_cd)_ij,
+        ∂S_vol/∂E = (U'' J + U') dJ C⁻¹ − U' J C⁻¹ E C⁻¹,  dJ = J/2 C⁻¹ : E."""
+    C = F.transpose(-1, -2) @ F
+    E = symmetric_directions(F).reshape([6] + [1] * (F.dim() - 2) + [3, 3])               # [6, ..., 3, 3]
+    S_iso, dS_iso = ogden_isochoric(C, mu, alpha, eps, E)
+    assert dS_iso is not None
+    Ci = torch.linalg.inv(C)
+    J = torch.linalg.det(F)[..., None, None]
+    dU = torch.zeros_like(J)                                                           # U'(J) Pa
+    ddU = torch.zeros_like(J)                                                          # U''(J) Pa
+    for i, di in enumerate(d):
+        dU = dU + 2.0 * (i + 1) * (J - 1.0).pow(2 * i + 1) / di
+        ddU = ddU + 2.0 * (i + 1) * (2 * i + 1) * (J - 1.0).pow(2 * i) / di
+    S_vol = dU * J * Ci
+    dJ = 0.5 * J * (Ci * E).sum((-2, -1))[..., None, None]                            # [6, ..., 1, 1]
+    dS_vol = (ddU * J + dU) * dJ * Ci - dU * J * (Ci @ E @ Ci)
+    S = w_vol * S_vol + w_iso * S_iso
+    if extra is not None:
+        S = S + extra
+    FdS = (F @ (w_vol * dS_vol + w_iso * dS_iso)).movedim(0, -1)                     # [..., i, j, 6]
+    eye = _eye(F)
+    index = symmetric_index()
+    rows, columns = torch.tensor(index[0], device=F.device), torch.tensor(index[1], device=F.device)
+    # dC's coefficients [..., k, l, 6]: δ_cl F_kd + F_kc δ_dl
+    coefficient = (F.index_select(-1, columns)[..., :, None, :] * eye.index_select(0, rows).transpose(0, 1)
+                   + F.index_select(-1, rows)[..., :, None, :] * eye.index_select(0, columns).transpose(0, 1))
+    A = torch.einsum("...ijn,...kln->...ijkl", FdS, coefficient)
+    return A + eye[:, None, :, None] * S.transpose(-1, -2)[..., None, :, None, :]
 
 
 class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
@@ -251,15 +371,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             increment.append(torch.tensor([w for _, _, w in terms], dtype=torch.float64).to(dtype))
         self.register_buffer("level_decay", torch.stack(decay), persistent=False)             # [levels, T_p]
         self.register_buffer("level_increment", torch.stack(increment), persistent=False)     # [levels, T_p]
-        self.fd_step = FD_STEP
         self.j_floor, self.max_halvings = J_FLOOR, MAX_HALVINGS
-        # the nine unit directions E_kl, ±FD_STEP: [18, 1, 1, 3, 3] (F [B, T, 3, 3] + each)
-        steps = torch.zeros(18, 1, 1, 3, 3, dtype=dtype)
-        for k in range(3):
-            for l in range(3):
-                steps[3 * k + l, 0, 0, k, l] = FD_STEP
-                steps[9 + 3 * k + l, 0, 0, k, l] = -FD_STEP
-        self.register_buffer("fd_steps", steps, persistent=False)
         self._start_memo = None         # eager CPU: the last step start and its factors (``_eager_first_iteration``)
         # dense path without gradients (TorchScript, serve): the last step start, by value, and its
         # LU factors (``first_iteration``); empty until a step sets them
@@ -328,16 +440,12 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
 
     def tangent_pairs(self, F: Tensor, w_iso: float, w_vol: float, extra: Optional[Tensor]) -> Tensor:
         """The cells' tangent stiffness V_e Grad φ_a · ∂P/∂F · Grad φ_b on the pairs of free DOFs
-        [B, k] N/m (``pair_keep``; as ``rotated_pairs``), detached: ∂P/∂F in closed form for the
-        neo-Hookean law (:func:`neo_hookean_tangent`), by central differences for Ogden's (18 law
-        evaluations, as the numpy Ogden law's)."""
+        [B, k] N/m (``pair_keep``; as ``rotated_pairs``), detached: ∂P/∂F in closed form
+        (:func:`neo_hookean_tangent`, :func:`ogden_tangent`)."""
         with torch.no_grad():
             B, T = F.shape[0], F.shape[1]
             if self.ogden:
-                P = self.pk1(F.unsqueeze(0) + self.fd_steps, w_iso, w_vol,
-                             None if extra is None else extra.unsqueeze(0))              # [18, B, T, 3, 3]
-                dP = (P[:9] - P[9:]) / (2.0 * self.fd_step)                                     # [9 (k l), B, T, i, j]
-                A = dP.reshape(3, 3, B, T, 3, 3).permute(2, 3, 4, 5, 0, 1)                # [B, T, i, j, k, l]
+                A = ogden_tangent(F, self.ogden_mu, self.ogden_alpha, self.ogden_d, w_iso, w_vol, extra)
             else:
                 A = neo_hookean_tangent(F, self.c10, self.d1, w_iso, w_vol, extra)         # [B, T, i, j, k, l]
             Ke = torch.einsum("taj,btijkl,tcl->btaick", self.shape_grad, A, self.shape_grad)
