@@ -530,6 +530,7 @@ class CorotatedNewmarkPrior(NewmarkPrior):
         self.pattern = SparsePattern(key % n, np.searchsorted(key // n, np.arange(n + 1)), n)
         buffers.update({
             "pair_slot": torch.as_tensor(np.searchsorted(key, pair_key)),            # [k] of nnz
+            "slot_flat": torch.as_tensor((key % n) * n + key // n),                  # [nnz] of n n (row-major)
             "mass_values": torch.as_tensor(np.asarray(mass[key % n, key // n]).ravel(), dtype=dtype)})  # [nnz] kg
         for name, value in buffers.items():
             self.register_buffer(name, value, persistent=False)
