@@ -69,13 +69,14 @@ def test_parity_with_eager_model(exported):
 
 def test_export_times_the_scripted_step_with_the_optimisation_off_and_on(exported, capsys):
     """``export`` prints a scripted step's time both ways (serve steps it with the graph
-    executor's optimisation off), each a positive median in ms."""
+    executor's optimisation off), each a positive median in ms, along a rollout."""
     import re
 
     out, cfg, path = exported
     export(cfg)
     lines = [ln for ln in capsys.readouterr().out.splitlines() if "a step of the exported model takes" in ln]
     assert len(lines) == 1 and "optimized_execution(False), as serve steps it" in lines[0]
+    assert "stepping a rollout" in lines[0]         # each step from the last one's state, as serve steps
     off, on = (float(x) for x in re.findall(r"takes ([0-9.]+) ms .* ([0-9.]+) ms with it on", lines[0])[0])
     assert off > 0 and on > 0
 
