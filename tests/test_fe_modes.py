@@ -285,7 +285,8 @@ def test_generate_stores_time_resolution(tmp_path, monkeypatch):
 def _prior_rollout(prior, u, v, f, G, H):
     """A NewmarkPrior's (or CorotatedNewmarkPrior's) rollout from the first of the displacements
     u, velocities v [S, N, 3] under the loads f [S, N, 3], with the remainders G [S, n] and H
-    (None or [S, N, 6]), its Prony internal variables carried: (U, V [S, N, 3], σ [S, N, 6])."""
+    (None or [S, N, 6]), its Prony internal variables carried: (U, V [S, N, 3], σ [S, N, 6]), as
+    its ``physical_state`` composes them (what a model's rollout reports)."""
     import torch
 
     uf, vf = prior.gather(u[:1]), prior.gather(v[:1])
@@ -295,8 +296,9 @@ def _prior_rollout(prior, u, v, f, G, H):
     for k in range(1, len(f)):
         uf, vf, a, h = prior.step(uf, vf, a, prior.gather(f[k:k + 1]), G[k - 1:k], G[k:k + 1], h)
         us, vs, hs = us + [uf], vs + [vf], hs + [h]
-    U, Uf, Hs = prior.scatter(torch.cat(us)), torch.cat(us), torch.cat(hs)
-    return U, prior.scatter(torch.cat(vs)), prior.stress(U, H) + prior.stress_relaxation(Uf, Hs)
+    origin = torch.zeros(prior.n_nodes, 3, dtype=uf.dtype)               # q = 0 + U: the displacements
+    z = prior.physical_state(origin, torch.cat(us), torch.cat(vs), H, torch.cat(hs))    # [S, N, 12]
+    return z[..., 0:3], z[..., 3:6], z[..., 6:12]
 
 
 def test_newmark_prior_with_the_exact_remainders_is_the_fe_step():

@@ -810,8 +810,12 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
 
     def _law_relaxed(self, F: Tensor, h: Tensor) -> Tensor:
         """Σ ḡ_i (h_i − S_iso(F)) [B, T, 3, 3] Pa: what relaxation takes off the unrelaxed S."""
+        return self._relaxed_from(self.pk2(F)[0], h)
+
+    def _relaxed_from(self, S_iso: Tensor, h: Tensor) -> Tensor:
+        """``_law_relaxed`` with the cells' S_iso [B, T, 3, 3] Pa already evaluated."""
         s = _matrix(h.reshape(h.shape[0], self.n_terms, self.n_cells, 6))                  # [B, T_p, T, 3, 3]
-        return (self.prony_weight.view(1, -1, 1, 1, 1) * (s - self.pk2(F)[0].unsqueeze(1))).sum(1)
+        return (self.prony_weight.view(1, -1, 1, 1, 1) * (s - S_iso.unsqueeze(1))).sum(1)
 
     def relaxation_force(self, u: Tensor, h: Tensor) -> Tensor:
         """Σ_e V_e F Σ ḡ_i (h_i − S_iso) Grad φ [B, n] N at displacements u [B, n] with the internal
@@ -828,6 +832,21 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         J = torch.linalg.det(F)[..., None, None]
         return self.nodal(F @ self._law_relaxed(F, h) @ F.transpose(-1, -2) / J)
 
+    def physical_state(self, X: Tensor, u: Tensor, v: Tensor, H: Optional[Tensor], h: Tensor) -> Tensor:
+        """:meth:`NewmarkPrior.physical_state` [B, N, 12] (q m, v m/s, σ Pa) with the law evaluated
+        once: σ = J⁻¹ F (S_iso + S_vol + Σ ḡ_i (h_i − S_iso)) Fᵀ + H, volume-averaged at the nodes
+        (``stress`` and ``stress_relaxation`` together, which each evaluate it)."""
+        U = self.scatter(u)                                                                 # [B, N, 3] m
+        F = self.deformation_gradients(self.reference.unsqueeze(0) + U)                    # [B, T, 3, 3]
+        s_iso, s_vol = self.pk2(F)
+        S = s_iso + s_vol
+        if self.n_terms > 0:
+            S = S + self._relaxed_from(s_iso, h)
+        sigma = self.nodal(F @ S @ F.transpose(-1, -2) / torch.linalg.det(F)[..., None, None])
+        if H is not None:
+            sigma = sigma + H
+        return torch.cat([X.unsqueeze(0) + U, self.scatter(v), sigma], -1)
+
     def stress(self, u: Tensor, H: Optional[Tensor] = None) -> Tensor:
         """Nodal Cauchy stress σ = J⁻¹ F (S_iso + S_vol) Fᵀ + H [B, N, 6] Pa of the nodal
         displacements u [B, N, 3] m (unrelaxed; ``stress_relaxation`` adds the history's part),
@@ -839,5 +858,5 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         return cell if H is None else cell + H
 
 
-__all__ = ["HyperelasticNewmarkPrior", "cofactor", "neo_hookean_pk2", "neo_hookean_tangent", "ogden_isochoric_pk2",
-           "ogden_volumetric_pk2"]
+__all__ = ["HyperelasticNewmarkPrior", "cofactor", "neo_hookean_pk2", "neo_hookean_tangent", "ogden_isochoric",
+           "ogden_isochoric_pk2", "ogden_tangent", "ogden_volumetric_pk2"]
