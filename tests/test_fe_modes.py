@@ -1160,6 +1160,19 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
     sparse_step = prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0]
     prior.sparse_cpu = False
     assert rel(prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0], sparse_step) < 1e-12
+    # ... and so does the dense path's block-tridiagonal factor (the shell's and the bunny's; forced
+    # here, where a dense LU is as cheap), by its solve and by the step start it keeps
+    dense_blocks = prior.band_blocks
+    prior.set_band(float("inf"))
+    assert prior.band_blocks >= 2 and prior.band_width < prior.n_free
+    b = torch.randn(2, prior.n_free, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    pairs = prior.tangent_pairs(prior.cells(uf), 1.0, 1.0, None).expand(2, -1)
+    assert rel(prior.solve(pairs, b), prior.law_solve(pairs, b)) < 1e-12
+    prior.forget()
+    assert rel(prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0], sparse_step) < 1e-12
+    assert prior.memo_band_X.shape == (1, prior.band_blocks, prior.band_width, prior.band_width)
+    prior.set_band(0.0)                                   # nothing below no flops: the dense LU
+    assert prior.band_blocks == 0 == dense_blocks
     # a second step from the same start (a model step's, with the network's G1) reuses the first
     # one's start and factors, by identity on the sparse path and by value on the dense one: the
     # same step as from scratch; a start changed in place, or another one, is not reused
@@ -1210,6 +1223,7 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
     with pytest.raises(RuntimeError, match="law prior: a non-finite state") as diverged:   # what training catches
         prior.step(uf * float("nan"), vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)
     assert DIVERGED in str(diverged.value)
+    prior.set_band(float("inf"))                          # scripted, it steps by the block factor
     _carried_steps_follow_rollouts(prior, graph, width=len(prony) * prior.cell_columns)
 
     settings = prior_settings(OmegaConf.create({"prior": "linear", "prior_law": True, "prior_newton": 2}))

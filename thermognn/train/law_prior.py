@@ -50,7 +50,8 @@ from torch import Tensor
 from thermognn.core.hyperelastic import NeoHookean, Ogden
 from thermognn.core.linear import LinearSolid
 
-from .prior import CorotatedNewmarkPrior, FactoredSolve, SparseSolve, _matrix, _voigt, solve_each, sparse_factors
+from .prior import (BAND_MAX_SHARE, CorotatedNewmarkPrior, FactoredSolve, SparseSolve, _matrix, _voigt, band_factor,
+                    band_layout, band_solve, lu_factor_each, solve_each, sparse_factors)
 
 #: the FE's regularisation of the deviatoric norm (``thermognn.generate.materials.EIGEN_EPS``)
 EIGEN_EPS = 1.0e-6
@@ -379,6 +380,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                      "memo_internal", "memo_lu"):
             self.register_buffer(name, torch.zeros(0, dtype=dtype), persistent=False)
         self.register_buffer("memo_pivots", torch.zeros(0, dtype=torch.int32), persistent=False)
+        # ... and, with the block-tridiagonal factor (``set_band``), its X and lower blocks
+        self.register_buffer("memo_band_X", torch.zeros(0, dtype=dtype), persistent=False)
+        self.register_buffer("memo_band_L", torch.zeros(0, dtype=dtype), persistent=False)
+        self.set_band(BAND_MAX_SHARE)
         # how many updates ``admissible`` has shortened (samples x updates), since it was last zeroed:
         # where the budget does not hold a step (evaluate names such rollouts)
         self.register_buffer("shortened", torch.zeros((), dtype=torch.int64), persistent=False)
@@ -465,6 +470,40 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         return pairs.new_zeros(B, n * n).index_add(1, self.slot_flat, self.sparse_values(pairs)).reshape(B, n, n)
 
     @torch.jit.unused
+    def set_band(self, max_share: float) -> None:
+        """Factor the dense path's step matrices (TorchScript, so serve; a GPU) block-tridiagonally
+        where :func:`thermognn.train.prior.band_layout` finds it at most ``max_share`` of a dense
+        LU's flops (the shell's 1032 DOFs: bandwidth 50 after reordering), densely elsewhere."""
+        layout = band_layout(self.pattern, max_share)
+        long = torch.long
+        if layout is None:
+            order, w, nb, slot, pad = np.zeros(0), 0, 0, np.zeros(0), np.zeros(0)
+        else:
+            order, w, nb, slot, pad = layout
+        self.band_width, self.band_blocks = int(w), int(nb)                 # 0 blocks: the dense LU
+        self.register_buffer("band_order", torch.as_tensor(order, dtype=long), persistent=False)   # [n]
+        self.register_buffer("band_slot", torch.as_tensor(slot, dtype=long), persistent=False)     # [nnz]
+        self.register_buffer("band_pad", torch.as_tensor(pad, dtype=long), persistent=False)       # [nb w − n]
+
+    def band_system(self, pairs: Tensor) -> Tensor:
+        """The step matrix c0 m_f M + K_T of K_T's pairs [B, k] N/m in ``set_band``'s blocks
+        [B, 3, nb, w, w] (diagonal, lower, upper), the padding's diagonal 1."""
+        B, nb, w = pairs.shape[0], self.band_blocks, self.band_width
+        flat = pairs.new_zeros(B, 3 * nb * w * w).index_add(1, self.band_slot, self.sparse_values(pairs))
+        return flat.index_fill(1, self.band_pad, 1.0).reshape(B, 3, nb, w, w)
+
+    def band_rhs(self, b: Tensor) -> Tensor:
+        """Free-DOF vectors b [B, n] in ``set_band``'s order and blocks [B, nb, w] (zero padded)."""
+        B, nb, w = b.shape[0], self.band_blocks, self.band_width
+        ordered = b.index_select(1, self.band_order)
+        return torch.cat([ordered, ordered.new_zeros(B, nb * w - self.n_free)], 1).reshape(B, nb, w)
+
+    def band_result(self, x: Tensor) -> Tensor:
+        """``band_rhs`` undone: [B, nb, w] in blocks -> [B, n] free DOFs."""
+        B = x.shape[0]
+        return x.new_zeros(B, self.n_free).index_copy(1, self.band_order, x.reshape(B, -1)[:, :self.n_free])
+
+    @torch.jit.unused
     def law_solve(self, pairs: Tensor, b: Tensor) -> Tensor:
         """u [B, n] solving (c0 m_f M + K_T) u = b [B, n] N, K_T's pairs [B, k] N/m, by sparse LU."""
         return SparseSolve.apply(self.sparse_values(pairs), b, self.pattern)
@@ -473,6 +512,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         """``law_solve``, dense (batched on a GPU; in TorchScript) off the CPU path."""
         if not torch.jit.is_scripting() and self.sparse_cpu and b.device.type == "cpu":
             return self.law_solve(pairs, b)
+        if self.band_blocks > 0:
+            lu, pivots, X, L = band_factor(self.band_system(pairs))
+            return self.band_result(band_solve(lu, pivots, X, L, self.band_rhs(b)))
         return solve_each(self.dense_system(pairs), b)
 
     def require_finite(self, residual: Tensor) -> None:
@@ -559,6 +601,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.memo_key, self.memo_predictor, self.memo_S_iso0, self.memo_extra = empty, empty, empty, empty
         self.memo_damping0, self.memo_u1, self.memo_internal, self.memo_lu = empty, empty, empty, empty
         self.memo_pivots = self.memo_pivots.new_zeros(0)
+        self.memo_band_X, self.memo_band_L = empty, empty
 
     def fresh_first_iteration(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor, loads: Tensor
                               ) -> Tuple[Tensor, Tensor, Tensor, Optional[Tensor], Tensor]:
@@ -585,26 +628,21 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         if not (self.memo_key.shape == key.shape and bool(torch.equal(self.memo_key, key))):
             predictor, S_iso0, extra, damping0, u1, internal, pairs = self.step_start(u0, v0, a0, h0)
             self.require_finite(internal)
-            A = self.dense_system(pairs)                                                    # [B, n, n] N/m
-            if A.device.type == "cpu" and A.shape[0] == 1:  # serve: one sample, no stacked copy
-                lu, piv = torch.linalg.lu_factor(A[0])
-                self.memo_lu, self.memo_pivots = lu.unsqueeze(0), piv.unsqueeze(0)
-            elif A.device.type == "cpu":                # one at a time (solve_each: batched CPU LU fails)
-                lus: List[Tensor] = []
-                pivots: List[Tensor] = []
-                for i in range(A.shape[0]):
-                    lu, piv = torch.linalg.lu_factor(A[i])
-                    lus.append(lu)
-                    pivots.append(piv)
-                self.memo_lu, self.memo_pivots = torch.stack(lus), torch.stack(pivots)
+            if self.band_blocks > 0:
+                self.memo_lu, self.memo_pivots, self.memo_band_X, self.memo_band_L = band_factor(
+                    self.band_system(pairs))
             else:
-                self.memo_lu, self.memo_pivots = torch.linalg.lu_factor(A)
+                self.memo_lu, self.memo_pivots = lu_factor_each(self.dense_system(pairs))   # [B, n, n] N/m
             self.memo_key, self.memo_predictor, self.memo_S_iso0 = key, predictor, S_iso0
             self.memo_extra = extra if extra is not None else key.new_zeros(0)
             self.memo_damping0, self.memo_u1, self.memo_internal = damping0, u1, internal
         residual = self.memo_internal - loads
         self.require_finite(residual)
-        du = torch.linalg.lu_solve(self.memo_lu, self.memo_pivots, residual.unsqueeze(-1)).squeeze(-1)
+        if self.band_blocks > 0:
+            du = self.band_result(band_solve(self.memo_lu, self.memo_pivots, self.memo_band_X, self.memo_band_L,
+                                             self.band_rhs(residual)))
+        else:
+            du = torch.linalg.lu_solve(self.memo_lu, self.memo_pivots, residual.unsqueeze(-1)).squeeze(-1)
         extra_kept: Optional[Tensor] = None
         if self.n_terms > 0:
             extra_kept = self.memo_extra
