@@ -313,8 +313,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     the dataset's ``scene.material``), the mass, Rayleigh damping, Newmark β, γ and the Prony terms of ``linear``
     (the dataset's ``/linear``; a viscous solid relaxes always, as its FE does).
 
-    It keeps :class:`CorotatedNewmarkPrior`'s cell bookkeeping and solves (sparse LU on the CPU,
-    dense and batched on a GPU and in TorchScript) and its per-cell internal variables: per Prony
+    It keeps :class:`CorotatedNewmarkPrior`'s cell bookkeeping and solves (sparse LU on the CPU;
+    on a GPU and in TorchScript dense and batched, or block-tridiagonal where the reordered mesh is
+    thin: ``set_band``) and its per-cell internal variables: per Prony
     term i and cell e the FE's history h_i,e (S_iso seen through exp(−t/τ_i), Voigt, Pa), packed
     into nodal columns ``prony_cells_i`` of a carried state. lam, mu [Pa] (the moduli at rest) only
     size the base class's unused linear cell stiffness."""
