@@ -458,18 +458,6 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             Ke = Ke * self.cell_volume.view(1, -1, 1, 1, 1, 1)                             # [B, T, 4, 3, 4, 3]
             return Ke.reshape(B, T * 144).index_select(1, self.pair_keep)
 
-    def sparse_values(self, pairs: Tensor) -> Tensor:
-        """The step matrix c0 m_f M + K_T [B, nnz] N/m in ``pattern``'s slots, of K_T's pairs [B, k]."""
-        return (self.c0 * self.mass_factor * self.mass_values).expand(pairs.shape[0], -1).index_add(
-            1, self.pair_slot, pairs)
-
-    def dense_system(self, pairs: Tensor) -> Tensor:
-        """The step matrix c0 m_f M + K_T [B, n, n] N/m, dense, of K_T's pairs [B, k]: its nonzeros
-        (``sparse_values``) put in place (one n × n array written once: the liver's 1278² took
-        a fifth of a scripted step when summed as dense arrays)."""
-        B, n = pairs.shape[0], self.n_free
-        return pairs.new_zeros(B, n * n).index_add(1, self.slot_flat, self.sparse_values(pairs)).reshape(B, n, n)
-
     @torch.jit.unused
     def set_band(self, max_share: float) -> None:
         """Factor the dense path's step matrices (TorchScript, so serve; a GPU) block-tridiagonally

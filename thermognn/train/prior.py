@@ -474,7 +474,7 @@ def band_layout(pattern: "SparsePattern", max_share: float = BAND_MAX_SHARE
     block = np.minimum(bi, bj)
     slot = ((part * nb + block) * w + ri) * w + rj
     pad = np.arange(n, nb * w)
-    pad_slot = ((0 * nb + pad // w) * w + pad % w) * w + pad % w
+    pad_slot = ((pad // w) * w + pad % w) * w + pad % w                          # diagonal blocks
     return order, w, nb, slot, pad_slot
 
 
@@ -603,11 +603,9 @@ class CorotatedNewmarkPrior(NewmarkPrior):
             "cell_X": torch.as_tensor(X[tets], dtype=dtype),                          # [T, 4, 3] m
             "cell_K": torch.as_tensor(Ke, dtype=dtype),                               # [T, 12, 12] N/m
             "pair_keep": torch.as_tensor(keep),                                       # [k] of T 144
-            "pair_flat": torch.as_tensor(rows[keep] * n + cols[keep]),                # [k] of n n
             "cell_volume": torch.as_tensor(volume, dtype=dtype),                      # [T] m³
             "node_weight": torch.as_tensor(weight, dtype=dtype),                      # [N] m³
             "reference": torch.as_tensor(X, dtype=dtype),                             # [N, 3] m
-            "mass_dense": _dense(linear.mass).to(dtype),                              # [n, n] kg
             # (1 + c) K_e − Σ ḡ_i (1 − w_i) K_iso,e: the step's cell stiffness with stiffness damping
             # and relaxation (K_Δt,e + c K_e; (1 + c) K_e for the elastic prior)
             "cell_K_step": torch.as_tensor((1.0 + self.c) * Ke - self._shrink() * Ke_iso, dtype=dtype),
@@ -676,26 +674,31 @@ class CorotatedNewmarkPrior(NewmarkPrior):
 
     def rotated_pairs(self, R: Tensor, cell_K: Tensor) -> Tensor:
         """The entries R_e K_e R_eᵀ [B, k] N/m of the cells' K_e [T, 12, 12] that fall on pairs of
-        free DOFs (``pair_keep``), unsummed: ``pair_flat`` sums them densely, ``pair_slot`` sparsely."""
+        free DOFs (``pair_keep``), unsummed: ``sparse_values`` sums them into ``pattern``'s slots."""
         B, T = R.shape[0], R.shape[1]
         KR = torch.einsum("ztij,tajck,ztlk->ztaicl", R, cell_K.reshape(T, 4, 3, 4, 3), R).reshape(B, T * 144)
         return KR.index_select(1, self.pair_keep)
 
-    def rotated_stiffness(self, R: Tensor, cell_K: Optional[Tensor] = None) -> Tensor:
-        """Σ_e R_e K_e R_eᵀ over the free DOFs [B, n, n] N/m (dense), of the cells' K_e [T, 12, 12]
-        (default: the linear stiffness ``cell_K``)."""
-        values = self.rotated_pairs(R, self.cell_K if cell_K is None else cell_K)       # [B, k]
-        B, n = R.shape[0], self.n_free
-        return values.new_zeros(B, n * n).index_add(1, self.pair_flat, values).reshape(B, n, n)
+    def sparse_values(self, pairs: Tensor) -> Tensor:
+        """The step matrix c0 m_f M + K [B, nnz] N/m in ``pattern``'s slots, of the stiffness's
+        unsummed pairs [B, k] N/m (``rotated_pairs``; the law prior's tangent pairs)."""
+        return (self.c0 * self.mass_factor * self.mass_values).expand(pairs.shape[0], -1).index_add(
+            1, self.pair_slot, pairs)
+
+    def dense_system(self, pairs: Tensor) -> Tensor:
+        """The step matrix c0 m_f M + K [B, n, n] N/m, dense, of the stiffness's pairs [B, k]: its
+        nonzeros (``sparse_values``) put in place (one n × n array written once: the liver's 1278²
+        took a fifth of a scripted law-prior step when mass and stiffness were summed as dense
+        arrays, docs/accuracy.md session 74)."""
+        B, n = pairs.shape[0], self.n_free
+        return pairs.new_zeros(B, n * n).index_add(1, self.slot_flat, self.sparse_values(pairs)).reshape(B, n, n)
 
     @torch.jit.unused
     def sparse_solve(self, R: Tensor, b: Tensor) -> Tensor:
         """u [B, n] m solving (c0 m_f M + Σ_e R_e K_Δt,e R_eᵀ) u = b [B, n] N, the step's system,
         assembled into ``pattern`` and factorised by sparse LU (:class:`SparseSolve`): the system
-        ``rotated_stiffness`` builds dense, on the CPU (not in TorchScript)."""
-        values = (self.c0 * self.mass_factor * self.mass_values).expand(R.shape[0], -1).index_add(
-            1, self.pair_slot, self.rotated_pairs(R, self.cell_K_step))                   # [B, nnz] N/m
-        return SparseSolve.apply(values, b, self.pattern)
+        ``dense_system`` builds dense (TorchScript, a GPU)."""
+        return SparseSolve.apply(self.sparse_values(self.rotated_pairs(R, self.cell_K_step)), b, self.pattern)
 
     # --- the step -------------------------------------------------------------------------------
     def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
@@ -728,8 +731,7 @@ class CorotatedNewmarkPrior(NewmarkPrior):
             if not torch.jit.is_scripting() and self.sparse_cpu and b.device.type == "cpu":
                 u1 = self.sparse_solve(R, b)
             else:
-                mass = self.c0 * self.mass_factor * self.mass_dense                          # [n, n] kg/s²
-                u1 = solve_each(mass + self.rotated_stiffness(R, self.cell_K_step), b)     # A [B, n, n] N/m
+                u1 = solve_each(self.dense_system(self.rotated_pairs(R, self.cell_K_step)), b)   # A [B, n, n] N/m
         a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
         return u1, v1, a1, self.relax(u0, u1, h0)
 
