@@ -376,9 +376,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.j_floor, self.max_halvings = J_FLOOR, MAX_HALVINGS
         self._start_memo = None         # eager CPU: the last step start and its factors (``_eager_first_iteration``)
         # dense path without gradients (TorchScript, serve): the last step start, by value, and its
-        # LU factors (``first_iteration``); empty until a step sets them
+        # LU factors (``first_iteration``); empty until a step sets them. memo_law_*: the last F the
+        # law met without a gradient and its (S_iso, S_vol) (``law``; eager too)
         for name in ("memo_key", "memo_predictor", "memo_S_iso0", "memo_extra", "memo_damping0", "memo_u1",
-                     "memo_internal", "memo_lu"):
+                     "memo_internal", "memo_lu", "memo_law_F", "memo_law_S_iso", "memo_law_S_vol"):
             self.register_buffer(name, torch.zeros(0, dtype=dtype), persistent=False)
         self.register_buffer("memo_pivots", torch.zeros(0, dtype=torch.int32), persistent=False)
         # ... and, with the block-tridiagonal factor (``set_band``), its X and lower blocks
@@ -403,10 +404,24 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                     ogden_volumetric_pk2(F, C, self.ogden_d))
         return neo_hookean_pk2(F, self.c10, self.d1)
 
+    def law(self, F: Tensor) -> Tuple[Tensor, Tensor]:
+        """``pk2`` (S_iso, S_vol) [B, T, 3, 3] Pa of the cells' F [B, T, 3, 3], the last F's kept
+        where it takes no gradient (serve, evaluate): a carried model step meets the law at its
+        start three times (``unpack``'s stress and relaxation, ``step_start``) and at each prior
+        step's end twice (``relax_from``, ``physical_state``). Kept by value, so a new F is never
+        served an old S; ``forget`` drops it."""
+        if F.requires_grad:
+            return self.pk2(F)
+        if self.memo_law_F.shape == F.shape and bool(torch.equal(self.memo_law_F, F)):
+            return self.memo_law_S_iso, self.memo_law_S_vol
+        s_iso, s_vol = self.pk2(F)
+        self.memo_law_F, self.memo_law_S_iso, self.memo_law_S_vol = F, s_iso, s_vol
+        return s_iso, s_vol
+
     def pk1(self, F: Tensor, w_iso: float, w_vol: float, extra: Optional[Tensor]) -> Tensor:
         """P = F (w_vol S_vol + w_iso S_iso + extra) [..., 3, 3] Pa (``extra`` [B, T, 3, 3] a stress
         constant in F: the Prony history's part of a step)."""
-        s_iso, s_vol = self.pk2(F)
+        s_iso, s_vol = self.law(F)
         S = w_vol * s_vol + w_iso * s_iso
         if extra is not None:
             S = S + extra
@@ -478,7 +493,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         """The step matrix c0 m_f M + K_T of K_T's pairs [B, k] N/m in ``set_band``'s blocks
         [B, 3, nb, w, w] (diagonal, lower, upper), the padding's diagonal 1."""
         B, nb, w = pairs.shape[0], self.band_blocks, self.band_width
-        flat = pairs.new_zeros(B, 3 * nb * w * w).index_add(1, self.band_slot, self.sparse_values(pairs))
+        flat = pairs.new_zeros(B, 3 * nb * w * w).index_copy_(1, self.band_slot, self.sparse_values(pairs))  # distinct
         return flat.index_fill(1, self.band_pad, 1.0).reshape(B, 3, nb, w, w)
 
     def band_rhs(self, b: Tensor) -> Tensor:
@@ -543,7 +558,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         back-substitution (``first_iteration`` keeps it with the tangent's factors)."""
         predictor = self.newmark_predictor(u0, v0, a0)                                    # a1 = c0 u1 − predictor
         F0 = self.cells(u0)
-        S_iso0, S_vol0 = self.pk2(F0)
+        S_iso0, S_vol0 = self.law(F0)
         extra = self.history_stress(S_iso0, h0)
         # f_int(u1; h0) + c f_el(u1) in one law evaluation: P = F ((1 + c) S_vol + (w_iso + c) S_iso + extra)
         w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
@@ -591,6 +606,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.memo_damping0, self.memo_u1, self.memo_internal, self.memo_lu = empty, empty, empty, empty
         self.memo_pivots = self.memo_pivots.new_zeros(0)
         self.memo_band_X, self.memo_band_L = empty, empty
+        self.memo_law_F, self.memo_law_S_iso, self.memo_law_S_vol = empty, empty, empty
 
     def fresh_first_iteration(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor, loads: Tensor
                               ) -> Tuple[Tensor, Tensor, Tensor, Optional[Tensor], Tensor]:
@@ -818,26 +834,26 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         """h [B, T_prony, 6 T] at displacements u [B, n] applied at once: h_i = S_iso(F)."""
         if self.n_terms == 0:
             return u.new_zeros(u.shape[0], 0, 0)
-        s = _voigt(self.pk2(self.cells(u))[0]).reshape(u.shape[0], 1, -1)
+        s = _voigt(self.law(self.cells(u))[0]).reshape(u.shape[0], 1, -1)
         return s.expand(-1, self.n_terms, -1).contiguous()
 
     def relax(self, u0: Tensor, u1: Tensor, h0: Tensor) -> Tensor:
         """h1 after a step from u0 to u1 [B, n]: h_i ← d_i h_i + w_i (S_iso(u1) − S_iso(u0))."""
         if self.n_terms == 0:
             return h0
-        return self.relax_from(self.pk2(self.cells(u0))[0], u1, h0)
+        return self.relax_from(self.law(self.cells(u0))[0], u1, h0)
 
     def relax_from(self, S_iso0: Tensor, u1: Tensor, h0: Tensor) -> Tensor:
         """``relax`` with the step start's S_iso,0 [B, T, 3, 3] Pa already evaluated."""
         if self.n_terms == 0:
             return h0
         B = u1.shape[0]
-        step = _voigt(self.pk2(self.cells(u1))[0] - S_iso0).reshape(B, 1, -1)
+        step = _voigt(self.law(self.cells(u1))[0] - S_iso0).reshape(B, 1, -1)
         return self.prony_decay.view(1, -1, 1) * h0 + self.prony_increment.view(1, -1, 1) * step
 
     def _law_relaxed(self, F: Tensor, h: Tensor) -> Tensor:
         """Σ ḡ_i (h_i − S_iso(F)) [B, T, 3, 3] Pa: what relaxation takes off the unrelaxed S."""
-        return self._relaxed_from(self.pk2(F)[0], h)
+        return self._relaxed_from(self.law(F)[0], h)
 
     def _relaxed_from(self, S_iso: Tensor, h: Tensor) -> Tensor:
         """``_law_relaxed`` with the cells' S_iso [B, T, 3, 3] Pa already evaluated."""
@@ -865,7 +881,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         (``stress`` and ``stress_relaxation`` together, which each evaluate it)."""
         U = self.scatter(u)                                                                 # [B, N, 3] m
         F = self.deformation_gradients(self.reference.unsqueeze(0) + U)                    # [B, T, 3, 3]
-        s_iso, s_vol = self.pk2(F)
+        s_iso, s_vol = self.law(F)
         S = s_iso + s_vol
         if self.n_terms > 0:
             S = S + self._relaxed_from(s_iso, h)
@@ -879,7 +895,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         displacements u [B, N, 3] m (unrelaxed; ``stress_relaxation`` adds the history's part),
         volume-averaged at the nodes as the dataset's."""
         F = self.deformation_gradients(self.reference.unsqueeze(0) + u)
-        s_iso, s_vol = self.pk2(F)
+        s_iso, s_vol = self.law(F)
         J = torch.linalg.det(F)[..., None, None]
         cell = self.nodal(F @ (s_iso + s_vol) @ F.transpose(-1, -2) / J)
         return cell if H is None else cell + H
