@@ -1200,8 +1200,24 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
     prior.forget()
     assert rel(prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0], sparse_step) < 1e-12
     assert prior.memo_band_X.shape == (1, prior.band_blocks, prior.band_width, prior.band_width)
+    # ... and its one level of nested dissection (the liver's: two halves and a separator), forced too
+    prior.set_band(0.0, float("inf"))
+    m, sep = prior.dissection_half, prior.dissection_separator
+    assert prior.band_blocks == 0 and m > 0 and 0 < sep < prior.n_free and 2 * m + sep >= prior.n_free
+    assert rel(prior.solve(pairs, b), prior.law_solve(pairs, b)) < 1e-12
+    prior.forget()
+    assert rel(prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0], sparse_step) < 1e-12
+    assert prior.memo_sep_lu.shape == (1, sep, sep) and prior.memo_band_X.shape == (1, 2, m, sep)
     prior.set_band(0.0)                                   # nothing below no flops: the dense LU
-    assert prior.band_blocks == 0 == dense_blocks
+    assert prior.band_blocks == 0 == dense_blocks and prior.dissection_half == 0
+    # the law's stresses kept for the last F met without a gradient (``law``): by value, never stale
+    F1, F2 = prior.cells(uf), prior.cells(1.01 * uf)
+    kept = prior.law(F1)[0]
+    assert prior.law(F1.clone())[0] is kept and torch.equal(kept, prior.pk2(F1)[0])
+    assert torch.equal(prior.law(F2)[1], prior.pk2(F2)[1]) and prior.law(F1)[0] is not kept
+    assert prior.law(F1.clone().requires_grad_())[0].requires_grad          # training's: evaluated, not kept
+    prior.forget()
+    assert prior.memo_law_F.numel() == 0
     # a second step from the same start (a model step's, with the network's G1) reuses the first
     # one's start and factors, by identity on the sparse path and by value on the dense one: the
     # same step as from scratch; a start changed in place, or another one, is not reused
@@ -1253,6 +1269,8 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
         prior.step(uf * float("nan"), vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)
     assert DIVERGED in str(diverged.value)
     prior.set_band(float("inf"))                          # scripted, it steps by the block factor
+    _carried_steps_follow_rollouts(prior, graph, width=len(prony) * prior.cell_columns)
+    prior.set_band(0.0, float("inf"))                     # ... and by the dissection
     _carried_steps_follow_rollouts(prior, graph, width=len(prony) * prior.cell_columns)
 
     settings = prior_settings(OmegaConf.create({"prior": "linear", "prior_law": True, "prior_newton": 2}))

@@ -50,8 +50,9 @@ from torch import Tensor
 from thermognn.core.hyperelastic import NeoHookean, Ogden
 from thermognn.core.linear import LinearSolid
 
-from .prior import (BAND_MAX_SHARE, CorotatedNewmarkPrior, FactoredSolve, SparseSolve, _matrix, _voigt, band_factor,
-                    band_layout, band_solve, lu_factor_each, solve_each, sparse_factors)
+from .prior import (BAND_MAX_SHARE, DISSECTION_MAX_SHARE, CorotatedNewmarkPrior, FactoredSolve, SparseSolve, _matrix,
+                    _voigt, band_factor, band_layout, band_solve, dissection_factor, dissection_layout,
+                    dissection_solve, lu_factor_each, solve_each, sparse_factors)
 
 #: the FE's regularisation of the deviatoric norm (``thermognn.generate.materials.EIGEN_EPS``)
 EIGEN_EPS = 1.0e-6
@@ -315,7 +316,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
 
     It keeps :class:`CorotatedNewmarkPrior`'s cell bookkeeping and solves (sparse LU on the CPU;
     on a GPU and in TorchScript dense and batched, or block-tridiagonal where the reordered mesh is
-    thin: ``set_band``) and its per-cell internal variables: per Prony
+    thin, or by one level of nested dissection where that is cheaper than dense: ``set_band``) and its per-cell internal variables: per Prony
     term i and cell e the FE's history h_i,e (S_iso seen through exp(−t/τ_i), Voigt, Pa), packed
     into nodal columns ``prony_cells_i`` of a carried state. lam, mu [Pa] (the moduli at rest) only
     size the base class's unused linear cell stiffness."""
@@ -385,7 +386,11 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         # ... and, with the block-tridiagonal factor (``set_band``), its X and lower blocks
         self.register_buffer("memo_band_X", torch.zeros(0, dtype=dtype), persistent=False)
         self.register_buffer("memo_band_L", torch.zeros(0, dtype=dtype), persistent=False)
-        self.set_band(BAND_MAX_SHARE)
+        # ... with the dissection (``set_band``) its halves' W in memo_band_X, A_sk in memo_band_L and
+        # the separator's Schur complement's LU here
+        self.register_buffer("memo_sep_lu", torch.zeros(0, dtype=dtype), persistent=False)
+        self.register_buffer("memo_sep_pivots", torch.zeros(0, dtype=torch.int32), persistent=False)
+        self.set_band(BAND_MAX_SHARE, DISSECTION_MAX_SHARE)
         # how many updates ``admissible`` has shortened (samples x updates), since it was last zeroed:
         # where the budget does not hold a step (evaluate names such rollouts)
         self.register_buffer("shortened", torch.zeros((), dtype=torch.int64), persistent=False)
@@ -474,20 +479,33 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             return Ke.reshape(B, T * 144).index_select(1, self.pair_keep)
 
     @torch.jit.unused
-    def set_band(self, max_share: float) -> None:
+    def set_band(self, max_share: float, dissection_share: float = 0.0) -> None:
         """Factor the dense path's step matrices (TorchScript, so serve; a GPU) block-tridiagonally
         where :func:`thermognn.train.prior.band_layout` finds it at most ``max_share`` of a dense
-        LU's flops (the shell's 1032 DOFs: bandwidth 50 after reordering), densely elsewhere."""
+        LU's flops (the shell's 1032 DOFs: bandwidth 50 after reordering); else by one level of
+        nested dissection where :func:`thermognn.train.prior.dissection_layout` finds that at most
+        ``dissection_share`` of them (the liver's 1278: halves of 639 and 549 and a separator of
+        90, 0.31 of the flops); densely elsewhere."""
         layout = band_layout(self.pattern, max_share)
         long = torch.long
         if layout is None:
             order, w, nb, slot, pad = np.zeros(0), 0, 0, np.zeros(0), np.zeros(0)
         else:
             order, w, nb, slot, pad = layout
-        self.band_width, self.band_blocks = int(w), int(nb)                 # 0 blocks: the dense LU
+        self.band_width, self.band_blocks = int(w), int(nb)                 # 0 blocks: not banded
         self.register_buffer("band_order", torch.as_tensor(order, dtype=long), persistent=False)   # [n]
         self.register_buffer("band_slot", torch.as_tensor(slot, dtype=long), persistent=False)     # [nnz]
         self.register_buffer("band_pad", torch.as_tensor(pad, dtype=long), persistent=False)       # [nb w − n]
+        cut = dissection_layout(self.pattern, dissection_share) if layout is None else None
+        if cut is None:
+            gather, scatter, m, sep, slot, pad = np.zeros(0), np.zeros(0), 0, 0, np.zeros(0), np.zeros(0)
+        else:
+            gather, scatter, m, sep, slot, pad = cut
+        self.dissection_half, self.dissection_separator = int(m), int(sep)    # 0: not dissected
+        self.register_buffer("dissection_gather", torch.as_tensor(gather, dtype=long), persistent=False)  # [2m + s]
+        self.register_buffer("dissection_scatter", torch.as_tensor(scatter, dtype=long), persistent=False)  # [n]
+        self.register_buffer("dissection_slot", torch.as_tensor(slot, dtype=long), persistent=False)      # [nnz]
+        self.register_buffer("dissection_pad", torch.as_tensor(pad, dtype=long), persistent=False)
 
     def band_system(self, pairs: Tensor) -> Tensor:
         """The step matrix c0 m_f M + K_T of K_T's pairs [B, k] N/m in ``set_band``'s blocks
@@ -495,6 +513,22 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         B, nb, w = pairs.shape[0], self.band_blocks, self.band_width
         flat = pairs.new_zeros(B, 3 * nb * w * w).index_copy_(1, self.band_slot, self.sparse_values(pairs))  # distinct
         return flat.index_fill(1, self.band_pad, 1.0).reshape(B, 3, nb, w, w)
+
+    def dissection_system(self, pairs: Tensor) -> Tensor:
+        """The step matrix c0 m_f M + K_T of K_T's pairs [B, k] N/m in ``set_band``'s dissection,
+        flat [B, 2m² + 4ms + s²] (``thermognn.train.prior.dissection_layout``), the padding's diagonal 1."""
+        B, m, sep = pairs.shape[0], self.dissection_half, self.dissection_separator
+        flat = pairs.new_zeros(B, 2 * m * m + 4 * m * sep + sep * sep).index_copy_(
+            1, self.dissection_slot, self.sparse_values(pairs))                            # distinct slots
+        return flat.index_fill(1, self.dissection_pad, 1.0)
+
+    def dissection_rhs(self, b: Tensor) -> Tensor:
+        """Free-DOF vectors b [B, n] in the dissection's places [B, 2m + s] (halves zero padded)."""
+        return torch.cat([b, b.new_zeros(b.shape[0], 1)], 1).index_select(1, self.dissection_gather)
+
+    def dissection_result(self, x: Tensor) -> Tensor:
+        """``dissection_rhs`` undone: [B, 2m + s] -> [B, n] free DOFs."""
+        return x.index_select(1, self.dissection_scatter)
 
     def band_rhs(self, b: Tensor) -> Tensor:
         """Free-DOF vectors b [B, n] in ``set_band``'s order and blocks [B, nb, w] (zero padded)."""
@@ -519,6 +553,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         if self.band_blocks > 0:
             lu, pivots, X, L = band_factor(self.band_system(pairs))
             return self.band_result(band_solve(lu, pivots, X, L, self.band_rhs(b)))
+        if self.dissection_half > 0:
+            lu, pivots, W, A_sk, lu_s, pivots_s = dissection_factor(
+                self.dissection_system(pairs), self.dissection_half, self.dissection_separator)
+            return self.dissection_result(dissection_solve(lu, pivots, W, A_sk, lu_s, pivots_s, self.dissection_rhs(b)))
         return solve_each(self.dense_system(pairs), b)
 
     def require_finite(self, residual: Tensor) -> None:
@@ -605,7 +643,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.memo_key, self.memo_predictor, self.memo_S_iso0, self.memo_extra = empty, empty, empty, empty
         self.memo_damping0, self.memo_u1, self.memo_internal, self.memo_lu = empty, empty, empty, empty
         self.memo_pivots = self.memo_pivots.new_zeros(0)
-        self.memo_band_X, self.memo_band_L = empty, empty
+        self.memo_band_X, self.memo_band_L, self.memo_sep_lu = empty, empty, empty
+        self.memo_sep_pivots = self.memo_sep_pivots.new_zeros(0)
         self.memo_law_F, self.memo_law_S_iso, self.memo_law_S_vol = empty, empty, empty
 
     def fresh_first_iteration(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor, loads: Tensor
@@ -636,6 +675,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             if self.band_blocks > 0:
                 self.memo_lu, self.memo_pivots, self.memo_band_X, self.memo_band_L = band_factor(
                     self.band_system(pairs))
+            elif self.dissection_half > 0:
+                (self.memo_lu, self.memo_pivots, self.memo_band_X, self.memo_band_L, self.memo_sep_lu,
+                 self.memo_sep_pivots) = dissection_factor(self.dissection_system(pairs), self.dissection_half,
+                                                           self.dissection_separator)
             else:
                 self.memo_lu, self.memo_pivots = lu_factor_each(self.dense_system(pairs))   # [B, n, n] N/m
             self.memo_key, self.memo_predictor, self.memo_S_iso0 = key, predictor, S_iso0
@@ -646,6 +689,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         if self.band_blocks > 0:
             du = self.band_result(band_solve(self.memo_lu, self.memo_pivots, self.memo_band_X, self.memo_band_L,
                                              self.band_rhs(residual)))
+        elif self.dissection_half > 0:
+            du = self.dissection_result(dissection_solve(self.memo_lu, self.memo_pivots, self.memo_band_X,
+                                                         self.memo_band_L, self.memo_sep_lu, self.memo_sep_pivots,
+                                                         self.dissection_rhs(residual)))
         else:
             du = torch.linalg.lu_solve(self.memo_lu, self.memo_pivots, residual.unsqueeze(-1)).squeeze(-1)
         extra_kept: Optional[Tensor] = None

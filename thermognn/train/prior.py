@@ -553,6 +553,106 @@ def band_layout(pattern: "SparsePattern", max_share: float = BAND_MAX_SHARE
     return order, w, nb, slot, pad_slot
 
 
+#: ``dissection_layout``: one level of nested dissection is used where it takes at most this share
+#: of a dense LU's flops (the liver, 1278 DOFs: two halves of 639 and 549 and a separator of 90)
+DISSECTION_MAX_SHARE = 0.5
+
+
+def dissection_layout(pattern: "SparsePattern", max_share: float = DISSECTION_MAX_SHARE
+                      ) -> Optional[Tuple[np.ndarray, np.ndarray, int, int, np.ndarray, np.ndarray]]:
+    """One level of nested dissection of the n × n matrices of a symmetric sparsity ``pattern``:
+    its DOF graph cut in two at the median of its Fiedler vector (the Laplacian's second
+    eigenvector, a spectral bisection), and the DOFs of one half that touch the other moved into
+    a separator, so that no nonzero joins the two halves. With the halves padded to m DOFs each
+    and the separator's s, the matrix is stored as [2, m, m] diagonal blocks A_kk, [2, m, s]
+    A_ks, [2, s, m] A_sk and [s, s] A_ss (:func:`dissection_factor`).
+
+    Returns (gather [2m + s]: the free DOF at each place, n where it is padding; scatter [n]: each
+    DOF's place; m; s; each slot's place [nnz] in the flat storage; the storage places of the
+    padding's diagonal [2m − n + s]); None where its factor (about 2m³/3 + 4m²s + 4ms² flops) is
+    not below ``max_share`` of a dense LU's (2n³/3), or the cut leaves a half or the separator empty."""
+    from scipy.sparse import csgraph, diags
+    from scipy.sparse.linalg import eigsh
+
+    n = pattern.n
+    rows, cols = pattern.rows.numpy(), pattern.cols.numpy()
+    off = rows != cols
+    A = sparse.csr_matrix((np.ones(int(off.sum())), (rows[off], cols[off])), shape=(n, n))
+    A = ((A + A.T) > 0).astype(float)
+    if n < 8 or csgraph.connected_components(A, directed=False)[0] != 1:
+        return None
+    laplacian = (diags(np.asarray(A.sum(1)).ravel()) - A).tocsc()
+    start = np.random.default_rng(0).standard_normal(n)              # (deterministic: the same layout each time)
+    values, vectors = eigsh(laplacian, 2, sigma=-1e-6, which="LM", v0=start)
+    fiedler = vectors[:, int(np.argsort(values)[1])]
+    upper = fiedler > np.median(fiedler)
+    coo = A.tocoo()
+    touch = upper[coo.row] & ~upper[coo.col]
+    separator = np.zeros(n, dtype=bool)
+    separator[coo.row[touch]] = True
+    halves = [np.flatnonzero(~upper), np.flatnonzero(upper & ~separator)]
+    sep = np.flatnonzero(separator)
+    m, ns = max(len(halves[0]), len(halves[1])), len(sep)
+    if min(len(halves[0]), len(halves[1]), ns) == 0:
+        return None
+    if 2.0 * m**3 / 3.0 + 4.0 * m * m * ns + 4.0 * m * ns * ns + 2.0 * ns**3 / 3.0 > max_share * 2.0 * n**3 / 3.0:
+        return None
+    gather = np.full(2 * m + ns, n, dtype=np.int64)
+    gather[:len(halves[0])] = halves[0]
+    gather[m:m + len(halves[1])] = halves[1]
+    gather[2 * m:] = sep
+    scatter = np.empty(n, dtype=np.int64)
+    real = gather < n
+    scatter[gather[real]] = np.flatnonzero(real)
+    part = np.full(n, 2)                                                  # 0, 1: a half; 2: the separator
+    part[halves[1]] = 1
+    part[halves[0]] = 0
+    local = scatter - np.minimum(part, 2) * m                             # place within its half or the separator
+    pr, pc, lr, lc = part[rows], part[cols], local[rows], local[cols]
+    if bool(((pr < 2) & (pc < 2) & (pr != pc)).any()):
+        raise AssertionError("dissection_layout: a nonzero joins the two halves")
+    ks, sk, ss = 2 * m * m, 2 * m * m + 2 * m * ns, 2 * m * m + 4 * m * ns
+    slot = np.where((pr < 2) & (pc < 2), (pr * m + lr) * m + lc,
+                    np.where(pc == 2, np.where(pr < 2, ks + (pr * m + lr) * ns + lc, ss + lr * ns + lc),
+                             sk + (pc * ns + lr) * m + lc))
+    pad = np.flatnonzero(~real[:2 * m])                                   # padded places of the halves
+    pad_slot = ((pad // m) * m + pad % m) * m + pad % m
+    return gather, scatter, m, ns, slot.astype(np.int64), pad_slot.astype(np.int64)
+
+
+def dissection_factor(flat: Tensor, m: int, s: int) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The block LU of matrices stored as :func:`dissection_layout` lays them out, flat
+    [B, 2m² + 4ms + s²]: each half's A_kk factored (partial pivoting within it; the step matrices
+    are symmetric and their mass dominates), W_k = A_kk⁻¹ A_ks and the separator's Schur complement
+    A_ss − Σ_k A_sk W_k factored. Returns (LU of the halves [B, 2, m, m], their pivots [B, 2, m],
+    W [B, 2, m, s], A_sk [B, 2, s, m], the Schur complement's LU [B, s, s] and pivots [B, s]) for
+    :func:`dissection_solve`."""
+    B = flat.shape[0]
+    ks, sk, ss = 2 * m * m, 2 * m * m + 2 * m * s, 2 * m * m + 4 * m * s
+    halves = flat[:, :ks].reshape(B * 2, m, m)
+    A_ks = flat[:, ks:sk].reshape(B, 2, m, s)
+    A_sk = flat[:, sk:ss].reshape(B, 2, s, m)
+    lu, pivots = lu_factor_each(halves)
+    lu, pivots = lu.reshape(B, 2, m, m), pivots.reshape(B, 2, m)
+    W = torch.linalg.lu_solve(lu, pivots, A_ks)                                           # [B, 2, m, s]
+    schur = flat[:, ss:].reshape(B, s, s) - (A_sk @ W).sum(1)                             # [B, s, s]
+    lu_s, pivots_s = lu_factor_each(schur)
+    return lu, pivots, W, A_sk, lu_s, pivots_s
+
+
+def dissection_solve(lu: Tensor, pivots: Tensor, W: Tensor, A_sk: Tensor, lu_s: Tensor, pivots_s: Tensor,
+                     r: Tensor) -> Tensor:
+    """x [B, 2m + s] with A x = r [B, 2m + s] (halves, then the separator) for the A that
+    :func:`dissection_factor` factored: y_k = A_kk⁻¹ r_k, x_s = S⁻¹ (r_s − Σ_k A_sk y_k),
+    x_k = y_k − W_k x_s."""
+    B, m = r.shape[0], lu.shape[-1]
+    y = torch.linalg.lu_solve(lu, pivots, r[:, :2 * m].reshape(B, 2, m, 1))                # [B, 2, m, 1]
+    g = r[:, 2 * m:] - (A_sk @ y).sum(1).squeeze(-1)                                       # [B, s]
+    x_s = torch.linalg.lu_solve(lu_s, pivots_s, g.unsqueeze(-1))                           # [B, s, 1]
+    x_k = y - W @ x_s.unsqueeze(1)                                                         # [B, 2, m, 1]
+    return torch.cat([x_k.reshape(B, 2 * m), x_s.squeeze(-1)], 1)
+
+
 def lu_factor_each(A: Tensor) -> Tuple[Tensor, Tensor]:
     """(LU, pivots) of A [B, m, m]: one sample at a time on the CPU (``solve_each``), batched elsewhere."""
     if A.device.type != "cpu":
