@@ -316,10 +316,11 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
 
     It keeps :class:`CorotatedNewmarkPrior`'s cell bookkeeping and solves (sparse LU on the CPU;
     on a GPU and in TorchScript dense and batched, or block-tridiagonal where the reordered mesh is
-    thin, or by one level of nested dissection where that is cheaper than dense: ``set_band``) and its per-cell internal variables: per Prony
-    term i and cell e the FE's history h_i,e (S_iso seen through exp(−t/τ_i), Voigt, Pa), packed
-    into nodal columns ``prony_cells_i`` of a carried state. lam, mu [Pa] (the moduli at rest) only
-    size the base class's unused linear cell stiffness."""
+    thin, or by one level of nested dissection where that is cheaper than dense: ``set_band``)
+    and its per-cell internal variables: per Prony term i and cell e the FE's history h_i,e (S_iso
+    seen through exp(−t/τ_i), Voigt, Pa), packed into nodal columns ``prony_cells_i`` of a carried
+    state. lam, mu [Pa] (the moduli at rest) only size the base class's unused linear cell
+    stiffness."""
 
     __jit_ignored_attributes__ = ["_start_memo"]
 

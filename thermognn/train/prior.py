@@ -569,7 +569,7 @@ def dissection_layout(pattern: "SparsePattern", max_share: float = DISSECTION_MA
 
     Returns (gather [2m + s]: the free DOF at each place, n where it is padding; scatter [n]: each
     DOF's place; m; s; each slot's place [nnz] in the flat storage; the storage places of the
-    padding's diagonal [2m − n + s]); None where its factor (about 2m³/3 + 4m²s + 4ms² flops) is
+    padding's diagonal [2m − n + s]); None where its factor (about 2m³/3 + 4m²s + 4ms² + 2s³/3 flops) is
     not below ``max_share`` of a dense LU's (2n³/3), or the cut leaves a half or the separator empty."""
     from scipy.sparse import csgraph, diags
     from scipy.sparse.linalg import eigsh
@@ -607,7 +607,7 @@ def dissection_layout(pattern: "SparsePattern", max_share: float = DISSECTION_MA
     part = np.full(n, 2)                                                  # 0, 1: a half; 2: the separator
     part[halves[1]] = 1
     part[halves[0]] = 0
-    local = scatter - np.minimum(part, 2) * m                             # place within its half or the separator
+    local = scatter - part * m                                            # place within its half or the separator
     pr, pc, lr, lc = part[rows], part[cols], local[rows], local[cols]
     if bool(((pr < 2) & (pc < 2) & (pr != pc)).any()):
         raise AssertionError("dissection_layout: a nonzero joins the two halves")
