@@ -513,7 +513,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         [B, 3, nb, w, w] (diagonal, lower, upper), the padding's diagonal 1."""
         B, nb, w = pairs.shape[0], self.band_blocks, self.band_width
         flat = pairs.new_zeros(B, 3 * nb * w * w).index_copy_(1, self.band_slot, self.sparse_values(pairs))  # distinct
-        return flat.index_fill(1, self.band_pad, 1.0).reshape(B, 3, nb, w, w)
+        return flat.index_fill_(1, self.band_pad, 1.0).reshape(B, 3, nb, w, w)
 
     def dissection_system(self, pairs: Tensor) -> Tensor:
         """The step matrix c0 m_f M + K_T of K_T's pairs [B, k] N/m in ``set_band``'s dissection,
@@ -521,7 +521,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         B, m, sep = pairs.shape[0], self.dissection_half, self.dissection_separator
         flat = pairs.new_zeros(B, 2 * m * m + 4 * m * sep + sep * sep).index_copy_(
             1, self.dissection_slot, self.sparse_values(pairs))                            # distinct slots
-        return flat.index_fill(1, self.dissection_pad, 1.0)
+        return flat.index_fill_(1, self.dissection_pad, 1.0)
 
     def dissection_rhs(self, b: Tensor) -> Tensor:
         """Free-DOF vectors b [B, n] in the dissection's places [B, 2m + s] (halves zero padded)."""
