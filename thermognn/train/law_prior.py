@@ -52,7 +52,7 @@ from thermognn.core.linear import LinearSolid
 
 from .prior import (BAND_MAX_SHARE, DISSECTION_MAX_SHARE, CorotatedNewmarkPrior, FactoredSolve, SparseSolve, _matrix,
                     _voigt, band_factor, band_layout, band_solve, dissection_factor, dissection_layout,
-                    dissection_solve, lu_factor_each, solve_each, sparse_factors)
+                    dissection_solve, lu_factor_each, sparse_factors)
 
 #: the FE's regularisation of the deviatoric norm (``thermognn.generate.materials.EIGEN_EPS``)
 EIGEN_EPS = 1.0e-6
@@ -384,11 +384,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                      "memo_internal", "memo_lu", "memo_law_F", "memo_law_S_iso", "memo_law_S_vol"):
             self.register_buffer(name, torch.zeros(0, dtype=dtype), persistent=False)
         self.register_buffer("memo_pivots", torch.zeros(0, dtype=torch.int32), persistent=False)
-        # ... and, with the block-tridiagonal factor (``set_band``), its X and lower blocks
+        # ... and the rest of ``factor``'s factors: the block-tridiagonal factor's X and lower blocks
+        # (the dissection's W and A_sk), the dissection separator's Schur complement's LU
         self.register_buffer("memo_band_X", torch.zeros(0, dtype=dtype), persistent=False)
         self.register_buffer("memo_band_L", torch.zeros(0, dtype=dtype), persistent=False)
-        # ... with the dissection (``set_band``) its halves' W in memo_band_X, A_sk in memo_band_L and
-        # the separator's Schur complement's LU here
         self.register_buffer("memo_sep_lu", torch.zeros(0, dtype=dtype), persistent=False)
         self.register_buffer("memo_sep_pivots", torch.zeros(0, dtype=torch.int32), persistent=False)
         self.set_band(BAND_MAX_SHARE, DISSECTION_MAX_SHARE)
@@ -512,15 +511,14 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         """The step matrix c0 m_f M + K_T of K_T's pairs [B, k] N/m in ``set_band``'s blocks
         [B, 3, nb, w, w] (diagonal, lower, upper), the padding's diagonal 1."""
         B, nb, w = pairs.shape[0], self.band_blocks, self.band_width
-        flat = pairs.new_zeros(B, 3 * nb * w * w).index_copy_(1, self.band_slot, self.sparse_values(pairs))  # distinct
+        flat = self.placed_values(pairs, 3 * nb * w * w, self.band_slot)
         return flat.index_fill_(1, self.band_pad, 1.0).reshape(B, 3, nb, w, w)
 
     def dissection_system(self, pairs: Tensor) -> Tensor:
         """The step matrix c0 m_f M + K_T of K_T's pairs [B, k] N/m in ``set_band``'s dissection,
         flat [B, 2m² + 4ms + s²] (``thermognn.train.prior.dissection_layout``), the padding's diagonal 1."""
-        B, m, sep = pairs.shape[0], self.dissection_half, self.dissection_separator
-        flat = pairs.new_zeros(B, 2 * m * m + 4 * m * sep + sep * sep).index_copy_(
-            1, self.dissection_slot, self.sparse_values(pairs))                            # distinct slots
+        m, sep = self.dissection_half, self.dissection_separator
+        flat = self.placed_values(pairs, 2 * m * m + 4 * m * sep + sep * sep, self.dissection_slot)
         return flat.index_fill_(1, self.dissection_pad, 1.0)
 
     def dissection_rhs(self, b: Tensor) -> Tensor:
@@ -551,14 +549,32 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         """``law_solve``, dense (batched on a GPU; in TorchScript) off the CPU path."""
         if not torch.jit.is_scripting() and self.sparse_cpu and b.device.type == "cpu":
             return self.law_solve(pairs, b)
+        lu, pivots, blocks, coupling, lu_s, pivots_s = self.factor(pairs)
+        return self.back_substitute(lu, pivots, blocks, coupling, lu_s, pivots_s, b)
+
+    def factor(self, pairs: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """The dense path's factors of the step matrix c0 m_f M + K_T of K_T's pairs [B, k] N/m,
+        as ``set_band`` chose: (LU, pivots, then the band's X and L or the dissection's W and A_sk,
+        then the dissection separator's LU and pivots; empty where unused) for ``back_substitute``."""
+        empty = pairs.new_zeros(0)
+        no_pivots = torch.zeros(0, dtype=torch.int32, device=pairs.device)
         if self.band_blocks > 0:
             lu, pivots, X, L = band_factor(self.band_system(pairs))
-            return self.band_result(band_solve(lu, pivots, X, L, self.band_rhs(b)))
+            return lu, pivots, X, L, empty, no_pivots
         if self.dissection_half > 0:
-            lu, pivots, W, A_sk, lu_s, pivots_s = dissection_factor(
-                self.dissection_system(pairs), self.dissection_half, self.dissection_separator)
-            return self.dissection_result(dissection_solve(lu, pivots, W, A_sk, lu_s, pivots_s, self.dissection_rhs(b)))
-        return solve_each(self.dense_system(pairs), b)
+            return dissection_factor(self.dissection_system(pairs), self.dissection_half, self.dissection_separator)
+        lu, pivots = lu_factor_each(self.dense_system(pairs))                                 # [B, n, n] N/m
+        return lu, pivots, empty, empty, empty, no_pivots
+
+    def back_substitute(self, lu: Tensor, pivots: Tensor, blocks: Tensor, coupling: Tensor, lu_s: Tensor,
+                        pivots_s: Tensor, b: Tensor) -> Tensor:
+        """u [B, n] solving the step's system for b [B, n] N with ``factor``'s factors."""
+        if self.band_blocks > 0:
+            return self.band_result(band_solve(lu, pivots, blocks, coupling, self.band_rhs(b)))
+        if self.dissection_half > 0:
+            return self.dissection_result(dissection_solve(lu, pivots, blocks, coupling, lu_s, pivots_s,
+                                                           self.dissection_rhs(b)))
+        return torch.linalg.lu_solve(lu, pivots, b.unsqueeze(-1)).squeeze(-1)
 
     def require_finite(self, residual: Tensor) -> None:
         """Raise where a residual [B, n] N is not finite (a cell inverted, or the remainders blew
@@ -673,29 +689,15 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         if not (self.memo_key.shape == key.shape and bool(torch.equal(self.memo_key, key))):
             predictor, S_iso0, extra, damping0, u1, internal, pairs = self.step_start(u0, v0, a0, h0)
             self.require_finite(internal)
-            if self.band_blocks > 0:
-                self.memo_lu, self.memo_pivots, self.memo_band_X, self.memo_band_L = band_factor(
-                    self.band_system(pairs))
-            elif self.dissection_half > 0:
-                (self.memo_lu, self.memo_pivots, self.memo_band_X, self.memo_band_L, self.memo_sep_lu,
-                 self.memo_sep_pivots) = dissection_factor(self.dissection_system(pairs), self.dissection_half,
-                                                           self.dissection_separator)
-            else:
-                self.memo_lu, self.memo_pivots = lu_factor_each(self.dense_system(pairs))   # [B, n, n] N/m
+            (self.memo_lu, self.memo_pivots, self.memo_band_X, self.memo_band_L, self.memo_sep_lu,
+             self.memo_sep_pivots) = self.factor(pairs)
             self.memo_key, self.memo_predictor, self.memo_S_iso0 = key, predictor, S_iso0
             self.memo_extra = extra if extra is not None else key.new_zeros(0)
             self.memo_damping0, self.memo_u1, self.memo_internal = damping0, u1, internal
         residual = self.memo_internal - loads
         self.require_finite(residual)
-        if self.band_blocks > 0:
-            du = self.band_result(band_solve(self.memo_lu, self.memo_pivots, self.memo_band_X, self.memo_band_L,
-                                             self.band_rhs(residual)))
-        elif self.dissection_half > 0:
-            du = self.dissection_result(dissection_solve(self.memo_lu, self.memo_pivots, self.memo_band_X,
-                                                         self.memo_band_L, self.memo_sep_lu, self.memo_sep_pivots,
-                                                         self.dissection_rhs(residual)))
-        else:
-            du = torch.linalg.lu_solve(self.memo_lu, self.memo_pivots, residual.unsqueeze(-1)).squeeze(-1)
+        du = self.back_substitute(self.memo_lu, self.memo_pivots, self.memo_band_X, self.memo_band_L,
+                                  self.memo_sep_lu, self.memo_sep_pivots, residual)
         extra_kept: Optional[Tensor] = None
         if self.n_terms > 0:
             extra_kept = self.memo_extra

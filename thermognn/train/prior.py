@@ -225,9 +225,11 @@ class NewmarkPrior(nn.Module):
         z = r / self.mass_diagonal
         p = z
         rz = (r * z).sum(1, keepdim=True)                                                   # [B, 1]
-        for _ in range(self.mass_max_iterations):
+        for it in range(self.mass_max_iterations + 1):
             if bool((torch.linalg.vector_norm(r, dim=1, keepdim=True) <= bound).all()):
                 return x
+            if it == self.mass_max_iterations:
+                break
             Mp = self.mass(p)
             pMp = (p * Mp).sum(1, keepdim=True)
             step = torch.where(pMp > 0, rz / torch.where(pMp > 0, pMp, torch.ones_like(pMp)), torch.zeros_like(pMp))
@@ -238,8 +240,6 @@ class NewmarkPrior(nn.Module):
             p = z + torch.where(rz > 0, rz_next / torch.where(rz > 0, rz, torch.ones_like(rz)),
                                 torch.zeros_like(rz)) * p
             rz = rz_next
-        if bool((torch.linalg.vector_norm(r, dim=1, keepdim=True) <= bound).all()):
-            return x
         raise RuntimeError("prior: the mass solve did not converge (is /linear's mass matrix a P1 mass matrix?)")
 
     def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
@@ -863,14 +863,19 @@ class CorotatedNewmarkPrior(NewmarkPrior):
         return (self.c0 * self.mass_factor * self.mass_values).expand(pairs.shape[0], -1).index_add(
             1, self.pair_slot, pairs)
 
+    def placed_values(self, pairs: Tensor, size: int, slot: Tensor) -> Tensor:
+        """The step matrix's nonzeros (``sparse_values`` of the stiffness's pairs [B, k] N/m) put
+        into a zero storage [B, size] at their places ``slot`` [nnz]: distinct places, so copied in
+        place (an index_add into zeros took the liver's dense matrix 4–24 ms more)."""
+        return pairs.new_zeros(pairs.shape[0], size).index_copy_(1, slot, self.sparse_values(pairs))
+
     def dense_system(self, pairs: Tensor) -> Tensor:
         """The step matrix c0 m_f M + K [B, n, n] N/m, dense, of the stiffness's pairs [B, k]: its
-        nonzeros (``sparse_values``) put in place (one n × n array written once: the liver's 1278²
+        nonzeros put in place (``placed_values``; one n × n array written once: the liver's 1278²
         took a fifth of a scripted law-prior step when mass and stiffness were summed as dense
         arrays, docs/accuracy.md session 74)."""
         B, n = pairs.shape[0], self.n_free
-        # the slots are distinct: copied in place (an index_add into zeros took the liver 4–24 ms more)
-        return pairs.new_zeros(B, n * n).index_copy_(1, self.slot_flat, self.sparse_values(pairs)).reshape(B, n, n)
+        return self.placed_values(pairs, n * n, self.slot_flat).reshape(B, n, n)
 
     @torch.jit.unused
     def sparse_solve(self, R: Tensor, b: Tensor) -> Tensor:
