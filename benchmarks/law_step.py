@@ -5,15 +5,17 @@ the FE's law, Prony history, mass, damping and Newmark rule, without dolfinx) wi
 budget, and a network learns what is left. This script rolls the law alone (remainders G = 0)
 over a split of a dataset from each trajectory's first state under its stored loads, and prints,
 per trajectory and as the split's mean, the whole-rollout relative errors of q, v and σ against
-the data (``evaluate``'s metric), the Newton iterations, steps, unconverged and cut steps, and the
-ms a step (mean, median, p99, max): the accuracy the law prior's budget buys and its time.
+the data (``evaluate``'s metric), the Newton iterations, tangents formed, steps, unconverged and
+cut steps, and the ms a step (mean, median, p99, max): the accuracy the law prior's budget buys
+and its time.
 
     .venv/bin/python benchmarks/law_step.py runs/s71_shell/dataset.h5 --iterations 1 --max 12 --rtol 1e-4 --cuts 4
     .venv/bin/python benchmarks/law_step.py runs/s71_liver96/dataset.h5 --iterations 1 --split test,val
 
 ``--iterations k`` alone is a fixed budget of k; ``--max m --rtol r`` lets a step that has not
 converged take up to m (``model.prior_newton_max``, ``model.prior_newton_rtol``), ``--cuts c``
-halve it up to c times (``model.prior_step_cuts``). The split is the training default (seed 0,
+halve it up to c times (``model.prior_step_cuts``), ``--tangent kept`` keep its tangent between
+iterations and steps while it contracts (``model.prior_tangent``). The split is the training default (seed 0,
 0.8/0.1/0.1); ``--names`` picks trajectories instead. A rollout that stops being finite is
 reported as such and counts as an infinite error in the mean. docs/accuracy.md (sessions 71–73)
 quotes its figures (2 threads, the default ``--threads``).
@@ -62,6 +64,8 @@ def main() -> None:
     ap.add_argument("--rtol", type=float, default=1e-4, help="converged: the last update below this share of "
                     "the largest displacement (with --max)")
     ap.add_argument("--cuts", type=int, default=0, help="halvings of a step still not converged (with --max)")
+    ap.add_argument("--tangent", default="fresh", choices=("fresh", "kept"),
+                    help="a tangent formed every iteration, or kept while it contracts (with --max)")
     ap.add_argument("--split", default="test", help="comma-separated parts: train, val, test")
     ap.add_argument("--names", default="", help="comma-separated trajectory names (of the split's parts)")
     ap.add_argument("--threads", type=int, default=2)
@@ -71,19 +75,22 @@ def main() -> None:
     data = load_data(args.dataset, [0.8, 0.1, 0.1], 0, torch.float64, parts=parts, state_dtype=torch.float64)
     stretch = args.max is not None and args.max > args.iterations
     prior = build_prior(data.dataset, data.dt, law=args.iterations,
-                        **(dict(law_max=args.max, law_rtol=args.rtol, law_cuts=args.cuts) if stretch else {}))
+                        **(dict(law_max=args.max, law_rtol=args.rtol, law_cuts=args.cuts, law_tangent=args.tangent)
+                           if stretch else {}))
     X = torch.as_tensor(data.reference_positions(), dtype=torch.float64)
     names = {n for n in args.names.split(",") if n}
-    budget = (f"{args.iterations} to {args.max} iterations to {args.rtol:g}, cuts {args.cuts}" if stretch
-              else f"{args.iterations} iteration{'s' if args.iterations > 1 else ''}")
+    budget = (f"{args.iterations} to {args.max} iterations to {args.rtol:g}, cuts {args.cuts}, {args.tangent} tangent"
+              if stretch else f"{args.iterations} iteration{'s' if args.iterations > 1 else ''}")
     print(f"{args.dataset}: the law alone, {budget}, {args.threads} threads")
     for part in parts:
         errors, times = [], []
         prior.newton_taken.zero_()
+        prior.tangents_formed.zero_()
         for traj in data.of(part):
             if names and traj.name not in names:
                 continue
             z, f = traj.z.double(), traj.force.double()
+            prior.forget()                  # each rollout from scratch, as a model's rollout begins
             try:
                 pred, step_ms = roll_law(prior, X, z, f)
             except RuntimeError as exc:
@@ -101,7 +108,8 @@ def main() -> None:
         s = sorted(times) or [math.nan]
         iterations, steps, unconverged, cut = prior.newton_taken.tolist()
         print(f"{part} ({len(errors)}): whole q {mean['q']:.3g} v {100 * mean['v']:.3g} % σ {100 * mean['sigma']:.3g} % "
-              f"| {iterations} Newton iterations in {steps} steps, {unconverged} unconverged, {cut} cut "
+              f"| {iterations} Newton iterations and {int(prior.tangents_formed)} tangents in {steps} steps, "
+              f"{unconverged} unconverged, {cut} cut "
               f"| {sum(s) / len(s):.1f} ms/step (median {s[len(s) // 2]:.1f}, p99 {s[int(0.99 * (len(s) - 1))]:.1f}, "
               f"max {s[-1]:.1f})")
 

@@ -1461,6 +1461,110 @@ def test_law_prior_cuts_a_step_that_has_not_converged_into_the_fe_s_half_steps()
         make(dt, 1, cuts=1)
 
 
+def test_law_prior_keeps_its_tangent_while_it_contracts():
+    """``model.prior_tangent = kept`` (``HyperelasticNewmarkPrior(tangent="kept")``) on the FE
+    solid's own data (the damped 1 N bend, viscous Ogden): iterating each step with one tangent's
+    factors, kept between iterations and steps and formed afresh only where an update no longer
+    halves the residual, converges to the FE rollout as fresh tangents do (to round-off at a tight
+    tolerance), forming fewer tangents than there are steps; a looser tolerance stops sooner, less
+    exactly. A load 30 times the data's, which the kept tangent does not contract, forms fresh
+    ones and lands on the fresh tangents' step. A second step from the same start (a model step's,
+    with its network's remainders) starts where the first ended and lands where a step from
+    scratch does. Steps with gradients (training) form fresh tangents, to the bit; a batch of
+    another size forms its own; ``forget`` drops it. A LinearPriorModel on it steps its carried
+    state as its rollouts, scripted too (the dense factors); the config records it and names what
+    it cannot be."""
+    torch = pytest.importorskip("torch")
+    from omegaconf import OmegaConf
+
+    from thermognn.core.errors import ConfigError
+    from thermognn.core.state import describe_step
+    from thermognn.train.checkpoint import model_step
+    from thermognn.train.hybrid import prior_settings
+
+    graph, prony, build = _ogden_bend_priors(steps=12)
+    layout, traj, dt, X, linear, node_type, edges, z, f = graph
+    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
+    u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
+    n = int(linear.free.sum())
+    G0 = torch.zeros(len(f), n, dtype=torch.float64)
+    steps = len(f) - 1
+    kept = build(iterations=1, max_iterations=40, newton_rtol=1e-12, tangent="kept")
+    U, V, Sig = _prior_rollout(kept, u, v, f, G0, None)
+    assert rel(U, u) < 1e-11 and rel(V, v) < 1e-10 and rel(Sig, sigma) < 1e-10         # the FE's rollout
+    taken, counted, unconverged, cut = kept.newton_taken.tolist()
+    assert counted == steps and unconverged == 0 and cut == 0 and taken >= 2 * steps   # chords: 2 at least
+    assert 1 <= int(kept.tangents_formed) < steps                                       # tangents kept
+    fresh = build(iterations=1, max_iterations=8)
+    V_fresh = _prior_rollout(fresh, u, v, f, G0, None)[1]
+    assert rel(V_fresh, v) < 1e-10 and int(fresh.tangents_formed) >= fresh.newton_taken.tolist()[0]
+    loose = build(iterations=1, max_iterations=40, newton_rtol=1e-4, tangent="kept")
+    V_loose = _prior_rollout(loose, u, v, f, G0, None)[1]
+    V_one = _prior_rollout(build(iterations=1), u, v, f, G0, None)[1]
+    assert loose.newton_taken.tolist()[0] < taken and rel(V, v) < rel(V_loose, v) < rel(V_one, v)
+
+    # from a state of the data, under 30 times its next load
+    s0 = 3
+    uf, vf = kept.gather(u[s0:s0 + 1]), kept.gather(v[s0:s0 + 1])
+    h = kept.internal_variables(uf)
+    a = kept.initial_acceleration(uf, vf, kept.gather(f[s0:s0 + 1]), G0[:1])
+    strong = 30.0 * kept.gather(f[s0 + 1:s0 + 2])
+    formed = int(kept.tangents_formed)
+    hard = kept.step(uf, vf, a, strong, G0[:1], G0[:1], h)
+    assert int(kept.tangents_formed) > formed
+    exact = build(iterations=1, max_iterations=40).step(uf, vf, a, strong, G0[:1], G0[:1], h)
+    assert rel(hard[0], exact[0]) < 1e-9 and rel(hard[1], exact[1]) < 1e-8
+    # the same start again under remainders ~1e-6 of the loads: from where the first step ended
+    G1 = 1e-6 * float(strong.abs().max()) * torch.randn(1, n, dtype=torch.float64,
+                                                         generator=torch.Generator().manual_seed(2))
+    before = kept.newton_taken.tolist()[0]
+    again = kept.step(uf, vf, a, strong, G0[:1], G1, h)
+    warm = kept.newton_taken.tolist()[0] - before
+    kept.forget()
+    assert kept.kept_batch == 0 and kept.kept_end.numel() == 0
+    before = kept.newton_taken.tolist()[0]
+    cold = kept.step(uf, vf, a, strong, G0[:1], G1, h)
+    assert warm < kept.newton_taken.tolist()[0] - before and rel(again[0], cold[0]) < 1e-9
+    # with gradients: fresh tangents, the fresh prior's step to the bit
+    fresh1 = build(iterations=1, max_iterations=40, newton_rtol=1e-12)
+    ug = uf.clone().requires_grad_(True)
+    assert all(torch.equal(x, y) for x, y in zip(kept.step(ug, vf, a, strong, G0[:1], G1, h),
+                                                  fresh1.step(ug, vf, a, strong, G0[:1], G1, h)))
+    # a batch of two: its own tangents; then one sample alone forms one again
+    ub, vb, ab, hb = (torch.cat([x, x]) for x in (uf, vf, a, h))
+    gentle = kept.gather(f[s0 + 1:s0 + 2])
+    both = kept.step(ub, vb, ab, torch.cat([gentle, 2.0 * gentle]), G0[:2], G0[:2], hb)
+    assert kept.kept_batch == 2
+    for k, load in enumerate((gentle, 2.0 * gentle)):
+        alone = fresh1.step(uf, vf, a, load, G0[:1], G0[:1], h)
+        assert rel(both[0][k:k + 1], alone[0]) < 1e-9 and rel(both[1][k:k + 1], alone[1]) < 1e-8
+    formed = int(kept.tangents_formed)
+    kept.step(uf, vf, a, gentle, G0[:1], G0[:1], h)
+    assert kept.kept_batch == 1 and int(kept.tangents_formed) > formed
+    # a kept tangent that never forms a fresh one (any contraction accepted) under the strong load:
+    # where its chords do not converge, the step is taken again with fresh tangents
+    kept.kept_contraction = float("inf")
+    before = kept.newton_taken.tolist()
+    retried = kept.step(ub, vb, ab, torch.cat([gentle, strong]), G0[:2], G0[:2], hb)
+    after = kept.newton_taken.tolist()
+    assert after[2] == before[2] and rel(retried[0][1:], exact[0]) < 1e-9 and rel(retried[1][1:], exact[1]) < 1e-8
+    _carried_steps_follow_rollouts(build(iterations=1, max_iterations=40, newton_rtol=1e-12, tangent="kept"), graph,
+                                   width=len(prony) * kept.cell_columns)
+
+    cfg = {"prior": "linear", "prior_law": True, "prior_newton": 1, "prior_newton_max": 16, "prior_newton_rtol": 1e-7}
+    settings = prior_settings(OmegaConf.create({**cfg, "prior_tangent": "kept"}))
+    assert settings["law_tangent"] == "kept" and model_step({"prior": settings})["law_tangent"] == "kept"
+    assert ", its tangent kept while it contracts)" in describe_step(model_step({"prior": settings}))
+    assert "law_tangent" not in prior_settings(OmegaConf.create({**cfg, "prior_tangent": "fresh"}))
+    with pytest.raises(ConfigError, match=r"model.prior_tangent = 'old', expected fresh \| kept"):
+        prior_settings(OmegaConf.create({**cfg, "prior_tangent": "old"}))
+    with pytest.raises(ConfigError, match=r"model.prior_tangent = kept needs model.prior_law = true and "
+                                          r"model.prior_newton_max > model.prior_newton"):
+        prior_settings(OmegaConf.create({"prior": "linear", "prior_law": True, "prior_tangent": "kept"}))
+    with pytest.raises(ValueError, match="the law prior's tangent: 'kept', expected one of fresh | kept, and kept only"):
+        build(iterations=1, tangent="kept")
+
+
 def test_correction_inputs_are_what_the_budgeted_step_moved_from_its_predictor():
     """``model.prior_inputs = correction``: the network sees, in place of the velocity, the step's
     correction from its predictor w = (u1 − u0) / Δt − v0. Along the FE data it is Newmark's

@@ -105,6 +105,7 @@ def describe_step(step) -> str:
                      + (f", up to {most} until converged to {float(step['law_rtol']):g}" if most > iterations
                         else "")
                      + (f", halved down to Δt/{2 ** int(step['law_cuts'])} where not" if step.get("law_cuts") else "")
+                     + (", its tangent kept while it contracts" if step.get("law_tangent") == "kept" else "")
                      + ")")
         return (f"the data's Newmark step of the {solid} with learned remainders"
                 + (" of second order" if second else "")

@@ -161,7 +161,8 @@ def model_step(ckpt: dict) -> dict:
     for second-order remainders, "corotated": the rotation sweeps of a corotated prior, "stress":
     "material" where its stress is the material's law, "law": the Newton iterations a step of the
     law prior, "law_max": the most it takes where a step has not converged, "law_rtol": to what,
-    "law_cuts": how many times a step that still has not is halved)."""
+    "law_cuts": how many times a step that still has not is halved, "law_tangent": "kept" where its
+    tangent is kept between iterations and steps)."""
     from .model import step_settings
 
     prior = ckpt.get("prior")
@@ -174,5 +175,6 @@ def model_step(ckpt: dict) -> dict:
                 **({"law": int(prior["law"])} if prior.get("law") else {}),
                 **({"law_max": int(prior["law_max"])} if prior.get("law_max") else {}),
                 **({"law_rtol": float(prior["law_rtol"])} if prior.get("law_rtol") else {}),
-                **({"law_cuts": int(prior["law_cuts"])} if prior.get("law_cuts") else {})}
+                **({"law_cuts": int(prior["law_cuts"])} if prior.get("law_cuts") else {}),
+                **({"law_tangent": str(prior["law_tangent"])} if prior.get("law_tangent") else {})}
     return step_settings(ckpt.get("hparams", {}))

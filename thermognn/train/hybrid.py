@@ -227,6 +227,7 @@ class LinearPriorModel(nn.Module):
         """(u, v, a, G, H, h) at the physical states z [B, N, D] under f [B, N, 3]: a from the
         balance of forces there, G and H from the network, the prior's internal variables h as if
         the displacement were applied at once (``NewmarkPrior.internal_variables``)."""
+        self.prior.forget()             # a rollout's steps do not depend on what was stepped before it
         z, f = z.to(torch.float64), f.to(torch.float64)
         u, v, H = self.unpack(z)
         seen = self.with_correction(z, torch.zeros_like(u)) if self.correction else z   # no step behind a start
@@ -278,10 +279,9 @@ class LinearPriorModel(nn.Module):
             u, v, H = self.unpack(x, h)
             a = self.accelerations(x, f)                                            # [S, n]
             g = P.gather(G.to(torch.float64))                                       # [S, n] N
-            forget = getattr(P, "forget", lambda: None)        # the law prior's kept step start
-            forget()
+            P.forget()                                          # the law prior's kept step start
             u1, v1, _a1, h1 = P.step(u[:-1], v[:-1], a[:-1], P.gather(f[1:].to(torch.float64)), g[:-1], g[:-1], h[:-1])
-            forget()
+            P.forget()
             ends = self.correction_view(self.state(u1, v1, H[:-1], h1), u[:-1], v[:-1], u1)    # [S - 1, N, D]
         start = self.with_correction(x[:1], torch.zeros_like(u[:1]))                          # [1, N, D]
         return torch.cat([start, ends]).to(z.dtype)
@@ -480,6 +480,15 @@ def prior_settings(cfg_model) -> dict:
     if cuts and not (law and most is not None and most > newton):
         raise ConfigError(f"model.prior_step_cuts = {cuts} needs model.prior_law = true and model.prior_newton_max > "
                           f"model.prior_newton (= {newton}): only then can a step tell it has not converged")
+    from .law_prior import TANGENTS
+
+    tangent = str(OmegaConf.select(cfg_model, "prior_tangent", default="fresh"))
+    if tangent not in TANGENTS:
+        raise ConfigError(f"model.prior_tangent = '{tangent}', expected " + " | ".join(TANGENTS))
+    if tangent == "kept" and not (law and most is not None and most > newton):
+        raise ConfigError(f"model.prior_tangent = kept needs model.prior_law = true and model.prior_newton_max > "
+                          f"model.prior_newton (= {newton}): a kept tangent iterates each step to "
+                          f"model.prior_newton_rtol")
     if law and (corotated or stress == "material"):
         raise ConfigError("model.prior_law = true steps the dataset's own law (its stress and Prony history "
                           "included): set model.prior_corotated=false and model.prior_stress=linear")
@@ -503,6 +512,8 @@ def prior_settings(cfg_model) -> dict:
             settings["law_rtol"] = float(NEWTON_RTOL if rtol is None else rtol)
             if cuts:                              # and how often a step that has not is halved
                 settings["law_cuts"] = int(cuts)
+            if tangent == "kept":                 # its tangent kept between iterations and steps
+                settings["law_tangent"] = "kept"
     return settings
 
 
@@ -525,13 +536,13 @@ def neo_hookean_of(ds) -> Tuple[float, float]:
 
 def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material: bool = False,
                 law: int = 0, law_max: Optional[int] = None, law_rtol: Optional[float] = None,
-                law_cuts: int = 0) -> NewmarkPrior:
+                law_cuts: int = 0, law_tangent: str = "fresh") -> NewmarkPrior:
     """The dataset's ``/linear`` as a NewmarkPrior (float64), relaxing as its viscous solid does
     with ``relax``, or corotated per cell with ``corotated`` > 0 fixed-point sweeps a step
     (:class:`CorotatedNewmarkPrior`), its stress the material's law with ``material``, or with
     ``law`` > 0 the dataset's own hyperelastic law stepped with that many Newton iterations, and up
     to ``law_max`` where a step has not converged to ``law_rtol``, halved up to ``law_cuts`` times
-    where it still has not (``prior_settings`` records them)
+    where it still has not, its tangent ``law_tangent`` (fresh | kept; ``prior_settings`` records them)
     (:class:`thermognn.train.law_prior.HyperelasticNewmarkPrior`);
     one-line errors where it cannot be."""
     names = list(ds.layout.names)
@@ -566,7 +577,7 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
                 raise ValueError(f"scene.material.prony {prony} is not /linear's {tuple(linear.prony)}")
             return HyperelasticNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                             solid_law, iterations=int(law), max_iterations=law_max,
-                                            newton_rtol=law_rtol, step_cuts=int(law_cuts))
+                                            newton_rtol=law_rtol, step_cuts=int(law_cuts), tangent=law_tangent)
         if corotated:
             return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                          sweeps=int(corotated), neo_hookean=neo_hookean_of(ds) if material else None,
@@ -583,7 +594,8 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
                                              int(settings.get("corotated", 0)),
                                              settings.get("stress", "linear") == "material",
                                              int(settings.get("law", 0)), settings.get("law_max"),
-                                             settings.get("law_rtol"), int(settings.get("law_cuts", 0))), X,
+                                             settings.get("law_rtol"), int(settings.get("law_cuts", 0)),
+                                             str(settings.get("law_tangent", "fresh"))), X,
                             bool(settings.get("positions_only", True)),
                             int(settings.get("sweeps", 1)), int(settings.get("order", 1)),
                             settings.get("inputs") == "correction")

@@ -52,7 +52,7 @@ from thermognn.core.linear import LinearSolid
 
 from .prior import (BAND_MAX_SHARE, DISSECTION_MAX_SHARE, CorotatedNewmarkPrior, FactoredSolve, SparseSolve, _matrix,
                     _voigt, band_factor, band_layout, band_solve, dissection_factor, dissection_layout,
-                    dissection_solve, lu_factor_each, sparse_factors)
+                    dissection_solve, lu_factor_each, lu_solves, sparse_factors)
 
 #: the FE's regularisation of the deviatoric norm (``thermognn.generate.materials.EIGEN_EPS``)
 EIGEN_EPS = 1.0e-6
@@ -78,6 +78,13 @@ MAX_STEP_CUTS = 4
 #: ``budget_loads``: corrections in a row that do not lower the miss before it gives up (the
 #: shell's snap-through at 2 iterations a step: no load lands the step, docs/accuracy.md session 69)
 BUDGET_STALLED = 3
+#: ``tangent`` values: a tangent formed at every Newton iteration, or one kept between iterations
+#: and steps (chord iterations) and formed afresh only where it no longer contracts
+TANGENTS = ("fresh", "kept")
+#: ``tangent = "kept"``: an update with the kept tangent must leave a residual norm of at most this
+#: share of the one it started from, else the tangent is formed afresh there and the update redone
+#: (an update with a tangent formed where it starts is Newton's, and always taken)
+KEPT_CONTRACTION = 0.5
 
 
 def _eye(F: Tensor) -> Tensor:
@@ -322,12 +329,12 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     state. lam, mu [Pa] (the moduli at rest) only size the base class's unused linear cell
     stiffness."""
 
-    __jit_ignored_attributes__ = ["_start_memo"]
+    __jit_ignored_attributes__ = ["_start_memo", "_kept_lus"]
 
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
                  lam: float, mu: float, law: NeoHookean | Ogden, iterations: int = 1,
                  max_iterations: Optional[int] = None, newton_rtol: Optional[float] = None,
-                 step_cuts: int = 0, dtype: torch.dtype = torch.float64) -> None:
+                 step_cuts: int = 0, tangent: str = "fresh", dtype: torch.dtype = torch.float64) -> None:
         if not isinstance(law, (NeoHookean, Ogden)):
             raise ValueError(f"the law prior steps a NeoHookean or Ogden law, not {law!r}")
         if int(iterations) < 1:
@@ -342,6 +349,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                 max_iterations is not None and int(max_iterations) > int(iterations))):
             raise ValueError(f"the law prior's step cuts: {step_cuts!r}, expected 0 to {MAX_STEP_CUTS}, and more "
                              f"than 0 only with max_iterations > iterations (a step it can tell has not converged)")
+        if tangent not in TANGENTS or (tangent == "kept" and not (
+                max_iterations is not None and int(max_iterations) > int(iterations))):
+            raise ValueError(f"the law prior's tangent: {tangent!r}, expected one of {' | '.join(TANGENTS)}, and kept "
+                             f"only with max_iterations > iterations (a tolerance ends each step)")
         super().__init__(linear, n_nodes, dt, X, tets, lam, mu, sweeps=1, dtype=dtype, relax=bool(linear.prony))
         self.iterations = int(iterations)
         # past ``iterations``, more (up to this many) while the last update still moved the state
@@ -376,6 +387,14 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.register_buffer("level_decay", torch.stack(decay), persistent=False)             # [levels, T_p]
         self.register_buffer("level_increment", torch.stack(increment), persistent=False)     # [levels, T_p]
         self.j_floor, self.max_halvings = J_FLOOR, MAX_HALVINGS
+        # ``tangent = "kept"``: steps taken without a gradient (serve, evaluate, validation) iterate
+        # with one tangent's factors kept between iterations and steps (``kept_iterations``): the
+        # dense path's in kept_* (``factor``'s six), the eager CPU's sparse LUs in _kept_lus, for a
+        # batch of kept_batch samples (0: none kept); training's steps form theirs as "fresh"
+        self.kept_tangent = tangent == "kept"
+        self.kept_contraction = KEPT_CONTRACTION
+        self.kept_batch = 0
+        self._kept_lus: list = []
         self._start_memo = None         # eager CPU: the last step start and its factors (``_eager_first_iteration``)
         # dense path without gradients (TorchScript, serve): the last step start, by value, and its
         # LU factors (``first_iteration``); empty until a step sets them. memo_law_*: the last F the
@@ -390,6 +409,12 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.register_buffer("memo_band_L", torch.zeros(0, dtype=dtype), persistent=False)
         self.register_buffer("memo_sep_lu", torch.zeros(0, dtype=dtype), persistent=False)
         self.register_buffer("memo_sep_pivots", torch.zeros(0, dtype=torch.int32), persistent=False)
+        # ... and where its last step started (u0, v0, a0, h0 flat), ended (u1 [B, n] m), and its
+        # chord's last contraction ρ [B] (0: none): a model step's second prior step starts there
+        for name in ("kept_lu", "kept_band_X", "kept_band_L", "kept_sep_lu", "kept_from", "kept_end", "kept_rate"):
+            self.register_buffer(name, torch.zeros(0, dtype=dtype), persistent=False)
+        for name in ("kept_pivots", "kept_sep_pivots"):
+            self.register_buffer(name, torch.zeros(0, dtype=torch.int32), persistent=False)
         self.set_band(BAND_MAX_SHARE, DISSECTION_MAX_SHARE)
         # how many updates ``admissible`` has shortened (samples x updates), since it was last zeroed:
         # where the budget does not hold a step (evaluate names such rollouts)
@@ -399,6 +424,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         # and still moved (cut: at Δt / 2^step_cuts), and the steps cut into sub-steps: what the
         # most spent, and where it did not converge (evaluate reports them)
         self.register_buffer("newton_taken", torch.zeros(4, dtype=torch.int64), persistent=False)
+        # since it was last zeroed: how many times a batch's tangent was formed (``tangent_pairs``):
+        # once a Newton iteration with "fresh" tangents (a kept step start's once for both of a
+        # model step's prior steps), only where it no longer contracts with "kept"
+        self.register_buffer("tangents_formed", torch.zeros((), dtype=torch.int64), persistent=False)
 
     # --- the law per cell -----------------------------------------------------------------------
     def pk2(self, F: Tensor) -> Tuple[Tensor, Tensor]:
@@ -469,6 +498,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         [B, k] N/m (``pair_keep``; as ``rotated_pairs``), detached: ∂P/∂F in closed form
         (:func:`neo_hookean_tangent`, :func:`ogden_tangent`)."""
         with torch.no_grad():
+            self.tangents_formed.add_(1)
             B, T = F.shape[0], F.shape[1]
             if self.ogden:
                 A = ogden_tangent(F, self.ogden_mu, self.ogden_alpha, self.ogden_d, w_iso, w_vol, extra)
@@ -600,27 +630,45 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         return (w * (self.prony_decay.view(1, -1, 1, 1, 1) * h
                      - self.prony_increment.view(1, -1, 1, 1, 1) * S_iso0.unsqueeze(1))).sum(1)
 
-    def step_start(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor
-                   ) -> Tuple[Tensor, Tensor, Optional[Tensor], Tensor, Tensor, Tensor, Tensor]:
-        """What a step's first Newton iteration takes from the step's start (u0, v0, a0 [B, n],
-        h0) alone, not from its loads or remainders: (predictor [B, n], S_iso,0 [B, T, 3, 3] Pa,
-        the history's stress ``extra`` [B, T, 3, 3] Pa (None elastic), c f_el(u0) [B, n] N, the
-        FE's predictor u0 + Δt v0 [B, n] m (shortened by ``admissible`` where it would crush a
-        cell), the residual there without the loads and remainders [B, n] N,
-        M (a + αM v) + f_int + c f_el − c f_el(u0), and the tangent's pairs there [B, k] N/m).
-        A model step with the network's remainders steps the prior twice from the same start
-        (``LinearPriorModel.advance``): with one Newton iteration all of it is shared but one
-        back-substitution (``first_iteration`` keeps it with the tangent's factors)."""
+    def step_origin(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor
+                    ) -> Tuple[Tensor, Tensor, Optional[Tensor], Tensor, Tensor]:
+        """Where a step's iterations start, from the step's start (u0, v0, a0 [B, n], h0) alone:
+        (predictor [B, n], S_iso,0 [B, T, 3, 3] Pa, the history's stress ``extra`` [B, T, 3, 3] Pa
+        (None elastic), c f_el(u0) [B, n] N, the FE's predictor u0 + Δt v0 [B, n] m, shortened by
+        ``admissible`` where it would crush a cell)."""
         predictor = self.newmark_predictor(u0, v0, a0)                                    # a1 = c0 u1 − predictor
         F0 = self.cells(u0)
         S_iso0, S_vol0 = self.law(F0)
         extra = self.history_stress(S_iso0, h0)
-        # f_int(u1; h0) + c f_el(u1) in one law evaluation: P = F ((1 + c) S_vol + (w_iso + c) S_iso + extra)
-        w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
         u1 = self.admissible(u0, -self.dt * v0)                 # the FE's predictor u0 + Δt v0 (shortened if it crushes)
+        damping0 = self.c * self.assemble(F0 @ (S_iso0 + S_vol0))                        # c f_el(u0): [B, n] N
+        return predictor, S_iso0, extra, damping0, u1
+
+    def step_residual(self, u1: Tensor, v0: Tensor, a0: Tensor, predictor: Tensor, extra: Optional[Tensor],
+                      fixed: Tensor) -> Tuple[Tensor, Tensor]:
+        """(R(u1) [B, n] N, the cells' F [B, T, 3, 3] there) of a step's end u1 [B, n] m from v0, a0
+        with ``step_origin``'s predictor and history stress ``extra``, ``fixed`` = its loads +
+        c f_el(u0) [B, n] N: M (a1 + αM v1) + f_int(u1; h0) + c f_el(u1) − fixed, f_int and c f_el
+        in one law evaluation, P = F ((1 + c) S_vol + (w_iso + c) S_iso + extra)."""
         a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
         F = self.cells(u1)
-        damping0 = self.c * self.assemble(F0 @ (S_iso0 + S_vol0))                        # c f_el(u0): [B, n] N
+        residual = (self.mass(a1 + self.alpha_m * v1) + self.assemble(self.pk1(F, self.iso_weight + self.c,
+                                                                              1.0 + self.c, extra)) - fixed)
+        return residual, F
+
+    def step_start(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor
+                   ) -> Tuple[Tensor, Tensor, Optional[Tensor], Tensor, Tensor, Tensor, Tensor]:
+        """What a step's first Newton iteration takes from the step's start (u0, v0, a0 [B, n],
+        h0) alone, not from its loads or remainders: ``step_origin``'s (predictor, S_iso,0, extra,
+        c f_el(u0), the predictor u0 + Δt v0), the residual there without the loads and
+        remainders [B, n] N, M (a + αM v) + f_int + c f_el − c f_el(u0), and the tangent's pairs
+        there [B, k] N/m. A model step with the network's remainders steps the prior twice from
+        the same start (``LinearPriorModel.advance``): with one Newton iteration all of it is
+        shared but one back-substitution (``first_iteration`` keeps it with the tangent's factors)."""
+        predictor, S_iso0, extra, damping0, u1 = self.step_origin(u0, v0, a0, h0)
+        w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
+        a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
+        F = self.cells(u1)
         internal = self.mass(a1 + self.alpha_m * v1) + self.assemble(self.pk1(F, w_iso, w_vol, extra)) - damping0
         pairs = self.tangent_pairs(F.detach(), w_iso, w_vol, None if extra is None else extra.detach())
         return predictor, S_iso0, extra, damping0, u1, internal, pairs
@@ -652,8 +700,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
 
     @torch.jit.export
     def forget(self) -> None:
-        """Drop the step start the first Newton iteration keeps (``first_iteration``), e.g. before
-        a model is saved: it holds the last step's tensors and factors."""
+        """Drop the step start the first Newton iteration keeps (``first_iteration``), the law's
+        kept stresses and a kept tangent (``keep_tangent``), e.g. before a model is saved or a
+        rollout starts: they hold the last step's tensors and factors."""
         if not torch.jit.is_scripting():
             self._forget_eager()
         empty = self.memo_key.new_zeros(0)
@@ -663,6 +712,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.memo_band_X, self.memo_band_L, self.memo_sep_lu = empty, empty, empty
         self.memo_sep_pivots = self.memo_sep_pivots.new_zeros(0)
         self.memo_law_F, self.memo_law_S_iso, self.memo_law_S_vol = empty, empty, empty
+        self.drop_kept()
 
     def fresh_first_iteration(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor, loads: Tensor
                               ) -> Tuple[Tensor, Tensor, Tensor, Optional[Tensor], Tensor]:
@@ -724,10 +774,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         for it in range(1, self.max_iterations):
             if it >= self.iterations and not self.moves(u1.detach() - last, u1.detach()):
                 break
-            a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
-            F = self.cells(u1)
-            residual = (self.mass(a1 + self.alpha_m * v1) + self.assemble(self.pk1(F, w_iso, w_vol, extra))
-                        - fixed)                                                           # [B, n] N
+            residual, F = self.step_residual(u1, v0, a0, predictor, extra, fixed)            # [B, n] N
             self.require_finite(residual)
             last = u1.detach()
             u1 = self.admissible(u1, self.solve(self.tangent_pairs(F.detach(), w_iso, w_vol,
@@ -738,6 +785,125 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             return u1, taken, self.moving(u1.detach() - last, u1.detach())
         return u1, taken, torch.zeros(u1.shape[0], dtype=torch.bool, device=u1.device)
 
+    def fresh_iterations(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor, loads: Tensor
+                         ) -> Tuple[Tensor, Tensor, Tensor, int, Tensor]:
+        """A step's iterations with a tangent formed at each (``first_iteration``, ``iterate``), as
+        ``kept_iterations`` returns them: (u1, predictor, S_iso,0, Newton iterations taken, which
+        samples had not converged [B] bool) of the step from (u0, v0, a0, h0) under ``loads``."""
+        u1, predictor, S_iso0, extra, damping0 = self.first_iteration(u0, v0, a0, h0, loads)
+        u1, taken, still = self.iterate(u1, u0, v0, a0, predictor, extra, loads + damping0)
+        return u1, predictor, S_iso0, taken, still
+
+    # --- a kept tangent (``tangent = "kept"``): chord iterations between fresh tangents -----------
+    def keep_tangent(self, F: Tensor, extra: Optional[Tensor]) -> None:
+        """Form the tangent at the cells' F [B, T, 3, 3] (with the history stress ``extra``) and keep
+        its step matrix's factors for ``kept_solve``: sparse LUs on the eager CPU path, else
+        ``factor``'s (dense, block-tridiagonal or dissected)."""
+        pairs = self.tangent_pairs(F, self.iso_weight + self.c, 1.0 + self.c, extra)
+        if not torch.jit.is_scripting() and self.sparse_cpu and F.device.type == "cpu":
+            self._keep_sparse(pairs)
+        else:
+            (self.kept_lu, self.kept_pivots, self.kept_band_X, self.kept_band_L, self.kept_sep_lu,
+             self.kept_sep_pivots) = self.factor(pairs)
+        self.kept_batch = int(F.shape[0])
+
+    def drop_kept(self) -> None:
+        """Drop the kept tangent and where its last step started and ended (``kept_iterations``)."""
+        empty = self.kept_rate.new_zeros(0)
+        self.kept_lu, self.kept_band_X, self.kept_band_L, self.kept_sep_lu = empty, empty, empty, empty
+        self.kept_pivots, self.kept_sep_pivots = self.memo_pivots.new_zeros(0), self.memo_pivots.new_zeros(0)
+        self.kept_from, self.kept_end, self.kept_rate = empty, empty, empty
+        self.kept_batch = 0
+        if not torch.jit.is_scripting():
+            self._drop_kept_sparse()
+
+    @torch.jit.unused
+    def _drop_kept_sparse(self) -> None:
+        self._kept_lus = []
+
+    @torch.jit.unused
+    def _keep_sparse(self, pairs: Tensor) -> None:
+        self._kept_lus = sparse_factors(self.sparse_values(pairs), self.pattern)
+
+    def kept_solve(self, b: Tensor) -> Tensor:
+        """u [B, n] solving the kept tangent's step matrix for b [B, n] N (``keep_tangent``)."""
+        if not torch.jit.is_scripting() and self.sparse_cpu and b.device.type == "cpu":
+            return self._kept_sparse_solve(b)
+        return self.back_substitute(self.kept_lu, self.kept_pivots, self.kept_band_X, self.kept_band_L,
+                                    self.kept_sep_lu, self.kept_sep_pivots, b)
+
+    @torch.jit.unused
+    def _kept_sparse_solve(self, b: Tensor) -> Tensor:
+        return lu_solves(self._kept_lus, b)
+
+    def kept_iterations(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor, loads: Tensor
+                        ) -> Tuple[Tensor, Tensor, Tensor, int, Tensor]:
+        """A step's iterations with a kept tangent, without gradients: (u1 [B, n] m, predictor,
+        S_iso,0, Newton updates taken, which samples had not converged [B] bool) of the step from
+        (u0, v0, a0 [B, n], h0) under ``loads`` (``step``'s).
+
+        Each update solves with the factors of a tangent formed at an earlier iterate, of this
+        step or an earlier one (chord iterations: one law evaluation and one back-substitution
+        each). Where an update leaves a residual norm above ``kept_contraction`` of the one it
+        started from (in any sample), the tangent is formed afresh where that update started and
+        the update redone with it, a Newton update. A step takes at least ``iterations`` updates
+        and at most ``max_iterations``, and has converged where its last update's remaining error
+        is below ``newton_rtol`` of the largest displacement (and NEWTON_ATOL): for a Newton update
+        its own size, as for fresh tangents; for a chord update the size times ρ/(1 − ρ), ρ its
+        ratio to the update before (the chord's contraction; a small update of a slowly
+        contracting chord is not yet converged).
+
+        A model step steps the prior twice from the same start, the second time under loads that
+        differ by its network's remainders (``LinearPriorModel.advance``): the second one starts
+        from where the first ended (``kept_end``), not from the predictor, and its first update
+        takes the first one's last ρ (``kept_rate``), so that it stops after one update where the
+        remainders moved the step by less than the tolerance."""
+        predictor, S_iso0, extra, damping0, u1 = self.step_origin(u0, v0, a0, h0)
+        fixed = loads + damping0
+        key = torch.cat([u0.reshape(-1), v0.reshape(-1), a0.reshape(-1), h0.reshape(-1)])
+        B = u1.shape[0]
+        carried = torch.zeros(B, dtype=u1.dtype, device=u1.device)      # ρ known before this step's updates
+        if (self.kept_batch == B and self.kept_from.shape == key.shape and bool(torch.equal(self.kept_from, key))
+                and self.kept_end.shape == u1.shape):
+            u1, carried = self.kept_end, self.kept_rate
+        residual, F = self.step_residual(u1, v0, a0, predictor, extra, fixed)             # [B, n] N
+        self.require_finite(residual)
+        fresh = self.kept_batch != B
+        if fresh:
+            self.keep_tangent(F, extra)
+        last = torch.zeros(B, dtype=u1.dtype, device=u1.device)        # the last update's size [B] m (0: none)
+        done = torch.zeros(B, dtype=torch.bool, device=u1.device)
+        taken = 0
+        while taken < self.max_iterations:
+            du = self.kept_solve(residual)
+            trial = self.admissible(u1, du)
+            r_trial, F_trial = self.step_residual(trial, v0, a0, predictor, extra, fixed)
+            contracts = (torch.linalg.vector_norm(r_trial, dim=1)
+                         <= self.kept_contraction * torch.linalg.vector_norm(residual, dim=1))
+            if not fresh and not bool((contracts | done).all()):       # (a converged sample's is round-off)
+                self.keep_tangent(F, extra)                  # no longer contracting: a fresh tangent at u1
+                fresh = True
+                last, carried = torch.zeros_like(last), torch.zeros_like(carried)
+                du = self.kept_solve(residual)
+                trial = self.admissible(u1, du)
+                r_trial, F_trial = self.step_residual(trial, v0, a0, predictor, extra, fixed)
+            self.require_finite(r_trial)
+            taken += 1
+            size = du.abs().amax(1)                                                        # [B] m
+            scale = self.newton_rtol * trial.abs().amax(1) + self.newton_atol
+            if fresh:                                        # Newton's update: its own size
+                done = size <= scale
+            else:                                            # a chord's: its size times ρ / (1 − ρ)
+                measured = last > 0
+                rate = torch.where(measured, size / torch.where(measured, last, torch.ones_like(last)), carried)
+                done = (size <= self.newton_atol) | ((rate > 0) & (rate < 1.0) & (size * rate <= scale * (1.0 - rate)))
+                carried = torch.where(measured, rate, carried)
+            u1, residual, F, last, fresh = trial, r_trial, F_trial, size, False
+            if taken >= self.iterations and bool(done.all()):
+                break
+        self.kept_from, self.kept_end, self.kept_rate = key, u1, carried
+        return u1, predictor, S_iso0, taken, ~done
+
     def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
              G1: Tensor, h0: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
         """(u1, v1, a1, h1) as :meth:`NewmarkPrior.step`: ``iterations`` Newton iterations on
@@ -747,14 +913,25 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         NEWTON_ATOL): a step the budget does not converge (the shell's snap-through) takes the
         iterations it needs, the others cost nothing more than the check.
 
-        With ``step_cuts`` > 0 the samples whose step still has not converged are stepped again
-        from their start as the FE steps it (``cut_step``); the others keep their whole step."""
+        With a kept tangent (``tangent = "kept"``, no gradient) the iterations are
+        ``kept_iterations``', and a step they do not converge is taken again as with fresh
+        tangents (the kept one dropped), so a kept tangent never leaves a step fresh ones would
+        have converged. With ``step_cuts`` > 0 the samples whose step still has not converged are
+        stepped again from their start as the FE steps it (``cut_step``); the others keep their
+        whole step."""
         if self.step_cuts > 0:              # (a cut an error left mid-way does not leave its constants)
             self.use_level(0)
         # what R takes from outside the step's start: loads and remainders
         loads = f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0                  # [B, n] N
-        u1, predictor, S_iso0, extra, damping0 = self.first_iteration(u0, v0, a0, h0, loads)
-        u1, taken, still = self.iterate(u1, u0, v0, a0, predictor, extra, loads + damping0)
+        if self.kept_tangent and not (u0.requires_grad or v0.requires_grad or a0.requires_grad
+                                      or h0.requires_grad or loads.requires_grad):
+            u1, predictor, S_iso0, taken, still = self.kept_iterations(u0, v0, a0, h0, loads)
+            if bool(still.any()):            # not converged so: the step again with fresh tangents
+                self.drop_kept()
+                u1, predictor, S_iso0, retaken, still = self.fresh_iterations(u0, v0, a0, h0, loads)
+                taken += retaken
+        else:
+            u1, predictor, S_iso0, taken, still = self.fresh_iterations(u0, v0, a0, h0, loads)
         a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
         h1 = self.relax_from(S_iso0, u1, h0)
         unconverged = bool(still.any())

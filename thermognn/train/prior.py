@@ -256,6 +256,12 @@ class NewmarkPrior(nn.Module):
         a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
         return u1, v1, a1, self.relax(u0, u1, h0)
 
+    @torch.jit.export
+    def forget(self) -> None:
+        """Drop what the prior keeps between steps (nothing here; the law prior keeps its last
+        step start, its law's stresses and a kept tangent): a rollout starts without it."""
+        pass
+
     def inverted(self, x: Tensor) -> Tensor:
         """Whether positions x [B, N, 3] m turn a cell inside out [B] (bool): never for the
         linearised prior, which has no cells (``CorotatedNewmarkPrior`` checks det F)."""
