@@ -525,6 +525,22 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
         assert errors[f"whole_{g}"] == pytest.approx(errors[f"newton1_fe_whole_{g}"], rel=0.2), (g, errors)
     layout = json.loads(verify(out / "model.pt")["state_layout"])
     assert [g for g, _ in layout] == ["q", "v", "sigma", "a", "G"]
+    # the same model with its law stepped another way (rollout.prior_*): iterated to a tolerance
+    # with a kept tangent, its rollouts are the converged law's, nearer the data than one
+    # iteration's; exported so, its metadata says it
+    kept = ["rollout.prior_newton_max=16", "rollout.prior_newton_rtol=1e-9", "rollout.prior_tangent=kept"]
+    for stage in ("evaluate", "export"):
+        res = subprocess.run([sys.executable, "-m", "thermognn.cli", stage, f"out={out}", f"paths.dataset={tiny_block}",
+                              f"paths.eval_dir={out / 'eval_kept'}", f"paths.exported={out / 'kept.pt'}",
+                              "train.eval_max_train=1", "train.threads=1", *kept],
+                             capture_output=True, text=True, timeout=600)
+        assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+        assert ("stepping the trained model with the law prior's step 1 to 16 Newton iterations to 1e-09, its "
+                "tangent kept (trained: 1 Newton iteration)") in res.stdout, res.stdout[-2000:]
+    restepped = json.loads((out / "eval_kept" / "rrmse.json").read_text())
+    for g in ("q", "v", "sigma"):
+        assert restepped[f"whole_{g}"] < 0.5 * errors[f"newton1_fe_whole_{g}"], (g, restepped)
+    assert verify(out / "kept.pt")["step"]["law_tangent"] == "kept"
     # train.fit_target=budget: the fit learns the load each one-iteration step misses, which is no
     # round-off (the exact remainders are); only the law prior has a budget to learn. The network
     # sees each step's correction from its predictor (model.prior_inputs=correction), exported too
@@ -538,6 +554,12 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={tmp_path / 'budget'}",
                           f"paths.dataset={tiny_block}", "train.threads=1"], capture_output=True, text=True, timeout=600)
     assert res.returncode == 0 and "export: scripted vs eager" in res.stdout, res.stdout[-2000:] + res.stderr[-3000:]
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={tmp_path / 'budget'}",
+                          f"paths.dataset={tiny_block}", "train.threads=1", *kept],
+                         capture_output=True, text=True, timeout=600)       # its network learned that budget's misses
+    assert res.returncode != 0 and res.stderr.strip().startswith(
+        "error: rollout.prior_newton_max, rollout.prior_newton_rtol, rollout.prior_tangent: this model's network "
+        "was fitted to what its 1-iteration budget leaves"), res.stderr[-2000:]
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'lin'}",
                           f"paths.dataset={tiny_block}", "model=linear_prior", "train.epochs=1", "train.fit_target=budget",
                           "train.threads=1"], capture_output=True, text=True, timeout=600)

@@ -1037,6 +1037,25 @@ def test_linear_prior_settings_and_datasets_it_cannot_use(trained, tmp_path):
     ckpt = {"prior": {"kind": "linear", "sweeps": 1, "positions_only": True}, "hparams": {}}
     with pytest.raises(ConfigError, match="rollout.integrator: a model.prior=linear model steps with"):
         with_rollout(ckpt, _cfg(tmp_path, "rollout.integrator=midpoint"))
+    # rollout.prior_*: only a law prior's law is stepped another way, as model.prior_* would be
+    with pytest.raises(ConfigError, match="rollout.prior_tangent: the checkpoint's prior is not the data's law"):
+        with_rollout(ckpt, _cfg(tmp_path, "rollout.prior_tangent=kept"))
+    with pytest.raises(ConfigError, match="rollout.prior_newton_max: only a model=law_prior model steps the data's law"):
+        with_rollout(load_checkpoint(trained[2]), _cfg(tmp_path, "rollout.prior_newton_max=8"))
+    law = {**ckpt, "prior": {**ckpt["prior"], "law": 1}, "config": ""}
+    with pytest.raises(ConfigError, match=r"rollout.prior_tangent = kept needs model.prior_law = true and "
+                                          r"rollout.prior_newton_max > rollout.prior_newton \(= 1\)"):
+        with_rollout(law, _cfg(tmp_path, "rollout.prior_tangent=kept"))
+    restepped, note = with_rollout(law, _cfg(tmp_path, "rollout.prior_newton_max=8", "rollout.prior_newton_rtol=1e-6",
+                                             "rollout.prior_step_cuts=2"))
+    assert restepped["prior"] == {**law["prior"], "law_max": 8, "law_rtol": 1e-6, "law_cuts": 2}
+    assert note == ("the law prior's step 1 to 8 Newton iterations to 1e-06, cut down to Δt/4 "
+                    "(trained: 1 Newton iteration)")
+    assert with_rollout(law, _cfg(tmp_path, "rollout.prior_newton=1"))[1] == ""          # as trained
+    from thermognn.train.hybrid import prior_settings
+    kept = _cfg(tmp_path, "model=law_prior", "model.prior_newton_max=16", "model.prior_newton_rtol=1e-7",
+                "model.prior_tangent=kept")                                            # the config's own key
+    assert prior_settings(kept.model)["law_tangent"] == "kept"
 
 
 def test_train_device_is_checked():

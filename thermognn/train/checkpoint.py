@@ -23,6 +23,8 @@ A checkpoint is a ``torch.save``d dict of plain types and tensors (loadable with
 
 from __future__ import annotations
 
+import re
+
 from pathlib import Path
 
 import torch
@@ -122,20 +124,79 @@ def model_from_checkpoint(ckpt: dict, dataset=None):
 
 #: how a trained model is stepped, overridable at evaluate and export time (``rollout.<key>``)
 ROLLOUT_KEYS = ("integrator", "implicit_iterations", "kinematics")
+#: ... and how a law-prior model's law is stepped (``rollout.<key>``, as ``model.<key>``)
+LAW_ROLLOUT_KEYS = ("prior_newton", "prior_newton_max", "prior_newton_rtol", "prior_step_cuts", "prior_tangent")
+
+
+def law_phrase(prior: dict) -> str:
+    """How a law prior's settings step its law, in a few words: "1 to 16 Newton iterations to
+    1e-07, cut down to Δt/16, its tangent kept"."""
+    k, most = int(prior["law"]), int(prior.get("law_max", prior["law"]))
+    text = (f"{k} to {most} Newton iterations to {float(prior['law_rtol']):g}" if most > k
+            else f"{k} Newton iteration{'s' if k > 1 else ''}")
+    if prior.get("law_cuts"):
+        text += f", cut down to Δt/{2 ** int(prior['law_cuts'])}"
+    return text + (", its tangent kept" if prior.get("law_tangent") == "kept" else "")
+
+
+def with_law_rollout(ckpt: dict, want: dict) -> tuple[dict, str]:
+    """The law-prior checkpoint with ``rollout.prior_*`` (``want``: LAW_ROLLOUT_KEYS, None: as
+    trained) applied to its law's step, validated as ``model.prior_*`` are (``prior_settings``):
+    the same network and remainders, the law stepped another way (where the network was fitted to
+    the converged law, as by default, any step near convergence keeps its meaning; a network fitted
+    to what a fixed budget leaves, ``train.fit_target=budget``, is refused)."""
+    from omegaconf import OmegaConf
+
+    from thermognn.core.errors import ConfigError
+
+    from .hybrid import prior_settings
+
+    prior = dict(ckpt["prior"])
+    set_keys = ", ".join(f"rollout.{k}" for k, v in want.items() if v is not None)
+    if not prior.get("law"):
+        raise ConfigError(f"{set_keys}: the checkpoint's prior is not the data's law (model=law_prior); leave them null")
+    trained = OmegaConf.create(ckpt.get("config") or "{}")
+    if str(OmegaConf.select(trained, "train.fit_target", default="exact")) == "budget":
+        raise ConfigError(f"{set_keys}: this model's network was fitted to what its {prior['law']}-iteration "
+                          f"budget leaves (train.fit_target=budget), which another step does not leave; "
+                          f"leave them null")
+    law = {"prior": "linear", "prior_law": True, "prior_newton": prior["law"],
+           "prior_newton_max": prior.get("law_max"), "prior_newton_rtol": prior.get("law_rtol"),
+           "prior_step_cuts": prior.get("law_cuts", 0), "prior_tangent": prior.get("law_tangent", "fresh")}
+    law.update({k: v for k, v in want.items() if v is not None})
+    try:
+        stepped = prior_settings(OmegaConf.create(law))
+    except ConfigError as exc:                  # named as they were set
+        raise ConfigError(re.sub(r"model\.(" + "|".join(LAW_ROLLOUT_KEYS) + r")\b", r"rollout.\1", str(exc))) from None
+    keys = ("law", "law_max", "law_rtol", "law_cuts", "law_tangent")
+    new = {**{k: v for k, v in prior.items() if k not in keys}, **{k: stepped[k] for k in keys if k in stepped}}
+    if law_phrase(new) == law_phrase(prior):
+        return ckpt, ""
+    return {**ckpt, "prior": new}, f"the law prior's step {law_phrase(new)} (trained: {law_phrase(prior)})"
 
 
 def with_rollout(ckpt: dict, cfg) -> tuple[dict, str]:
     """The checkpoint with the ``rollout`` config group applied to its time step: the integrator,
-    its sweeps and the kinematics of the same learned dz/dt (null: as trained). Returns the
-    changed copy and a note for reports, e.g. "integrator midpoint (trained: euler)", or "" when
-    nothing changed."""
+    its sweeps and the kinematics of the same learned dz/dt, or a law-prior model's law step
+    (``rollout.prior_*``, ``with_law_rollout``; null: as trained). Returns the changed copy and a
+    note for reports, e.g. "integrator midpoint (trained: euler)", or "" when nothing changed."""
     from omegaconf import OmegaConf
 
     from .model import step_settings, stepping
 
+    law = {k: OmegaConf.select(cfg, f"rollout.{k}", default=None) for k in LAW_ROLLOUT_KEYS}
+    if any(v is not None for v in law.values()):
+        if not ckpt.get("prior"):
+            from thermognn.core.errors import ConfigError
+
+            set_keys = ", ".join(f"rollout.{k}" for k, v in law.items() if v is not None)
+            raise ConfigError(f"{set_keys}: only a model=law_prior model steps the data's law; leave them null")
+        ckpt, law_note = with_law_rollout(ckpt, law)
+    else:
+        law_note = ""
     want = {k: OmegaConf.select(cfg, f"rollout.{k}", default=None) for k in ROLLOUT_KEYS}
     if all(v is None for v in want.values()):
-        return ckpt, ""
+        return ckpt, law_note
     if ckpt.get("prior"):
         from thermognn.core.errors import ConfigError
 
