@@ -154,7 +154,8 @@ def with_law_rollout(ckpt: dict, want: dict) -> tuple[dict, str]:
     prior = dict(ckpt["prior"])
     set_keys = ", ".join(f"rollout.{k}" for k, v in want.items() if v is not None)
     if not prior.get("law"):
-        raise ConfigError(f"{set_keys}: the checkpoint's prior is not the data's law (model=law_prior); leave them null")
+        raise ConfigError(f"{set_keys}: the checkpoint's prior is not the data's law (model=law_prior); "
+                          f"leave them null")
     trained = OmegaConf.create(ckpt.get("config") or "{}")
     if str(OmegaConf.select(trained, "train.fit_target", default="exact")) == "budget":
         raise ConfigError(f"{set_keys}: this model's network was fitted to what its {prior['law']}-iteration "
