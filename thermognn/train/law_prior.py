@@ -837,16 +837,20 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         return lu_solves(self._kept_lus, b)
 
     def kept_iterations(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor, loads: Tensor
-                        ) -> Tuple[Tensor, Tensor, Tensor, int, Tensor]:
+                        ) -> Tuple[Tensor, Tensor, Tensor, int, Tensor, bool]:
         """A step's iterations with a kept tangent, without gradients: (u1 [B, n] m, predictor,
-        S_iso,0, Newton updates taken, which samples had not converged [B] bool) of the step from
-        (u0, v0, a0 [B, n], h0) under ``loads`` (``step``'s).
+        S_iso,0, Newton updates taken, which samples had not converged [B] bool, whether the step
+        was abandoned) of the step from (u0, v0, a0 [B, n], h0) under ``loads`` (``step``'s).
 
         Each update solves with the factors of a tangent formed at an earlier iterate, of this
         step or an earlier one (chord iterations: one law evaluation and one back-substitution
         each). Where an update leaves a residual norm above ``kept_contraction`` of the one it
         started from (in any sample), the tangent is formed afresh where that update started and
-        the update redone with it, a Newton update. A step takes at least ``iterations`` updates
+        the update redone with it, a Newton update. Where that Newton update does not contract
+        either, the chords have led the step where Newton's method does not converge (the liver's
+        Ogden law at 5 times the data's loads, where a smaller residual is no nearer the
+        solution): the step is abandoned and its tangent dropped, and ``step`` takes it again as
+        fresh tangents do, from the predictor. A step takes at least ``iterations`` updates
         and at most ``max_iterations``, and has converged where its last update's remaining error
         is below ``newton_rtol`` of the largest displacement (and NEWTON_ATOL): for a Newton update
         its own size, as for fresh tangents; for a chord update the size times ρ/(1 − ρ), ρ its
@@ -860,10 +864,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         remainders moved the step by less than the tolerance."""
         predictor, S_iso0, extra, damping0, u1 = self.step_origin(u0, v0, a0, h0)
         fixed = loads + damping0
-        key = torch.cat([u0.reshape(-1), v0.reshape(-1), a0.reshape(-1), h0.reshape(-1)])
+        key = self.start_key(u0, v0, a0, h0)
         B = u1.shape[0]
         carried = torch.zeros(B, dtype=u1.dtype, device=u1.device)      # ρ known before this step's updates
-        if (self.kept_batch == B and self.kept_from.shape == key.shape and bool(torch.equal(self.kept_from, key))
+        if (self.kept_from.shape == key.shape and bool(torch.equal(self.kept_from, key))
                 and self.kept_end.shape == u1.shape):
             u1, carried = self.kept_end, self.kept_rate
         residual, F = self.step_residual(u1, v0, a0, predictor, extra, fixed)             # [B, n] N
@@ -873,6 +877,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             self.keep_tangent(F, extra)
         last = torch.zeros(B, dtype=u1.dtype, device=u1.device)        # the last update's size [B] m (0: none)
         done = torch.zeros(B, dtype=torch.bool, device=u1.device)
+        abandoned = False
         taken = 0
         while taken < self.max_iterations:
             du = self.kept_solve(residual)
@@ -887,6 +892,11 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                 du = self.kept_solve(residual)
                 trial = self.admissible(u1, du)
                 r_trial, F_trial = self.step_residual(trial, v0, a0, predictor, extra, fixed)
+                newton = (torch.linalg.vector_norm(r_trial, dim=1)
+                          <= self.kept_contraction * torch.linalg.vector_norm(residual, dim=1))
+                if not bool((newton | done).all()) or not bool(torch.isfinite(r_trial).all()):
+                    abandoned = True         # Newton's update from a chord's iterate does not contract either
+                    break
             self.require_finite(r_trial)
             taken += 1
             size = du.abs().amax(1)                                                        # [B] m
@@ -901,8 +911,16 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             u1, residual, F, last, fresh = trial, r_trial, F_trial, size, False
             if taken >= self.iterations and bool(done.all()):
                 break
+        if abandoned:                        # (its tangent with it)
+            self.drop_kept()
+            return u1, predictor, S_iso0, taken, torch.ones_like(done), True
         self.kept_from, self.kept_end, self.kept_rate = key, u1, carried
-        return u1, predictor, S_iso0, taken, ~done
+        return u1, predictor, S_iso0, taken, ~done, False
+
+    def start_key(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor) -> Tensor:
+        """A step's start (u0, v0, a0 [B, n], h0) flat, by which ``kept_iterations`` knows a
+        second step from it."""
+        return torch.cat([u0.reshape(-1), v0.reshape(-1), a0.reshape(-1), h0.reshape(-1)])
 
     def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
              G1: Tensor, h0: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -914,22 +932,25 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         iterations it needs, the others cost nothing more than the check.
 
         With a kept tangent (``tangent = "kept"``, no gradient) the iterations are
-        ``kept_iterations``', and a step they do not converge is taken again as with fresh
-        tangents (the kept one dropped), so a kept tangent never leaves a step fresh ones would
-        have converged. With ``step_cuts`` > 0 the samples whose step still has not converged are
-        stepped again from their start as the FE steps it (``cut_step``); the others keep their
-        whole step."""
+        ``kept_iterations``'; a step they abandon or do not converge is taken again as with fresh
+        tangents, so that whether a step has converged, and where it is cut, is decided as fresh
+        tangents decide it (the shell's snap-through takes another branch where a step is cut
+        that the FE did not cut). With ``step_cuts`` > 0 the samples whose step still has not
+        converged are stepped again from their start as the FE steps it (``cut_step``, with
+        fresh tangents); the others keep their whole step."""
         if self.step_cuts > 0:              # (a cut an error left mid-way does not leave its constants)
             self.use_level(0)
         # what R takes from outside the step's start: loads and remainders
         loads = f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0                  # [B, n] N
         if self.kept_tangent and not (u0.requires_grad or v0.requires_grad or a0.requires_grad
                                       or h0.requires_grad or loads.requires_grad):
-            u1, predictor, S_iso0, taken, still = self.kept_iterations(u0, v0, a0, h0, loads)
-            if bool(still.any()):            # not converged so: the step again with fresh tangents
+            u1, predictor, S_iso0, taken, still, abandoned = self.kept_iterations(u0, v0, a0, h0, loads)
+            if abandoned or bool(still.any()):   # the step as fresh tangents take it, from its predictor
                 self.drop_kept()
                 u1, predictor, S_iso0, retaken, still = self.fresh_iterations(u0, v0, a0, h0, loads)
-                taken += retaken
+                taken += retaken             # (a second step from this start starts where it ended)
+                self.kept_from, self.kept_end = self.start_key(u0, v0, a0, h0), u1
+                self.kept_rate = torch.zeros(u1.shape[0], dtype=u1.dtype, device=u1.device)
         else:
             u1, predictor, S_iso0, taken, still = self.fresh_iterations(u0, v0, a0, h0, loads)
         a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
