@@ -881,25 +881,30 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         taken = 0
         while taken < self.max_iterations:
             du = self.kept_solve(residual)
+            size = du.abs().amax(1)                                                        # [B] m
             trial = self.admissible(u1, du)
             r_trial, F_trial = self.step_residual(trial, v0, a0, predictor, extra, fixed)
             contracts = (torch.linalg.vector_norm(r_trial, dim=1)
                          <= self.kept_contraction * torch.linalg.vector_norm(residual, dim=1))
-            if not fresh and not bool((contracts | done).all()):       # (a converged sample's is round-off)
+            # a converged sample's residual, or one an update below NEWTON_ATOL leaves (a body at
+            # rest), is round-off: it need not contract
+            settled = done | (size <= self.newton_atol)
+            if not fresh and not bool((contracts | settled).all()):
                 self.keep_tangent(F, extra)                  # no longer contracting: a fresh tangent at u1
                 fresh = True
                 last, carried = torch.zeros_like(last), torch.zeros_like(carried)
                 du = self.kept_solve(residual)
+                size = du.abs().amax(1)
                 trial = self.admissible(u1, du)
                 r_trial, F_trial = self.step_residual(trial, v0, a0, predictor, extra, fixed)
                 newton = (torch.linalg.vector_norm(r_trial, dim=1)
                           <= self.kept_contraction * torch.linalg.vector_norm(residual, dim=1))
-                if not bool((newton | done).all()) or not bool(torch.isfinite(r_trial).all()):
+                converged = size <= self.newton_rtol * trial.abs().amax(1) + self.newton_atol
+                if not bool((newton | converged | done).all()) or not bool(torch.isfinite(r_trial).all()):
                     abandoned = True         # Newton's update from a chord's iterate does not contract either
                     break
             self.require_finite(r_trial)
             taken += 1
-            size = du.abs().amax(1)                                                        # [B] m
             scale = self.newton_rtol * trial.abs().amax(1) + self.newton_atol
             if fresh:                                        # Newton's update: its own size
                 done = size <= scale
