@@ -1472,7 +1472,8 @@ def test_law_prior_keeps_its_tangent_while_it_contracts():
     converge within the most, and the step is taken again with fresh tangents. Along a rollout
     under that load, a step whose Newton update from a chord's iterate does not contract is taken
     again from its predictor with fresh tangents, and every step lands where theirs does (or
-    neither converges). A second step from the same start (a model step's,
+    neither converges). At rest, exactly or within float32 round-off, it forms no tangent past
+    its first. A second step from the same start (a model step's,
     with its network's remainders) starts where the first ended and lands where a step from
     scratch does. Steps with gradients (training) form fresh tangents, to the bit; a batch of
     another size forms its own; ``forget`` drops it. A LinearPriorModel on it steps its carried
@@ -1518,6 +1519,15 @@ def test_law_prior_keeps_its_tangent_while_it_contracts():
     assert int(kept.tangents_formed) > formed
     exact = build(iterations=1, max_iterations=40).step(uf, vf, a, strong, G0[:1], G0[:1], h)
     assert rel(hard[0], exact[0]) < 1e-9 and rel(hard[1], exact[1]) < 1e-8
+    # at rest, unloaded, and at rest with float32 round-off in the displacement (an exported
+    # model's carried state, 1e-9 m): no tangent is formed past the first, and no step is cut short
+    rest = build(iterations=1, max_iterations=40, newton_rtol=1e-12, tangent="kept")
+    zero = torch.zeros(1, n, dtype=torch.float64)
+    noise = 1e-9 * torch.randn(1, n, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    for start in (zero, zero, noise, noise):
+        rest.step(start, zero, zero, zero, zero, zero, rest.internal_variables(start))
+    assert int(rest.tangents_formed) == 1 and rest.newton_taken.tolist()[2] == 0
+    assert rest.newton_taken.tolist()[0] <= 8
     # 30 times the data's loads from each state of the fresh tangents' rollout: where a Newton update
     # from a chord's iterate does not contract either, the step is taken again as fresh tangents take
     # it, from its predictor; each step then lands where theirs does, or neither converges
