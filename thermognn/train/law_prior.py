@@ -35,7 +35,10 @@ Two things make the step cheaper or safer without changing a step of the data (d
 session 51): a model step's two prior steps from the same start share the first iteration's start
 and tangent factors (``first_iteration``), and an update that would crush or invert a cell
 (J below min(0.05, half its start's)) is halved until it does not (``admissible``), so loads far
-beyond the data's (a haptic tool's contact) give finite states.
+beyond the data's (a haptic tool's contact) give finite states. With ``tangent = "kept"``
+(``model.prior_tangent``) a step taken without a gradient iterates with one tangent's factors kept
+between iterations and steps, formed afresh only where they no longer contract
+(``kept_iterations``; docs/model.md, "A kept tangent").
 """
 
 from __future__ import annotations
