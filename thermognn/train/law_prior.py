@@ -669,11 +669,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         the same start (``LinearPriorModel.advance``): with one Newton iteration all of it is
         shared but one back-substitution (``first_iteration`` keeps it with the tangent's factors)."""
         predictor, S_iso0, extra, damping0, u1 = self.step_origin(u0, v0, a0, h0)
-        w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
-        a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
-        F = self.cells(u1)
-        internal = self.mass(a1 + self.alpha_m * v1) + self.assemble(self.pk1(F, w_iso, w_vol, extra)) - damping0
-        pairs = self.tangent_pairs(F.detach(), w_iso, w_vol, None if extra is None else extra.detach())
+        internal, F = self.step_residual(u1, v0, a0, predictor, extra, damping0)
+        pairs = self.tangent_pairs(F.detach(), self.iso_weight + self.c, 1.0 + self.c,
+                                   None if extra is None else extra.detach())
         return predictor, S_iso0, extra, damping0, u1, internal, pairs
 
     @torch.jit.unused
