@@ -850,8 +850,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         the update redone with it, a Newton update. Where that Newton update does not contract
         either, the chords have led the step where Newton's method does not converge (the liver's
         Ogden law at 5 times the data's loads, where a smaller residual is no nearer the
-        solution): the step is abandoned and its tangent dropped, and ``step`` takes it again as
-        fresh tangents do, from the predictor. A step takes at least ``iterations`` updates
+        solution): the step is abandoned, and ``step`` drops the tangent and takes the step again
+        as fresh tangents do, from the predictor. A step takes at least ``iterations`` updates
         and at most ``max_iterations``, and has converged where its last update's remaining error
         is below ``newton_rtol`` of the largest displacement (and NEWTON_ATOL): for a Newton update
         its own size, as for fresh tangents; for a chord update the size times ρ/(1 − ρ), ρ its
@@ -885,8 +885,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             size = du.abs().amax(1)                                                        # [B] m
             trial = self.admissible(u1, du)
             r_trial, F_trial = self.step_residual(trial, v0, a0, predictor, extra, fixed)
-            contracts = (torch.linalg.vector_norm(r_trial, dim=1)
-                         <= self.kept_contraction * torch.linalg.vector_norm(residual, dim=1))
+            contracts = self.contracts(r_trial, residual)
             # a converged sample's residual, or one an update below NEWTON_ATOL leaves (a body at
             # rest), is round-off: it need not contract
             settled = done | (size <= self.newton_atol)
@@ -898,15 +897,14 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                 size = du.abs().amax(1)
                 trial = self.admissible(u1, du)
                 r_trial, F_trial = self.step_residual(trial, v0, a0, predictor, extra, fixed)
-                newton = (torch.linalg.vector_norm(r_trial, dim=1)
-                          <= self.kept_contraction * torch.linalg.vector_norm(residual, dim=1))
-                converged = size <= self.newton_rtol * trial.abs().amax(1) + self.newton_atol
-                if not bool((newton | converged | done).all()) or not bool(torch.isfinite(r_trial).all()):
+                newton = self.contracts(r_trial, residual)
+                if not bool((newton | (size <= self.tolerance(trial)) | done).all()) \
+                        or not bool(torch.isfinite(r_trial).all()):
                     abandoned = True         # Newton's update from a chord's iterate does not contract either
                     break
             self.require_finite(r_trial)
             taken += 1
-            scale = self.newton_rtol * trial.abs().amax(1) + self.newton_atol
+            scale = self.tolerance(trial)
             if fresh:                                        # Newton's update: its own size
                 done = size <= scale
             else:                                            # a chord's: its size times ρ / (1 − ρ)
@@ -917,11 +915,16 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             u1, residual, F, last, fresh = trial, r_trial, F_trial, size, False
             if taken >= self.iterations and bool(done.all()):
                 break
-        if abandoned:                        # (its tangent with it)
-            self.drop_kept()
+        if abandoned:
             return u1, predictor, S_iso0, taken, torch.ones_like(done), True
         self.kept_from, self.kept_end, self.kept_rate = key, u1, carried
         return u1, predictor, S_iso0, taken, ~done, False
+
+    def contracts(self, r_new: Tensor, r_old: Tensor) -> Tensor:
+        """Per sample [B] bool, whether an update left a residual norm of at most ``kept_contraction``
+        of the one it started from (residuals [B, n] N)."""
+        return (torch.linalg.vector_norm(r_new, dim=1)
+                <= self.kept_contraction * torch.linalg.vector_norm(r_old, dim=1))
 
     def start_key(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor) -> Tensor:
         """A step's start (u0, v0, a0 [B, n], h0) flat, by which ``kept_iterations`` knows a
@@ -1023,8 +1026,12 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     def moving(self, update: Tensor, u: Tensor) -> Tensor:
         """Per sample [B] bool, whether a Newton update [B, n] m still moved some DOF by more than
         ``newton_rtol`` of the sample's largest displacement u [B, n] m (and more than NEWTON_ATOL)."""
-        scale = self.newton_rtol * u.abs().amax(1) + self.newton_atol                     # [B] m
-        return update.abs().amax(1) > scale
+        return update.abs().amax(1) > self.tolerance(u)
+
+    def tolerance(self, u: Tensor) -> Tensor:
+        """The largest Newton update [B] m of a converged step at displacements u [B, n] m:
+        ``newton_rtol`` of the sample's largest displacement, and NEWTON_ATOL."""
+        return self.newton_rtol * u.abs().amax(1) + self.newton_atol
 
     def moves(self, update: Tensor, u: Tensor) -> bool:
         """Whether a Newton update [B, n] m still moved some DOF of some sample (``moving``)."""
