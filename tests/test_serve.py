@@ -320,6 +320,34 @@ def test_contact_force_is_continuous_over_a_dimple():
     assert np.abs(np.diff(forces, axis=0)).max() < 0.01
 
 
+def test_contact_depth_inside_a_dimple_is_to_the_nearest_surface():
+    """The tool's centre 0.5 mm below a dimple's bottom, inside the body: the depth is the tool's
+    radius plus the distance to the nearest surface, though the centre also lies behind the
+    plane of the flat ring around the dimple, about 2 mm away (taking the farthest face the
+    centre is behind made the force under the sim press chatter by 1 N between steps,
+    docs/accuracy.md session 77)."""
+    from thermognn.serve.contact import closest_points_on_triangles
+    angles = np.arange(6) * np.pi / 3
+    ring = lambda radius: np.stack([radius * np.cos(angles), radius * np.sin(angles), np.full(6, 0.02)], 1)
+    X = np.concatenate([[[0.0, 0.0, 0.02]], ring(0.002), ring(0.006), [[0.0, 0.0, 0.0]]])   # [14, 3] m
+    i = np.arange(6)
+    faces = np.concatenate([np.stack([np.zeros(6, int), 1 + i, 1 + (i + 1) % 6], 1),        # the dimple's fan
+                            np.stack([1 + i, 7 + i, 7 + (i + 1) % 6], 1),                   # the flat ring
+                            np.stack([1 + i, 7 + (i + 1) % 6, 1 + (i + 1) % 6], 1)])
+    node_type = np.array([2] * 13 + [1])
+    q = X.copy()
+    q[0, 2] -= 0.0003                                                # the dimple's bottom at z = 0.0197
+    contact = SurfaceContact(X, node_type, faces, 0.003, 300.0, 0.006)
+    x = np.array([0.0, 0.0, 0.0192])
+    f = contact.faces
+    pts, _ = closest_points_on_triangles(x, q[f[:, 0]], q[f[:, 1]], q[f[:, 2]])
+    d = np.linalg.norm(x - pts, axis=1)
+    assert d.min() <= 0.0005 + 1e-12 and d.max() < 0.003             # every face overlaps the tool
+    res = contact(x, q)
+    assert res.in_contact and res.depth == pytest.approx(0.003 + d.min(), abs=1e-12)
+    assert res.force == pytest.approx([0.0, 0.0, 300.0 * (0.003 + d.min())], abs=1e-9)
+
+
 def test_series_stiffness():
     assert series_stiffness(300.0, 300.0) == pytest.approx(150.0)
     assert series_stiffness(300.0, float("inf")) == 300.0                # rigid body: the contact alone

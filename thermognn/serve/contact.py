@@ -8,7 +8,11 @@ positions ``q`` [N, 3] m through a penalty (virtual coupling) of stiffness ``k``
     n        = normalised sum_j w_j n_j of the outward face normals n_j: exact on flat
              tessellated surfaces, continuous in x, also in concave dimples where the closest
              point jumps between faces and at convex edges (blended normal)
-    s        smallest signed distance d_j (negative: centre inside the body)
+    s        signed distance to the nearest triangle: min_j d_j, negative where the centre
+             lies behind n from its closest point (inside the body). Not the smallest of the
+             triangles' own signed distances: in a dimple a triangle whose plane the centre is
+             behind may be 3 mm off while the surface is 0.5 mm away, which made the force
+             chatter by 1 N from step to step under the sim press (docs/accuracy.md, session 77)
     delta    = r - s   penetration of the sphere of radius r                      [m]
     f_user   = k delta n               force on the user (pushes the tool out)    [N]
     K        = d f_user / d x = -k n n^T   (contact stiffness, surface held)      [N/m]
@@ -153,6 +157,13 @@ class SurfaceContact:
         self.loads = np.zeros((self.n_nodes, 3))  # [N, 3] N, reused
         self.lo, self.hi = X.min(axis=0), X.max(axis=0)
 
+    def surface_triangles(self) -> np.ndarray:
+        """The surface triangles [F, 3] as indices into ``surface_nodes`` (what a virtual device's
+        ``attach_surface`` takes beside those nodes' positions; [0, 3] without faces)."""
+        if not len(self.faces):
+            return np.zeros((0, 3), dtype=np.int64)
+        return np.searchsorted(self.surface_nodes, self.faces).astype(np.int64)
+
     def __call__(self, x: np.ndarray, q: np.ndarray) -> ContactResult:
         """Contact of the tool centred at ``x`` [3] m with the surface at positions ``q`` [N, 3] m.
 
@@ -176,15 +187,13 @@ class SurfaceContact:
             nf /= np.maximum(np.linalg.norm(nf, axis=1, keepdims=True), 1e-300)
             dn = d[near]
             un = u[near]
-            inside = np.einsum("ij,ij->i", un, nf) < 0.0
-            s_j = np.where(inside, -dn, dn)                               # signed distances [M]
             w = self.radius - dn                                          # overlap weights, 0 at release
             n = (w[:, None] * nf).sum(axis=0)
             n /= max(float(np.linalg.norm(n)), 1e-300)
-            s = float(s_j.min())
+            k = int(np.argmin(dn))                                        # the nearest triangle
+            s = float(dn[k]) if float(un[k] @ n) >= 0.0 else -float(dn[k])
             p = (w[:, None] * pts[near]).sum(axis=0) / w.sum()
-            j = int(near[np.argmin(dn)])
-            tri, w_tri = f[j], bary[j]
+            tri, w_tri = f[near[k]], bary[near[k]]
         else:
             u = x - q[self.surface_nodes]
             dist2 = np.einsum("ij,ij->i", u, u)
