@@ -103,6 +103,42 @@ def test_sim_paths_press_the_surface_under_the_tool_not_the_bounding_box(path):
     assert deepest[2] - r < dev.surface_top(deepest[0], deepest[1]) - 0.9 * dev.depth
 
 
+def _box_faces(nx: int, ny: int, z: float, offset: int) -> tuple[np.ndarray, np.ndarray]:
+    """A face z = const of a 4 cm x 4 cm box: nx x ny nodes, two triangles per square (indices from
+    ``offset``)."""
+    x, y = np.meshgrid(np.linspace(0.0, 0.04, nx), np.linspace(0.0, 0.04, ny), indexing="ij")
+    pts = np.stack([x.ravel(), y.ravel(), np.full(x.size, z)], 1)
+    idx = np.arange(x.size).reshape(nx, ny) + offset
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return pts, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
+@pytest.mark.parametrize("path", ["press", "palpate", "drag"])
+def test_sim_paths_start_above_a_closed_body_with_a_coarse_top(path):
+    """A closed box whose top face's nodes lie 8 mm apart and whose bottom face's 2 mm apart (as a
+    gmsh block's can): near most of the top in plan, every surface node within reach is the
+    bottom face's. Given the surface's triangles too (as serve gives them), every path starts
+    above the top face and presses into it from there; given its nodes alone, the tool would
+    start inside the body."""
+    top, top_faces = _box_faces(6, 6, 0.02, 0)
+    bottom, bottom_faces = _box_faces(21, 21, 0.0, len(top))
+    bottom[:, :2] += 0.001                                   # (off the top's columns in plan)
+    surface, faces = np.concatenate([top, bottom]), np.concatenate([top_faces, bottom_faces])   # [M, 3], [F, 3]
+    r = 0.003
+    lo, hi = np.array([0.0, 0.0, 0.0]), np.array([0.04, 0.04, 0.02])
+    dev = devices.load("sim")(path=path, period=2.0)
+    dev.attach_scene(lo, hi, r)
+    dev.attach_surface(surface, faces)
+    for t in np.linspace(0.0, 18.0, 181):
+        p = dev.position_at(float(t))
+        assert dev.surface_top(p[0], p[1]) == pytest.approx(0.02, abs=1e-12), (t, p)
+        assert 0.02 + r - dev.depth - 1e-9 <= p[2] <= 0.02 + r + dev.clearance + 1e-9, (t, p)
+    nodes_only = devices.load("sim")(path=path, period=2.0)
+    nodes_only.attach_scene(lo, hi, r)
+    nodes_only.attach_surface(surface)
+    assert nodes_only.surface_top(0.02, 0.02) == 0.0                        # the bottom face's nodes
+
+
 def test_sim_rejects_unknown_path():
     with pytest.raises(DeviceError, match="serve.path"):
         devices.load("sim")(path="zigzag")

@@ -94,9 +94,10 @@ class Device:
     def attach_scene(self, lo: np.ndarray, hi: np.ndarray, tool_radius: float) -> None:
         """Bounding box [m] of the model's reference geometry (virtual devices place their path)."""
 
-    def attach_surface(self, points: np.ndarray) -> None:
-        """Reference positions [M, 3] m of the body's surface nodes, after ``attach_scene``
-        (virtual devices aim their path at the surface itself, not at its bounding box)."""
+    def attach_surface(self, points: np.ndarray, faces: np.ndarray | None = None) -> None:
+        """Reference positions [M, 3] m of the body's surface nodes and its triangles [F, 3] (indices
+        into ``points``; None: nodes only), after ``attach_scene`` (virtual devices aim their path
+        at the surface itself, not at its bounding box)."""
 
     # -- I/O -----------------------------------------------------------------------------
     def read(self) -> DeviceReading:

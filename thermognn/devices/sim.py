@@ -2,9 +2,10 @@
 
 Paths (option ``path``), placed on the model's reference bounding box (``attach_scene``), all
 starting ``clearance`` above the body's top surface under the tool and pressing ``depth`` into it:
-that surface is the highest surface node within ``SURFACE_REACH`` of the tool's (x, y) once
-``attach_surface`` has given the surface (serve does; under the liver's palpate points it lies
-3-122 mm below the box's top), else the box's top face (z = max):
+that surface is the highest surface triangle over the tool's (x, y) once ``attach_surface`` has
+given the surface (serve does; beyond its outline, or given nodes only, the highest surface node
+within ``SURFACE_REACH``; under the liver's palpate points it lies 3-122 mm below the box's top),
+else the box's top face (z = max):
 
     press     up and down at the centre of the top face, period ``period`` [s]
     palpate   one press per point of a 3x3 grid over the top face
@@ -65,23 +66,40 @@ class SimDevice(Device):
         self.hi = np.asarray(hi, dtype=float).copy()
         self.tool_radius = float(tool_radius)
 
-    def attach_surface(self, points) -> None:
-        """Tabulate the top of the body's surface (nodes ``points`` [M, 3] m) over the bounding
-        box: per grid cell, the highest node within the reach of the cell's centre (the nearest
-        node's height where none is)."""
+    def attach_surface(self, points, faces=None) -> None:
+        """Tabulate the top of the body's surface (nodes ``points`` [M, 3] m, triangles ``faces``
+        [F, 3] of indices into them, or None) over the bounding box: per grid cell, the highest
+        triangle over the cell's centre (a vertical line from above meets it first); where no
+        triangle is (beyond the body's outline, or without faces), the highest node within the
+        reach of the centre, or the nearest node's height where none is. The triangles matter on a
+        closed body whose top face is meshed coarser than its bottom: there the nodes near a cell
+        in plan may all be the bottom face's."""
         pts = np.asarray(points, dtype=float).reshape(-1, 3)
         if len(pts) == 0:
             self._top = None
             return
+        tris = np.zeros((0, 3), dtype=np.int64) if faces is None else np.asarray(faces, dtype=np.int64).reshape(-1, 3)
         ext = np.maximum(self.hi[:2] - self.lo[:2], 1e-12)
         centres = [self.lo[k] + (np.arange(SURFACE_GRID) + 0.5) * ext[k] / SURFACE_GRID for k in (0, 1)]
         reach = SURFACE_REACH * float(ext.max())
+        a, b, c = pts[tris[:, 0]], pts[tris[:, 1]], pts[tris[:, 2]]                      # [F, 3] m each
+        ab, ac = b - a, c - a
+        area = ab[:, 0] * ac[:, 1] - ab[:, 1] * ac[:, 0]                                 # [F] 2 x plan area
+        upright = np.abs(area) > 1e-12 * float(ext.max()) ** 2      # (vertical triangles cover no point)
+        a, ab, ac, area = a[upright], ab[upright], ac[upright], area[upright]
+        py = centres[1][:, None]                                                         # [G, 1] m
         top = np.empty((SURFACE_GRID, SURFACE_GRID))
         dy2 = (centres[1][:, None] - pts[:, 1]) ** 2                                     # [G, M] m²
         for i, x in enumerate(centres[0]):                   # a row at a time: [G, M], not [G, G, M]
+            wb = ((x - a[:, 0]) * ac[:, 1] - (py - a[:, 1]) * ac[:, 0]) / area           # [G, F] barycentric
+            wc = (ab[:, 0] * (py - a[:, 1]) - ab[:, 1] * (x - a[:, 0])) / area
+            over = (wb >= -1e-9) & (wc >= -1e-9) & (wb + wc <= 1.0 + 1e-9)
+            z_tri = np.where(over, a[:, 2] + wb * ab[:, 2] + wc * ac[:, 2], -np.inf)
             d2 = (x - pts[:, 0]) ** 2 + dy2
             near = np.where(d2 <= reach * reach, pts[:, 2], -np.inf).max(axis=-1)
-            top[i] = np.where(np.isfinite(near), near, pts[np.argmin(d2, axis=-1), 2])
+            by_nodes = np.where(np.isfinite(near), near, pts[np.argmin(d2, axis=-1), 2])
+            highest = z_tri.max(axis=-1) if len(a) else np.full(SURFACE_GRID, -np.inf)
+            top[i] = np.where(np.isfinite(highest), highest, by_nodes)
         self._top = top
 
     def surface_top(self, x: float, y: float) -> float:

@@ -236,7 +236,9 @@ def haptic_main(params: dict, conn) -> None:
         device = cls(**params.get("device_options", {}))
         device.attach_scene(np.asarray(params["lo"]), np.asarray(params["hi"]), params["tool_radius"])
         if params.get("surface"):
-            device.attach_surface(np.asarray(params["surface"], dtype=float))
+            faces = params.get("surface_faces")
+            device.attach_surface(np.asarray(params["surface"], dtype=float),
+                                  np.asarray(faces, dtype=np.int64) if faces else None)
         specs = device.open()
         conn.send({"ok": True, "specs": asdict(specs)})
         summary["torch_loaded"] = "torch" in sys.modules      # must stay False (checked by the tests)

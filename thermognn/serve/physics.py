@@ -62,13 +62,13 @@ def load_exported(path: str | Path):
     return module, meta, buffers
 
 
-def model_geometry(buffers: dict, meta: dict, surface_nodes: np.ndarray) -> dict:
+def model_geometry(buffers: dict, meta: dict, contact: SurfaceContact) -> dict:
     """What the main and haptic processes need to know about the body (plain Python); the surface
-    is that of its nodes ``surface_nodes`` (the contact's, ``SurfaceContact.surface_nodes``)."""
+    is the contact's: its nodes' reference positions and its triangles as indices into them."""
     X = buffers["reference_positions"].astype(float)
-    surface = X[np.asarray(surface_nodes, dtype=np.int64)]                  # [M, 3] m
+    surface = X[np.asarray(contact.surface_nodes, dtype=np.int64)]          # [M, 3] m
     return {"ok": True, "n_nodes": int(X.shape[0]), "lo": X.min(axis=0).tolist(), "hi": X.max(axis=0).tolist(),
-            "surface": surface.tolist(),
+            "surface": surface.tolist(), "surface_faces": contact.surface_triangles().tolist(),
             "dt": float(buffers["dt"]), "n_faces": int(len(buffers["surface_faces"])),
             "scene": meta.get("scene"), "state_layout": meta.get("state_layout"), "step": describe_step(meta.get("step"))}
 
@@ -95,7 +95,7 @@ def physics_main(params: dict, conn) -> None:
         control[P.C_PHYSICS_STATE] = 2
         shared.close()
         return
-    conn.send(model_geometry(buffers, meta, contact.surface_nodes))
+    conn.send(model_geometry(buffers, meta, contact))
     try:
         # the profiling executor's re-optimisation made scripted steps ~1.7x slower than eager here
         with torch.jit.optimized_execution(False):

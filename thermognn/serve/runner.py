@@ -259,7 +259,8 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
             lo, hi = np.array(geometry["lo"]), np.array(geometry["hi"])
             top = 0.5 * (lo + hi)
             top[2] = hi[2] + params["tool_radius"] + 0.5 * (hi[2] - lo[2])
-            params.update(lo=lo.tolist(), hi=hi.tolist(), anchor=top.tolist(), surface=geometry.get("surface", []))
+            params.update(lo=lo.tolist(), hi=hi.tolist(), anchor=top.tolist(), surface=geometry.get("surface", []),
+                          surface_faces=geometry.get("surface_faces", []))
             haptic = ctx.Process(target=haptic_main, args=(params, haptic_child), name="thermognn-haptic", daemon=True)
             haptic.start()
             opened = _recv(haptic_conn, 60.0, haptic)
