@@ -7,6 +7,7 @@ import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from thermognn.core.schema import Dataset
@@ -541,6 +542,18 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
     for g in ("q", "v", "sigma"):
         assert restepped[f"whole_{g}"] < 0.5 * errors[f"newton1_fe_whole_{g}"], (g, restepped)
     assert verify(out / "kept.pt")["step"]["law_tangent"] == "kept"
+    # served (thermognn.serve.lockstep): the sim device's press read at body time, each model
+    # against its own surface, from above the block's top (not from inside it); the converged law
+    # against itself exactly, one iteration a step finite and off it, in force and displacement
+    from thermognn.serve.lockstep import compare, press_rollout
+    press = dict(steps=40, period=0.4, load_radius=0.008)
+    served, converged = press_rollout(out / "model.pt", **press), press_rollout(out / "kept.pt", **press)
+    assert converged.finite and served.finite and len(served.times) == 40
+    assert converged.tool[0, 2] > 0.02 + 0.003 and np.linalg.norm(converged.force, axis=1).max() > 0.5
+    assert np.abs(converged.displacement).max() > 1e-4                    # [m]: the press moved the body
+    assert compare(converged, converged)["force"] == 0.0
+    off = compare(served, converged)
+    assert 0.0 < off["force"] < 0.5 and 0.0 < off["displacement"] < 1.0 and off["steps"] == 40, off
     # train.fit_target=budget: the fit learns the load each one-iteration step misses, which is no
     # round-off (the exact remainders are); only the law prior has a budget to learn. The network
     # sees each step's correction from its predictor (model.prior_inputs=correction), exported too

@@ -1,0 +1,75 @@
+"""What a served step's speed costs in force: exported models pressed by the sim device's scripted
+tool in body time, each against its own surface, against a reference model's rollout of the same
+path (``thermognn.serve.lockstep``).
+
+``serve_bench.py`` measures how fast the physics runs under the haptic loop, not how right its
+force is: the tool there moves with the wall clock, so every session loads the body differently.
+Here step k reads the tool at k Δt, so every model sees the same path, and each row is the
+whole-path relative error of the force on the user and of the body's displacement against the
+reference, the largest force error beside the largest force, and the model call's median and p99
+time (one process, ``--threads``, the physics process's default 1).
+
+    .venv/bin/python benchmarks/serve_accuracy.py --reference runs/liver/kept.pt \
+        runs/liver/model.pt runs/liver/two.pt --path press scene=liver
+
+The reference is typically the same law-prior model stepped to convergence (exported with
+``rollout.prior_newton_max=16 rollout.prior_newton_rtol=1e-7 rollout.prior_tangent=kept``). Any
+further arguments are config overrides for serve's contact (``serve.tool_radius``,
+``serve.contact_stiffness``, ``serve.load_radius``, which follows ``scene=...``'s load radius).
+Prints figures, asserts nothing; docs/accuracy.md (session 77) quotes them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("models", type=Path, nargs="+", help="exported model files to compare")
+    ap.add_argument("--reference", type=Path, required=True, help="exported model the others are compared with")
+    ap.add_argument("--path", default="press", choices=("press", "palpate", "drag"))
+    ap.add_argument("--period", type=float, default=2.0, help="sim path period [s]")
+    ap.add_argument("--depth", type=float, default=None, help="press depth below the surface [m] (default: 20 %% of the height)")
+    ap.add_argument("--seconds", type=float, default=None, help="body time [s] (default: one period)")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    args, overrides = ap.parse_known_args(argv)
+
+    from thermognn.core.config import load_config
+    from thermognn.serve.lockstep import compare, press_rollout
+    from thermognn.serve.physics import load_exported
+
+    cfg = load_config(list(overrides))
+    contact = {"tool_radius": float(cfg.serve.tool_radius), "contact_stiffness": float(cfg.serve.contact_stiffness),
+               "load_radius": float(cfg.serve.load_radius)}
+    dt = float(load_exported(args.reference)[2]["dt"])
+    seconds = args.period if args.seconds is None else args.seconds
+    steps = max(1, int(round(seconds / dt)))
+    run = dict(steps=steps, path=args.path, period=args.period, depth=args.depth, threads=args.threads, **contact)
+    print(f"serve accuracy: path {args.path}, period {args.period:g} s, {steps} steps of {dt:g} s, "
+          f"tool radius {contact['tool_radius']:g} m, contact {contact['contact_stiffness']:g} N/m, "
+          f"load radius {contact['load_radius']:g} m, {args.threads} thread(s)")
+    reference = press_rollout(args.reference, **run)
+    rows = []
+    for model in [args.reference, *args.models]:
+        r = reference if model == args.reference else press_rollout(model, **run)
+        row = {"model": str(model), **compare(r, reference), "step_ms_median": float(np.median(r.step_ms)),
+               "step_ms_p99": float(np.percentile(r.step_ms, 99))}
+        rows.append(row)
+        print(f"  {str(model):48s} force {100 * row['force']:9.3g} %  peak error {row['peak_force_error_N']:9.3g} N "
+              f"of {row['peak_force_N']:.3f} N  displacement {100 * row['displacement']:9.3g} %  "
+              f"{row['step_ms_median']:7.1f} ms (p99 {row['step_ms_p99']:.1f})  {row['steps']} steps"
+              + ("" if row["finite"] else "  NOT FINITE"))
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+    return rows
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

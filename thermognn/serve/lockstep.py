@@ -1,0 +1,112 @@
+"""What a served model's force is worth: exported models pressed by the same scripted tool in body
+time, side by side, each against its own deformed surface (``benchmarks/serve_accuracy.py``).
+
+``serve`` steps the physics flat out and samples the tool wherever the wall clock has it, so two
+sessions never see the same loads. Here the tool follows the sim device's path
+(``thermognn.devices.sim``) at body time instead: step k reads the tool at t_k = k Δt (Δt the
+model's own step), finds its contact with the model's current surface (``SurfaceContact``, the
+physics process's, with serve's tool radius, penalty stiffness and load radius) and steps the model
+with that contact's nodal loads, as ``run_physics`` does. What comes out per step is what the user
+would feel, f_k [3] N (the penalty force on the tool), and the body's displacement u_k = q_k − X
+[N, 3] m, with the model call's time.
+
+Two such rollouts of the same path, a served model's and a reference's (the law stepped to
+convergence, say), give the force error the served step's speed costs (:func:`compare`): each
+model feels the tool against its own surface, so a body that yields too little pushes back too
+hard, as it would under the user's hand. Torch is imported inside the functions (the package's
+haptic side never imports it).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from thermognn.core.errors import DataError
+from thermognn.core.state import StateLayout
+
+from .contact import SurfaceContact
+from .physics import load_exported
+
+
+@dataclass
+class PressRollout:
+    """One exported model stepped along a scripted tool path in body time."""
+
+    times: np.ndarray         # [T] s: body time after each step (k Δt)
+    tool: np.ndarray          # [T, 3] m: tool centre the step's contact was found at
+    force: np.ndarray         # [T, 3] N: contact force on the user before each step
+    displacement: np.ndarray  # [T, N, 3] m: the body's displacement q − X after each step
+    step_ms: np.ndarray       # [T] ms: each model call
+    finite: bool              # every state finite (False: the rollout stopped where it was not)
+
+
+def press_rollout(model: str | Path, steps: int, path: str = "press", period: float = 2.0,
+                  depth: float | None = None, tool_radius: float = 0.003, contact_stiffness: float = 300.0,
+                  load_radius: float = 0.006, threads: int = 1) -> PressRollout:
+    """Step the exported ``model`` ``steps`` times with the tool of the sim device's ``path``
+    (its ``period`` [s] and ``depth`` [m] below the surface, None: 20 % of the body's height) read
+    at body time k Δt; the contact as ``serve``'s physics process finds it (``tool_radius`` [m],
+    ``contact_stiffness`` [N/m], ``load_radius`` [m]). Steps stop at a state that is not finite."""
+    import torch
+
+    from thermognn.devices.sim import SimDevice
+
+    if steps < 1:
+        raise DataError(f"press_rollout: steps = {steps}, expected >= 1")
+    torch.set_num_threads(int(threads))
+    module, meta, buffers = load_exported(model)
+    try:
+        q_slice = StateLayout.from_json(meta["state_layout"]).slice("q")
+    except (KeyError, TypeError, ValueError):
+        raise DataError(f"paths.exported: '{model}' metadata lacks a state_layout with 'q'") from None
+    X = buffers["reference_positions"].astype(float)                        # [N, 3] m
+    contact = SurfaceContact(X, buffers["node_type"], buffers["surface_faces"], tool_radius, contact_stiffness,
+                             load_radius)
+    device = SimDevice(path=path, period=period, depth=depth)
+    device.attach_scene(X.min(axis=0), X.max(axis=0), tool_radius)         # as serve's haptic process does
+    device.attach_surface(X[contact.surface_nodes], contact.surface_triangles())
+    dt = float(buffers["dt"])
+    z = module.z0.detach().clone()                                          # [N, D] carried state
+    times, tool, force, disp, ms = [], [], [], [], []
+    finite = True
+    with torch.jit.optimized_execution(False):                              # as run_physics steps it
+        for k in range(steps):
+            x = device.position_at(k * dt)
+            res = contact(x, z[:, q_slice].detach().numpy().astype(float))
+            f = torch.from_numpy(contact.loads).to(z.dtype)                 # [N, 3] N on the body
+            ts = time.perf_counter()
+            z = module(z, f).detach()
+            ms.append((time.perf_counter() - ts) * 1e3)
+            if not bool(torch.isfinite(z).all()):
+                finite = False
+                ms.pop()
+                break
+            times.append((k + 1) * dt)
+            tool.append(x.copy())
+            force.append(res.force.copy())
+            disp.append(z[:, q_slice].numpy().astype(float) - X)
+    n = len(times)
+    return PressRollout(np.asarray(times), np.asarray(tool).reshape(n, 3), np.asarray(force).reshape(n, 3),
+                        np.asarray(disp).reshape(n, len(X), 3), np.asarray(ms), finite)
+
+
+def compare(rollout: PressRollout, reference: PressRollout) -> dict:
+    """Errors of ``rollout`` against ``reference`` over the steps both took (whole-rollout ratios,
+    as ``evaluate``'s): ``force`` ‖f − f_ref‖ / ‖f_ref‖ over all steps, ``peak_force`` the largest
+    |f − f_ref| [N] with the reference's largest |f_ref| [N] beside it, ``displacement``
+    ‖u − u_ref‖ / ‖u_ref‖ over all steps and nodes; ``steps`` compared, and whether ``rollout``
+    stopped early (``finite``)."""
+    n = min(len(rollout.times), len(reference.times))
+    df = rollout.force[:n] - reference.force[:n]                            # [n, 3] N
+    du = rollout.displacement[:n] - reference.displacement[:n]              # [n, N, 3] m
+    f_ref = float(np.linalg.norm(reference.force[:n]))
+    u_ref = float(np.linalg.norm(reference.displacement[:n]))
+    return {"steps": n, "finite": bool(rollout.finite and n == len(reference.times)),
+            "force": float(np.linalg.norm(df)) / f_ref if f_ref > 0 else float("nan"),
+            "peak_force_error_N": float(np.linalg.norm(df, axis=1).max()) if n else float("nan"),
+            "peak_force_N": float(np.linalg.norm(reference.force[:n], axis=1).max()) if n else float("nan"),
+            "displacement": float(np.linalg.norm(du)) / u_ref if u_ref > 0 else float("nan")}
