@@ -348,6 +348,21 @@ def test_contact_depth_inside_a_dimple_is_to_the_nearest_surface():
     assert res.force == pytest.approx([0.0, 0.0, 300.0 * (0.003 + d.min())], abs=1e-9)
 
 
+def test_contact_holds_a_tool_pushed_deeper_than_its_radius():
+    """A tool centre 5 mm under a box's top face, deeper than its 3 mm radius (a soft body yields
+    less than the sim press goes in): it keeps its contact, 8 mm deep, pushed out along the top's
+    normal, instead of passing through the surface with no force; 5 mm above, none."""
+    from thermognn.serve.toy import box_mesh
+    X, _, faces, node_type = box_mesh((5, 5, 3), (0.04, 0.04, 0.02))
+    contact = SurfaceContact(X, node_type, faces, 0.003, 300.0, 0.006)
+    res = contact(np.array([0.001, 0.002, 0.015]), X)
+    assert res.in_contact and res.depth == pytest.approx(0.008)
+    assert res.force == pytest.approx([0.0, 0.0, 300.0 * 0.008], abs=1e-12)
+    assert contact.loads.sum(axis=0) == pytest.approx(-res.force)
+    res = contact(np.array([0.001, 0.002, 0.025]), X)
+    assert not res.in_contact and res.depth == pytest.approx(-0.002) and np.all(contact.loads == 0)
+
+
 def test_series_stiffness():
     assert series_stiffness(300.0, 300.0) == pytest.approx(150.0)
     assert series_stiffness(300.0, float("inf")) == 300.0                # rigid body: the contact alone

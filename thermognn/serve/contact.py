@@ -14,6 +14,8 @@ positions ``q`` [N, 3] m through a penalty (virtual coupling) of stiffness ``k``
              behind may be 3 mm off while the surface is 0.5 mm away, which made the force
              chatter by 1 N from step to step under the sim press (docs/accuracy.md, session 77)
     delta    = r - s   penetration of the sphere of radius r                      [m]
+             (no face within r: n and s from the nearest face(s) alone, so a centre pushed
+             deeper than r into a soft body keeps its contact instead of passing through)
     f_user   = k delta n               force on the user (pushes the tool out)    [N]
     K        = d f_user / d x = -k n n^T   (contact stiffness, surface held)      [N/m]
 
@@ -179,15 +181,16 @@ class SurfaceContact:
             u = x - pts                                                   # [F, 3]
             d = np.sqrt(np.einsum("ij,ij->i", u, u))                      # [F]
             near = np.flatnonzero(d < self.radius)
-            if len(near) == 0:
-                j = int(np.argmin(d))
-                return ContactResult(np.zeros(3), np.zeros((3, 3)), False, self.radius - float(d[j]), pts[j],
-                                     u[j] / max(float(d[j]), 1e-300))
+            if len(near):
+                w = self.radius - d[near]                                 # overlap weights, 0 at release
+            else:                       # the nearest face(s), the centre outside or deeper than r inside
+                d_min = float(d.min())
+                near = np.flatnonzero(d <= d_min + 1e-9 * max(d_min, self.radius))
+                w = np.ones(len(near))
             nf = np.cross(b[near] - a[near], c[near] - a[near])          # outward face normals [M, 3]
             nf /= np.maximum(np.linalg.norm(nf, axis=1, keepdims=True), 1e-300)
             dn = d[near]
             un = u[near]
-            w = self.radius - dn                                          # overlap weights, 0 at release
             n = (w[:, None] * nf).sum(axis=0)
             n /= max(float(np.linalg.norm(n)), 1e-300)
             k = int(np.argmin(dn))                                        # the nearest triangle
