@@ -4,7 +4,7 @@ Paths (option ``path``), placed on the model's reference bounding box (``attach_
 starting ``clearance`` above the body's top surface under the tool and pressing ``depth`` into it:
 that surface is the highest surface triangle over the tool's (x, y) once ``attach_surface`` has
 given the surface (serve does; beyond its outline, or given nodes only, the highest surface node
-within ``SURFACE_REACH``; under the liver's palpate points it lies 3-122 mm below the box's top),
+within ``SURFACE_REACH``; under the liver's palpate points it lies 3.4-55.9 mm below the box's top),
 else the box's top face (z = max):
 
     press     up and down at the centre of the top face, period ``period`` [s]

@@ -26,10 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from thermognn.core.errors import DataError
-from thermognn.core.state import StateLayout
 
-from .contact import SurfaceContact
-from .physics import load_exported
+from .physics import body_contact, load_exported
 
 
 @dataclass
@@ -59,13 +57,8 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
         raise DataError(f"press_rollout: steps = {steps}, expected >= 1")
     torch.set_num_threads(int(threads))
     module, meta, buffers = load_exported(model)
-    try:
-        q_slice = StateLayout.from_json(meta["state_layout"]).slice("q")
-    except (KeyError, TypeError, ValueError):
-        raise DataError(f"paths.exported: '{model}' metadata lacks a state_layout with 'q'") from None
+    q_slice, contact = body_contact(model, meta, buffers, tool_radius, contact_stiffness, load_radius)
     X = buffers["reference_positions"].astype(float)                        # [N, 3] m
-    contact = SurfaceContact(X, buffers["node_type"], buffers["surface_faces"], tool_radius, contact_stiffness,
-                             load_radius)
     device = SimDevice(path=path, period=period, depth=depth)
     device.attach_scene(X.min(axis=0), X.max(axis=0), tool_radius)         # as serve's haptic process does
     device.attach_surface(X[contact.surface_nodes], contact.surface_triangles())
@@ -76,7 +69,7 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
     with torch.jit.optimized_execution(False):                              # as run_physics steps it
         for k in range(steps):
             x = device.position_at(k * dt)
-            res = contact(x, z[:, q_slice].detach().numpy().astype(float))
+            res = contact(x, z[:, q_slice].numpy())
             f = torch.from_numpy(contact.loads).to(z.dtype)                 # [N, 3] N on the body
             ts = time.perf_counter()
             z = module(z, f).detach()

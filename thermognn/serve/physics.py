@@ -62,6 +62,19 @@ def load_exported(path: str | Path):
     return module, meta, buffers
 
 
+def body_contact(path: str | Path, meta: dict, buffers: dict, tool_radius: float, contact_stiffness: float,
+                 load_radius: float) -> tuple[slice, SurfaceContact]:
+    """The exported model's (at ``path``) q columns of its state and the tool's contact with its
+    surface (``tool_radius`` [m], ``contact_stiffness`` [N/m], ``load_radius`` [m]); DataError
+    without a state layout."""
+    try:
+        q_slice = StateLayout.from_json(meta["state_layout"]).slice("q")
+    except (KeyError, TypeError, ValueError):
+        raise DataError(f"paths.exported: '{path}' metadata lacks a state_layout with 'q'") from None
+    return q_slice, SurfaceContact(buffers["reference_positions"], buffers["node_type"], buffers["surface_faces"],
+                                   tool_radius, contact_stiffness, load_radius)
+
+
 def model_geometry(buffers: dict, meta: dict, contact: SurfaceContact) -> dict:
     """What the main and haptic processes need to know about the body (plain Python); the surface
     is the contact's: its nodes' reference positions and its triangles as indices into them."""
@@ -83,12 +96,8 @@ def physics_main(params: dict, conn) -> None:
         import torch
         torch.set_num_threads(int(params.get("threads", 1)))
         module, meta, buffers = load_exported(params["model"])
-        try:
-            q_slice = StateLayout.from_json(meta["state_layout"]).slice("q")
-        except (KeyError, TypeError, ValueError):
-            raise DataError(f"paths.exported: '{params['model']}' metadata lacks a state_layout with 'q'") from None
-        contact = SurfaceContact(buffers["reference_positions"], buffers["node_type"], buffers["surface_faces"],
-                                 params["tool_radius"], params["contact_stiffness"], params["load_radius"])
+        q_slice, contact = body_contact(params["model"], meta, buffers, params["tool_radius"],
+                                        params["contact_stiffness"], params["load_radius"])
     except Exception as exc:  # noqa: BLE001 - reported to the main process as one line
         msg = str(exc) if isinstance(exc, DataError) else f"{type(exc).__name__}: {exc}"
         conn.send({"ok": False, "error": msg})
