@@ -13,7 +13,9 @@ time (one process, ``--threads``, the physics process's default 1).
         runs/liver/model.pt runs/liver/two.pt --path press scene=liver
 
 The reference is typically the same law-prior model stepped to convergence (exported with
-``rollout.prior_newton_max=16 rollout.prior_newton_rtol=1e-7 rollout.prior_tangent=kept``). Any
+``rollout.prior_newton_max=16 rollout.prior_newton_rtol=1e-7 rollout.prior_tangent=kept``); the
+same export with ``rollout.remainders=zero`` is its law alone, without the network, so that row is
+what the network adds under the tool (docs/accuracy.md, session 78). Any
 further arguments are config overrides for serve's contact (``serve.tool_radius``,
 ``serve.contact_stiffness``, ``serve.load_radius``, which follows ``scene=...``'s load radius).
 Prints figures, asserts nothing; docs/accuracy.md (session 77) quotes them.

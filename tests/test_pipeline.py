@@ -542,6 +542,22 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
     for g in ("q", "v", "sigma"):
         assert restepped[f"whole_{g}"] < 0.5 * errors[f"newton1_fe_whole_{g}"], (g, restepped)
     assert verify(out / "kept.pt")["step"]["law_tangent"] == "kept"
+    # the prior alone (rollout.remainders=zero): the network not evaluated, G = H = 0, so its
+    # rollouts are the budgeted FE model's that evaluate reports beside every prior model
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "evaluate", f"out={out}", f"paths.dataset={tiny_block}",
+                          f"paths.eval_dir={out / 'eval_zero'}", "train.eval_max_train=1", "train.threads=1",
+                          "rollout.remainders=zero"], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    assert "its remainders zero, the prior alone (trained: learned)" in res.stdout, res.stdout[-2000:]
+    alone = json.loads((out / "eval_zero" / "rrmse.json").read_text())
+    for g in ("q", "v", "sigma"):
+        assert alone[f"whole_{g}"] == pytest.approx(errors[f"newton1_fe_whole_{g}"], rel=1e-6), (g, alone)
+        assert alone[f"whole_{g}"] != errors[f"whole_{g}"], g                   # the network added something
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={out}", f"paths.dataset={tiny_block}",
+                          f"paths.exported={out / 'law_alone.pt'}", "train.threads=1", "rollout.remainders=zero", *kept],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    assert verify(out / "law_alone.pt")["step"]["remainders"] == "zero"
     # served (thermognn.serve.lockstep): the sim device's press read at body time, each model
     # against its own surface, from above the block's top (not from inside it); the converged law
     # against itself exactly, one iteration a step finite and off it, in force and displacement
@@ -554,6 +570,9 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
     assert compare(converged, converged)["force"] == 0.0
     off = compare(served, converged)
     assert 0.0 < off["force"] < 0.5 and 0.0 < off["displacement"] < 1.0 and off["steps"] == 40, off
+    # what the network adds under the press: the converged law alone against it with the network
+    share = compare(press_rollout(out / "law_alone.pt", **press), converged)
+    assert share["steps"] == 40 and 0.0 < share["force"] < 0.05, share
     # train.fit_target=budget: the fit learns the load each one-iteration step misses, which is no
     # round-off (the exact remainders are); only the law prior has a budget to learn. The network
     # sees each step's correction from its predictor (model.prior_inputs=correction), exported too

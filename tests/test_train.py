@@ -1014,7 +1014,7 @@ def test_linear_prior_settings_and_datasets_it_cannot_use(trained, tmp_path):
     without linearised FE operators (the analytic oscillator) and rollout overrides, which do
     not apply to its Newmark step."""
     from thermognn.core.errors import ConfigError
-    from thermognn.train.checkpoint import with_rollout
+    from thermognn.train.checkpoint import model_step, with_rollout
 
     out, _, _ = trained
     data = [f"paths.dataset={out / 'dataset.h5'}", f"paths.checkpoint={tmp_path / 'model.ckpt'}"]
@@ -1052,6 +1052,17 @@ def test_linear_prior_settings_and_datasets_it_cannot_use(trained, tmp_path):
     assert note == ("the law prior's step 1 to 8 Newton iterations to 1e-06, cut down to Δt/4 "
                     "(trained: 1 Newton iteration)")
     assert with_rollout(law, _cfg(tmp_path, "rollout.prior_newton=1"))[1] == ""          # as trained
+    # rollout.remainders: a prior model without its network (the prior alone), combined with a law step
+    alone, note = with_rollout(law, _cfg(tmp_path, "rollout.remainders=zero", "rollout.prior_newton=2"))
+    assert alone["prior"] == {**law["prior"], "law": 2, "remainders": "zero"} and "remainders" not in law["prior"]
+    assert note == ("the law prior's step 2 Newton iterations (trained: 1 Newton iteration), "
+                    "its remainders zero, the prior alone (trained: learned)")
+    assert model_step(alone)["remainders"] == "zero" and "remainders" not in model_step(law)
+    assert with_rollout(ckpt, _cfg(tmp_path, "rollout.remainders=learned"))[1] == ""     # as trained
+    with pytest.raises(ConfigError, match=r"rollout.remainders = 'none', expected learned \| zero"):
+        with_rollout(ckpt, _cfg(tmp_path, "rollout.remainders=none"))
+    with pytest.raises(ConfigError, match="rollout.remainders = zero: only a model.prior=linear model"):
+        with_rollout(load_checkpoint(trained[2]), _cfg(tmp_path, "rollout.remainders=zero"))
     from thermognn.train.hybrid import prior_settings
     kept = _cfg(tmp_path, "model=law_prior", "model.prior_newton_max=16", "model.prior_newton_rtol=1e-7",
                 "model.prior_tangent=kept")                                            # the config's own key

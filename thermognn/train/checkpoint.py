@@ -16,7 +16,8 @@ A checkpoint is a ``torch.save``d dict of plain types and tensors (loadable with
                   "order" when 2 (``model.prior_order``), "relax" when true
                   (``model.prior_relax``), "corotated" (rotation sweeps, ``model.prior_corotated``),
                   "stress": "material" (``model.prior_stress``), "law" (Newton iterations a step,
-                  ``model.prior_law``), "inputs": "correction" (``model.prior_inputs``): the weights are a
+                  ``model.prior_law``), "inputs": "correction" (``model.prior_inputs``), "remainders": "zero"
+                  (set by ``rollout.remainders``, never trained so): the weights are a
                   ``hybrid.LinearPriorModel``'s; its operators come from the dataset
     (the ``last`` checkpoint adds optimizer, scheduler, rng, history, best_val, stale_rounds)
 """
@@ -176,6 +177,32 @@ def with_law_rollout(ckpt: dict, want: dict) -> tuple[dict, str]:
     return {**ckpt, "prior": new}, f"the law prior's step {law_phrase(new)} (trained: {law_phrase(prior)})"
 
 
+#: ``rollout.remainders`` values: the network's remainders (as trained) | none (G = H = 0)
+REMAINDERS = ("learned", "zero")
+
+
+def with_remainders(ckpt: dict, want) -> tuple[dict, str]:
+    """The prior checkpoint with ``rollout.remainders`` (``want``: "learned" | "zero", None: as
+    trained) applied: "zero" steps the prior alone, the network's remainders G = H = 0 and the
+    network not evaluated (a law prior: the data's law at its Newton budget, the FE model
+    itself), so that a rollout beside the model as trained shows what its network adds."""
+    from thermognn.core.errors import ConfigError
+
+    if want is None:
+        return ckpt, ""
+    want = str(want)
+    if want not in REMAINDERS:
+        raise ConfigError(f"rollout.remainders = '{want}', expected " + " | ".join(REMAINDERS))
+    if not ckpt.get("prior"):
+        raise ConfigError(f"rollout.remainders = {want}: only a model.prior=linear model (linear_prior, "
+                          f"law_prior) has remainders; leave it null")
+    if want == str(ckpt["prior"].get("remainders", "learned")):
+        return ckpt, ""
+    note = ("its remainders zero, the prior alone (trained: learned)" if want == "zero"
+            else "its learned remainders")
+    return {**ckpt, "prior": {**ckpt["prior"], "remainders": want}}, note
+
+
 def with_rollout(ckpt: dict, cfg) -> tuple[dict, str]:
     """The checkpoint with the ``rollout`` config group applied to its time step: the integrator,
     its sweeps and the kinematics of the same learned dz/dt, or a law-prior model's law step
@@ -185,6 +212,7 @@ def with_rollout(ckpt: dict, cfg) -> tuple[dict, str]:
 
     from .model import step_settings, stepping
 
+    ckpt, zero_note = with_remainders(ckpt, OmegaConf.select(cfg, "rollout.remainders", default=None))
     law = {k: OmegaConf.select(cfg, f"rollout.{k}", default=None) for k in LAW_ROLLOUT_KEYS}
     if any(v is not None for v in law.values()):
         if not ckpt.get("prior"):
@@ -195,6 +223,7 @@ def with_rollout(ckpt: dict, cfg) -> tuple[dict, str]:
         ckpt, law_note = with_law_rollout(ckpt, law)
     else:
         law_note = ""
+    law_note = ", ".join(n for n in (law_note, zero_note) if n)
     want = {k: OmegaConf.select(cfg, f"rollout.{k}", default=None) for k in ROLLOUT_KEYS}
     if all(v is None for v in want.values()):
         return ckpt, law_note
@@ -224,7 +253,8 @@ def model_step(ckpt: dict) -> dict:
     "material" where its stress is the material's law, "law": the Newton iterations a step of the
     law prior, "law_max": the most it takes where a step has not converged, "law_rtol": to what,
     "law_cuts": how many times a step that still has not is halved, "law_tangent": "kept" where its
-    tangent is kept between iterations and steps)."""
+    tangent is kept between iterations and steps, "remainders": "zero" where the prior steps
+    alone, ``rollout.remainders``)."""
     from .model import step_settings
 
     prior = ckpt.get("prior")
@@ -238,5 +268,6 @@ def model_step(ckpt: dict) -> dict:
                 **({"law_max": int(prior["law_max"])} if prior.get("law_max") else {}),
                 **({"law_rtol": float(prior["law_rtol"])} if prior.get("law_rtol") else {}),
                 **({"law_cuts": int(prior["law_cuts"])} if prior.get("law_cuts") else {}),
-                **({"law_tangent": str(prior["law_tangent"])} if prior.get("law_tangent") else {})}
+                **({"law_tangent": str(prior["law_tangent"])} if prior.get("law_tangent") else {}),
+                **({"remainders": "zero"} if prior.get("remainders") == "zero" else {})}
     return step_settings(ckpt.get("hparams", {}))

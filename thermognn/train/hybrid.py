@@ -88,7 +88,8 @@ class LinearPriorModel(nn.Module):
     Graph tensors (edge_index, node_type, ref_pos) are those of B disjoint copies of the mesh."""
 
     def __init__(self, net: TIGNN, prior: NewmarkPrior, reference_positions: Tensor,
-                 positions_only: bool = True, sweeps: int = 1, order: int = 1, correction: bool = False) -> None:
+                 positions_only: bool = True, sweeps: int = 1, order: int = 1, correction: bool = False,
+                 learned: bool = True) -> None:
         super().__init__()
         if net.dim != 12:
             raise ValueError(f"linear prior: state dimension {net.dim}, expected 12 (q, v, sigma)")
@@ -103,6 +104,8 @@ class LinearPriorModel(nn.Module):
         # ``model.prior_inputs = correction``: the network's v inputs are the step's correction from
         # its predictor (``correction_view``), not the velocity
         self.correction = bool(correction) and not self.positions_only
+        # ``rollout.remainders = zero``: G = H = 0 and the network not evaluated (the prior alone)
+        self.learned = bool(learned)
         self.register_buffer("reference_positions", reference_positions.to(torch.float64).contiguous(),
                              persistent=False)                                       # [N, 3] m
         seen = torch.ones(self.dim, dtype=net.z_mean.dtype)
@@ -188,7 +191,12 @@ class LinearPriorModel(nn.Module):
                    create_graph: bool, rest_rates: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
         """The network's remainders at states z [B, N, D] under the loads f [B, N, 3] [N]:
         G [B, n] N over the free DOFs and H [B, N, 6] Pa (float64); ``rest_rates`` as for
-        ``network_remainders``."""
+        ``network_remainders``. Zero, without evaluating the network, where the model steps
+        its prior alone (``learned`` false, ``rollout.remainders = zero``)."""
+        if not self.learned:
+            B = z.shape[0]
+            return (torch.zeros(B, self.rest_G.shape[1], dtype=torch.float64, device=z.device),
+                    torch.zeros(B, self.rest_H.shape[1], 6, dtype=torch.float64, device=z.device))
         r = self.network_remainders(z, f, edge_index, node_type, ref_pos, create_graph, rest_rates)[0]
         if not create_graph:
             r = r.detach()
@@ -598,7 +606,8 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
                                              str(settings.get("law_tangent", "fresh"))), X,
                             bool(settings.get("positions_only", True)),
                             int(settings.get("sweeps", 1)), int(settings.get("order", 1)),
-                            settings.get("inputs") == "correction")
+                            settings.get("inputs") == "correction",
+                            settings.get("remainders", "learned") != "zero")
 
 
 def carried_layout(layout_json: str, internal: Sequence[Tuple[str, int]] = ()) -> str:
