@@ -63,10 +63,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
         r = reference if model == args.reference else press_rollout(model, **run)
         row = {"model": str(model), **compare(r, reference), "step_ms_median": float(np.median(r.step_ms)),
                "step_ms_p99": float(np.percentile(r.step_ms, 99))}
+        if r.law_counts is not None:                # a law prior's steps: not converged, cut
+            row.update(law_steps=int(r.law_counts[1]), law_unconverged=int(r.law_counts[2]),
+                       law_cut=int(r.law_counts[3]))
         rows.append(row)
         print(f"  {str(model):48s} force {100 * row['force']:9.3g} %  peak error {row['peak_force_error_N']:9.3g} N "
               f"of {row['peak_force_N']:.3f} N  displacement {100 * row['displacement']:9.3g} %  "
               f"{row['step_ms_median']:7.1f} ms (p99 {row['step_ms_p99']:.1f})  {row['steps']} steps"
+              + (f"  law steps not converged {row['law_unconverged']}, cut {row['law_cut']}" if "law_steps" in row else "")
               + ("" if row["finite"] else "  NOT FINITE"))
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))

@@ -493,7 +493,7 @@ def test_corotated_prior_through_train_evaluate_and_export(tmp_path, tiny_block)
         assert res.returncode == 2 and said in res.stderr.strip().splitlines()[-1], res.stderr[-2000:]
 
 
-def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
+def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     """`model=law_prior` (the data's own neo-Hookean law stepped with one Newton iteration a step,
     thermognn/train/law_prior.py) on the tiny block: a fit epoch and a rollout epoch (back-propagated
     through the Newton step's solves), evaluate (its whole rollouts nearer the data than the
@@ -570,9 +570,39 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block):
     assert compare(converged, converged)["force"] == 0.0
     off = compare(served, converged)
     assert 0.0 < off["force"] < 0.5 and 0.0 < off["displacement"] < 1.0 and off["steps"] == 40, off
-    # what the network adds under the press: the converged law alone against it with the network
-    share = compare(press_rollout(out / "law_alone.pt", **press), converged)
+    # what the network adds under the press: the converged law alone against it with the network;
+    # each steps its law twice a model step (one network sweep and the final step), each converged
+    # (a fixed budget always is)
+    alone = press_rollout(out / "law_alone.pt", **press)
+    share = compare(alone, converged)
     assert share["steps"] == 40 and 0.0 < share["force"] < 0.05, share
+    assert alone.law_counts[1] == converged.law_counts[1] == served.law_counts[1] == 80
+    assert alone.law_counts[2] == converged.law_counts[2] == served.law_counts[2] == 0
+    # a law step whose iterations run out before it converges is taken as it stands: counted, and
+    # serve's physics process warns once, naming the remedies (FD steps not counted)
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={out}", f"paths.dataset={tiny_block}",
+                          f"paths.exported={out / 'short.pt'}", "train.threads=1", "rollout.prior_newton_max=2",
+                          "rollout.prior_newton_rtol=1e-15"], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    short = press_rollout(out / "short.pt", **press)
+    assert short.finite and 0 < short.law_counts[2] <= short.law_counts[1] == 80, short.law_counts
+    from physics_session import run_physics_here  # tests/physics_session.py
+    summary, _ = run_physics_here(out / "short.pt", 30, [0.0, 0.0, 0.02 + 0.003 - 0.002], body_stiffness_every=1,
+                                  stale_ms=1e9)                         # FD steps never held off
+    assert summary["law_steps"] == 60 and 0 < summary["law_unconverged_steps"] <= 60, summary
+    assert summary["fd_evaluations"] > 0 and summary["law_cut_steps"] == 0
+    assert "did not converge" in summary["law_warning"] and "rollout.prior_step_cuts=4" in summary["law_warning"]
+    err = capsys.readouterr().err
+    assert err.count("thermognn serve: warning: the body's law step did not converge") == 1, err[-2000:]
+    # a tool held 2 mm into the top from the first step: 16 iterations to 1e-9 run out in some steps
+    # (those steps, taken as they stand, ran the block away, session 78); cut as the FE cuts them,
+    # down to Δt/16, every one converges
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={out}", f"paths.dataset={tiny_block}",
+                          f"paths.exported={out / 'kept_cut.pt'}", "train.threads=1", *kept, "rollout.prior_step_cuts=4"],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    quiet, _ = run_physics_here(out / "kept_cut.pt", 12, [0.0, 0.0, 0.02 + 0.003 - 0.002])
+    assert quiet["law_unconverged_steps"] == 0 and quiet["law_warning"] == "" and quiet["law_steps"] == 24, quiet
     # train.fit_target=budget: the fit learns the load each one-iteration step misses, which is no
     # round-off (the exact remainders are); only the law prior has a budget to learn. The network
     # sees each step's correction from its predictor (model.prior_inputs=correction), exported too

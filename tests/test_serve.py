@@ -25,6 +25,8 @@ from thermognn.serve.loop import Blender
 from thermognn.serve import protocol as P
 from thermognn.serve.shm import SharedArrays, VersionedBuffer, versioned_layout
 
+from physics_session import run_physics_here as _run_physics  # tests/physics_session.py
+
 REQUIRED = ("loop_rate_hz", "period_p50_ms", "period_p99_ms", "period_p999_ms", "worst_gap_ms", "physics_rate_hz",
             "max_force_N", "max_force_step_N", "contact_ticks", "final_force_N", "exit_reason")
 
@@ -383,52 +385,6 @@ def test_normal_compliance_is_the_load_weighted_inward_displacement():
     q_pert[[0, 2]] += 0.5                                                # unloaded nodes: ignored
     assert normal_compliance(q, q_pert, loads, n) == pytest.approx((1 * 2e-4 + 3 * 6e-4) / 4)
     assert np.isnan(normal_compliance(q, q_pert, np.zeros((6, 3)), n))
-
-
-class _Recorder:
-    """The exported module with a hand on the session (in this process): records every force
-    model published before a step and requests a stop after ``steps`` physics steps."""
-
-    def __init__(self, module, shared, steps: int, slow_calls: int = 0, slow_s: float = 0.0) -> None:
-        self.module, self.z0, self.dt = module, module.z0, module.dt
-        self.slow_calls, self.slow_s, self.calls = slow_calls, slow_s, 0   # a slow warm-up, if asked
-        self.control = shared["control"]
-        self.buf = VersionedBuffer(shared["model"], P.MODEL_PAYLOAD)
-        self.payload = np.zeros(P.MODEL_PAYLOAD)
-        self.published: list[np.ndarray] = []
-        self.steps = steps
-
-    def __call__(self, z, f):
-        if self.buf.read(self.payload) and (not self.published
-                                            or self.payload[P.M_VERSION] != self.published[-1][P.M_VERSION]):
-            self.published.append(self.payload.copy())
-        if len(self.published) >= self.steps:                            # this is the last step
-            P.request_stop(self.control, "duration")
-        self.calls += 1
-        if self.calls <= self.slow_calls:
-            time.sleep(self.slow_s)
-        return self.module(z, f)
-
-
-def _run_physics(model: Path, steps: int, tool_x, slow=(0, 0.0), **params):
-    """run_physics on the exported model in this process, the tool held at ``tool_x``: (summary, payloads)."""
-    from thermognn.core.state import StateLayout
-    from thermognn.serve.physics import load_exported, run_physics
-    module, meta, buffers = load_exported(model)
-    contact = SurfaceContact(buffers["reference_positions"], buffers["node_type"], buffers["surface_faces"],
-                             0.003, 300.0, 0.006)
-    shared = P.make_shared(16)
-    try:
-        tool = np.zeros(P.TOOL_PAYLOAD)
-        tool[P.T_X] = tool_x
-        VersionedBuffer(shared["tool"], P.TOOL_PAYLOAD).publish(tool)
-        recorder = _Recorder(module, shared, steps, *slow)
-        params = {"stale_ms": 50.0, "model": str(model), **params}
-        summary = run_physics(params, recorder, StateLayout.from_json(meta["state_layout"]).slice("q"), contact,
-                              shared)
-    finally:
-        shared.close()
-    return summary, np.array(recorder.published)
 
 
 def test_physics_publishes_contact_in_series_with_the_body(exported_model):

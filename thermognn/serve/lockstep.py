@@ -27,7 +27,7 @@ import numpy as np
 
 from thermognn.core.errors import DataError
 
-from .physics import body_contact, load_exported
+from .physics import body_contact, law_step_counts, load_exported
 
 
 @dataclass
@@ -40,6 +40,8 @@ class PressRollout:
     displacement: np.ndarray  # [T, N, 3] m: the body's displacement q − X after each step
     step_ms: np.ndarray       # [T] ms: each model call
     finite: bool              # every state finite (False: the rollout stopped where it was not)
+    law_counts: np.ndarray | None = None   # [4] a law prior's Newton iterations, law steps, those not
+                                           # converged, cut ones (``physics.law_step_counts``); None: none
 
 
 def press_rollout(model: str | Path, steps: int, path: str = "press", period: float = 2.0,
@@ -66,6 +68,7 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
     z = module.z0.detach().clone()                                          # [N, D] carried state
     times, tool, force, disp, ms = [], [], [], [], []
     finite = True
+    counts0 = law_step_counts(module)
     with torch.jit.optimized_execution(False):                              # as run_physics steps it
         for k in range(steps):
             x = device.position_at(k * dt)
@@ -83,8 +86,9 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
             force.append(res.force.copy())
             disp.append(z[:, q_slice].numpy().astype(float) - X)
     n = len(times)
+    counts = None if counts0 is None else law_step_counts(module) - counts0
     return PressRollout(np.asarray(times), np.asarray(tool).reshape(n, 3), np.asarray(force).reshape(n, 3),
-                        np.asarray(disp).reshape(n, len(X), 3), np.asarray(ms), finite)
+                        np.asarray(disp).reshape(n, len(X), 3), np.asarray(ms), finite, counts)
 
 
 def compare(rollout: PressRollout, reference: PressRollout) -> dict:

@@ -118,6 +118,26 @@ def physics_main(params: dict, conn) -> None:
         shared.close()
 
 
+def law_step_counts(module) -> np.ndarray | None:
+    """An exported law-prior model's step counts since it was loaded (its prior's
+    ``newton_taken``): [4] int, the Newton iterations, the law's steps (two a model step, one per
+    network sweep and the final one), those that had not converged where their most iterations
+    (``rollout.prior_newton_max``) ran out (with ``rollout.prior_step_cuts``: a cut step's sub-step
+    at the floor), and the cut steps; None for any other model. A step that has not converged is
+    taken as it stands, and its force may be wrong: under the sim's default liver press such a
+    step ran the body away (docs/accuracy.md, session 78)."""
+    prior = getattr(getattr(module, "core", None), "prior", None)
+    counts = getattr(prior, "newton_taken", None)
+    return None if counts is None else np.asarray(counts.detach().numpy(), dtype=np.int64).copy()
+
+
+def _law_warning(unconverged: int, steps: int, step: int) -> str:
+    """One line for the first law step that has not converged (``law_step_counts``)."""
+    return (f"the body's law step did not converge at model step {step} ({unconverged} of {steps} law steps so "
+            f"far): such a step is taken as it stands and its force may be wrong; export with more "
+            f"rollout.prior_newton_max or with rollout.prior_step_cuts=4 (docs/accuracy.md, session 78)")
+
+
 def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, shared: SharedArrays) -> dict:
     """Step the model until a stop is requested; returns step statistics.
 
@@ -140,6 +160,11 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     ``fd_off_checks`` counts the checks that held it off. If one step alone exceeds the margin
     at the first check, a one-line warning goes to stderr (prefix 'thermognn serve: warning:')
     and into the summary.
+
+    A law-prior model's steps are counted (``law_step_counts``, the FD steps left out):
+    ``law_steps``, ``law_unconverged_steps``, ``law_cut_steps`` and ``law_iterations`` in the
+    summary; the first law step that has not converged puts a one-line warning on stderr and in
+    ``law_warning``.
     """
     import torch
 
@@ -172,6 +197,17 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     fd_disabled = ""                                     # why FD is off ("" while allowed)
     fd_off_checks = 0                                    # glitch checks that held FD off
     parent = os.getppid()
+    law_base = law_step_counts(module)                   # None: not a law prior
+    law_now = law_base
+    law_fd = None if law_base is None else np.zeros_like(law_base)   # what the FD steps added
+    law_warning = ""
+
+    def law_stats() -> dict:
+        if law_base is None:
+            return {}
+        n = law_now - law_base - law_fd
+        return {"law_iterations": int(n[0]), "law_steps": int(n[1]), "law_unconverged_steps": int(n[2]),
+                "law_cut_steps": int(n[3]), "law_warning": law_warning}
 
     def stats() -> dict:
         n_t, n_f = min(step, TIMING_WINDOW), min(n_fd, TIMING_WINDOW)
@@ -180,7 +216,7 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
                 "fd_evaluations": n_fd, "fd_rigid": n_rigid,
                 "body_stiffness_mean_N_per_m": k_body_sum / n_k_body if n_k_body else float("nan"),
                 "k_scale_mean": scale_sum / n_scale if n_scale else float("nan"), "warning": warning,
-                "fd_disabled": fd_disabled, "fd_off_checks": fd_off_checks}
+                "fd_disabled": fd_disabled, "fd_off_checks": fd_off_checks, **law_stats()}
 
     while control[P.C_STOP] == 0:
         if step % 100 == 0 and os.getppid() != parent:     # main process killed: stop on our own
@@ -222,6 +258,12 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
         step += 1
         control[P.C_STEPS] = step
         control[P.C_PHYSICS_T] = time.perf_counter()
+        if law_base is not None:
+            law_now = law_step_counts(module)
+            unconverged = int(law_now[2] - law_base[2] - law_fd[2])
+            if unconverged and not law_warning:
+                law_warning = _law_warning(unconverged, int(law_now[1] - law_base[1] - law_fd[1]), step)
+                print(f"thermognn serve: warning: {law_warning}", file=sys.stderr, flush=True)
 
         if pressing and every > 0 and step > WARMUP_STEPS[1] and not fd_disabled:
             since_fd += 1
@@ -229,6 +271,10 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
                 ts = time.perf_counter()
                 z_pert = module(z_prev, f * (1.0 + FD_EPS)).detach()
                 fd_times[n_fd % TIMING_WINDOW] = time.perf_counter() - ts
+                if law_base is not None:                 # the discarded step's counts are not the body's
+                    after = law_step_counts(module)
+                    law_fd += after - law_now
+                    law_now = after
                 n_fd += 1
                 since_fd = 0
                 du = normal_compliance(z[:, q_slice].numpy(), z_pert[:, q_slice].numpy(), contact.loads,

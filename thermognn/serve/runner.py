@@ -215,7 +215,9 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
     physics_step_ms (median model step), body_fd_evaluations, contact_K_scale_mean (published K
     over contact stiffness), body_fd_disabled ("" or why the body-stiffness FD was off at the end),
     body_fd_off_checks (step-time checks that held it off),
-    physics_warning ("" or the step-time warning), ...).
+    physics_warning ("" or the step-time warning), and for a law-prior model law_steps,
+    law_unconverged_steps, law_cut_steps, law_iterations and law_warning ("" or the first
+    unconverged step's line), ...).
     """
     from thermognn import devices
 
@@ -339,6 +341,8 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
         physics_warning=str(physics_summary.get("warning", "")),
         body_fd_disabled=str(physics_summary.get("fd_disabled", "")),
         body_fd_off_checks=int(physics_summary.get("fd_off_checks", 0)),
+        **{k: physics_summary[k] for k in ("law_steps", "law_unconverged_steps", "law_cut_steps",
+                                           "law_iterations", "law_warning") if k in physics_summary},
         n_nodes=int(geometry["n_nodes"]),
         model_step=str(geometry.get("step", "")),
         haptic_scheduler=str(haptic_summary.get("scheduler", "")),
