@@ -584,6 +584,7 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
                           f"paths.exported={out / 'short.pt'}", "train.threads=1", "rollout.prior_newton_max=2",
                           "rollout.prior_newton_rtol=1e-15"], capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    assert "export: note: a law step whose 2 Newton iterations run out" in res.stdout, res.stdout[-2000:]
     short = press_rollout(out / "short.pt", **press)
     assert short.finite and 0 < short.law_counts[2] <= short.law_counts[1] == 80, short.law_counts
     from physics_session import run_physics_here  # tests/physics_session.py
@@ -600,7 +601,7 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={out}", f"paths.dataset={tiny_block}",
                           f"paths.exported={out / 'kept_cut.pt'}", "train.threads=1", *kept, "rollout.prior_step_cuts=4"],
                          capture_output=True, text=True, timeout=600)
-    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    assert res.returncode == 0 and "export: note:" not in res.stdout, res.stdout[-2000:] + res.stderr[-3000:]
     quiet, _ = run_physics_here(out / "kept_cut.pt", 12, [0.0, 0.0, 0.02 + 0.003 - 0.002])
     assert quiet["law_unconverged_steps"] == 0 and quiet["law_warning"] == "" and quiet["law_steps"] == 24, quiet
     # train.fit_target=budget: the fit learns the load each one-iteration step misses, which is no

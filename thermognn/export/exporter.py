@@ -150,6 +150,11 @@ def export(cfg) -> Path:
     ckpt, stepped = with_rollout(ckpt, cfg)
     if stepped:
         print(f"export: stepping the trained model with {stepped}")
+    law = ckpt.get("prior") or {}
+    if law.get("law") and int(law.get("law_max") or 0) > int(law["law"]) and not law.get("law_cuts"):
+        print(f"export: note: a law step whose {int(law['law_max'])} Newton iterations run out before it converges "
+              f"is taken as it stands (serve warns when one is); rollout.prior_step_cuts=4 halves it as the FE "
+              f"does, which held the liver under the sim's default press (docs/accuracy.md, session 78)")
     eager = build_exported(ckpt, ds)
     scripted = script(eager)
     dtype = torch_dtype(ckpt["dtype"])
