@@ -177,7 +177,7 @@ def with_law_rollout(ckpt: dict, want: dict) -> tuple[dict, str]:
     return {**ckpt, "prior": new}, f"the law prior's step {law_phrase(new)} (trained: {law_phrase(prior)})"
 
 
-#: ``rollout.remainders`` values: the network's remainders (as trained) | none (G = H = 0)
+#: ``rollout.remainders`` values: the network's remainders (as trained) | zero (G = H = 0, the prior alone)
 REMAINDERS = ("learned", "zero")
 
 
