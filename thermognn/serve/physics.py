@@ -260,9 +260,9 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
         control[P.C_PHYSICS_T] = time.perf_counter()
         if law_base is not None:
             law_now = law_step_counts(module)
-            unconverged = int(law_now[2] - law_base[2] - law_fd[2])
-            if unconverged and not law_warning:
-                law_warning = _law_warning(unconverged, int(law_now[1] - law_base[1] - law_fd[1]), step)
+            counted = law_now - law_base - law_fd                 # the body's own steps so far
+            if counted[2] and not law_warning:
+                law_warning = _law_warning(int(counted[2]), int(counted[1]), step)
                 print(f"thermognn serve: warning: {law_warning}", file=sys.stderr, flush=True)
 
         if pressing and every > 0 and step > WARMUP_STEPS[1] and not fd_disabled:

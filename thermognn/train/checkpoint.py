@@ -196,11 +196,10 @@ def with_remainders(ckpt: dict, want) -> tuple[dict, str]:
     if not ckpt.get("prior"):
         raise ConfigError(f"rollout.remainders = {want}: only a model.prior=linear model (linear_prior, "
                           f"law_prior) has remainders; leave it null")
-    if want == str(ckpt["prior"].get("remainders", "learned")):
+    if want == "learned":                        # as every model is trained
         return ckpt, ""
-    note = ("its remainders zero, the prior alone (trained: learned)" if want == "zero"
-            else "its learned remainders")
-    return {**ckpt, "prior": {**ckpt["prior"], "remainders": want}}, note
+    return {**ckpt, "prior": {**ckpt["prior"], "remainders": "zero"}}, \
+        "its remainders zero, the prior alone (trained: learned)"
 
 
 def with_rollout(ckpt: dict, cfg) -> tuple[dict, str]:
