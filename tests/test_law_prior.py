@@ -8,9 +8,10 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from thermognn.core.hyperelastic import NeoHookean, Ogden  # noqa: E402
-from thermognn.train.law_prior import (HyperelasticNewmarkPrior, cofactor, neo_hookean_pk2,  # noqa: E402
-                                       neo_hookean_tangent, ogden_isochoric_pk2, ogden_tangent,
-                                       ogden_volumetric_pk2)
+from thermognn.train.law_prior import (HyperelasticNewmarkPrior, cofactor, learned_tangent,  # noqa: E402
+                                       neo_hookean_pk2, neo_hookean_tangent, ogden_isochoric_pk2,
+                                       ogden_tangent, ogden_volumetric_pk2)
+from thermognn.train.learned_law import StrainEnergy  # noqa: E402
 
 
 def _gradients() -> np.ndarray:
@@ -83,7 +84,7 @@ def test_the_neo_hookean_tangent_is_the_derivative_of_its_stress_and_the_numpy_l
 def test_the_law_prior_names_a_law_it_does_not_step():
     """It steps the laws ``law_from_config`` reads (whose own errors name the scene's law,
     tests/test_fe_modes.py); anything else is refused by name."""
-    with pytest.raises(ValueError, match="the law prior steps a NeoHookean or Ogden law, not 'mooney'"):
+    with pytest.raises(ValueError, match="the law prior steps a NeoHookean, Ogden or learned law, not 'mooney'"):
         HyperelasticNewmarkPrior(None, 0, 1e-3, None, None, 0.0, 0.0, "mooney")
 
 
@@ -133,3 +134,82 @@ def test_the_ogden_tangent_is_the_derivative_of_its_stress_and_the_numpy_laws():
     A1 = ogden_tangent(F, mu, alpha, d, 1.0, 1.0, extra).numpy()
     assert np.abs(A1 - A_np).max() < 1e-8 * np.abs(A_np).max()
     assert ogden_tangent(F[:2].reshape(1, 2, 3, 3), mu, alpha, d, w_iso, w_vol, None).shape == (1, 2, 3, 3, 3, 3)
+
+
+def _learned(seed: int = 4) -> StrainEnergy:
+    """A learned law with every weight non-zero (its hidden layers' outputs made large)."""
+    law = StrainEnergy((5, 3), mu=1e4, kappa=3e4, scales=(0.2, 0.3, 0.05), seed=seed)
+    law.iso_out.mul_(100.0)
+    law.vol_out.mul_(100.0)
+    law.iso_linear.copy_(torch.tensor([0.4, -0.1], dtype=torch.float64))
+    law.vol_quadratic.fill_(0.02)
+    return law
+
+
+def test_the_learned_law_stress_is_its_energys_derivative_and_vanishes_at_rest():
+    """``StrainEnergy.pk2``'s closed form is 2 ∂Ψ/∂C of its own energy as autograd takes it, to
+    round-off, at random F and a uniaxial stretch; at rest (C = I) S = 0 whatever the weights."""
+    law = _learned()
+    F = torch.as_tensor(_gradients())
+    C = (F.transpose(-1, -2) @ F).requires_grad_()
+    (grad,) = torch.autograd.grad(law.energy(C).sum(), C)
+    S_iso, S_vol = law.pk2(C.detach())
+    auto = grad + grad.transpose(-1, -2)
+    assert float((S_iso + S_vol - auto).abs().max()) < 1e-12 * float(auto.abs().max())
+    assert float(S_iso[-2].abs().max()) < 1e-9 and float(S_vol[-2].abs().max()) < 1e-9      # F = I
+    assert float(law.energy(torch.eye(3, dtype=torch.float64)).abs()) < 1e-9
+
+
+def test_the_learned_law_holds_the_neo_hookean_law_and_its_tangent():
+    """With its hidden outputs zero and its linear weights C10 s1 / μ_s and 2 s3² / (D1 κ_s) the
+    learned law is the neo-Hookean law (stress to round-off), and its tangent from central
+    differences (``learned_tangent``) is the closed form's to 1e-8 with a relaxing step's weights
+    and history stress; for any weights it is autograd's derivative of its stress to 1e-7."""
+    F = torch.as_tensor(_gradients())
+    extra = 50.0 * torch.randn(52, 3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    extra = extra + extra.transpose(-1, -2)
+    c10, d1 = 1e4, 1e-5
+    law = StrainEnergy((4, 2), mu=2e4, kappa=2e5, scales=(0.2, 0.3, 0.05))
+    law.iso_out.zero_()
+    law.vol_out.zero_()
+    law.iso_linear[0] = c10 * 0.2 / 2e4
+    law.vol_quadratic[0] = 2.0 * 0.05**2 / (d1 * 2e5)
+    C = F.transpose(-1, -2) @ F
+    for mine, theirs in zip(law.pk2(C), neo_hookean_pk2(F, c10, d1)):
+        assert float((mine - theirs).abs().max()) < 1e-12 * float(theirs.abs().max())
+    A, B = learned_tangent(law, F, 0.7, 1.3, extra), neo_hookean_tangent(F, c10, d1, 0.7, 1.3, extra)
+    assert float((A - B).abs().max()) < 1e-8 * float(B.abs().max())
+    law = _learned()
+
+    def pk1(G):
+        s_iso, s_vol = law.pk2(G.transpose(-1, -2) @ G)
+        return G @ (1.3 * s_vol + 0.7 * s_iso + extra)
+    jac = torch.autograd.functional.jacobian(pk1, F)
+    cells = torch.arange(52)
+    auto = jac[cells, :, :, cells]                                                  # [52, 3, 3, 3, 3]
+    A = learned_tangent(law, F, 0.7, 1.3, extra)
+    assert float((A - auto).abs().max()) < 1e-7 * float(auto.abs().max())
+
+
+def test_the_learned_law_refuses_a_shape_it_cannot_have():
+    with pytest.raises(ValueError, match=r"the learned law's hidden units: \(0, 3\), expected two integers >= 1"):
+        StrainEnergy((0, 3))
+
+
+def test_learned_prony_terms_relax_as_the_linear_solids_own():
+    """``PronySeries.terms`` gives the law prior's relaxation constants as ``LinearSolid.relaxation``
+    does for the same (ḡ_i, τ_i), with every ḡ_i positive and g∞ = 1 − Σ ḡ_i > 0 whatever its logits."""
+    from thermognn.core.linear import LinearSolid
+    from thermognn.train.learned_law import PronySeries
+
+    series = PronySeries(2, 0.6)
+    with torch.no_grad():
+        series.logits.copy_(torch.tensor([-1.0, 2.0, 0.5], dtype=torch.float64))
+    values = series.values()
+    assert all(g > 0 for g, _ in values) and sum(g for g, _ in values) < 1.0
+    solid = LinearSolid.__new__(LinearSolid)
+    solid.prony, solid.stiffness_iso = tuple(values), object()
+    expected = torch.tensor(solid.relaxation(0.02), dtype=torch.float64)            # [T, 3]
+    got = torch.stack(series.terms(0.02), 1)
+    assert torch.allclose(got, expected, rtol=1e-12, atol=0.0)
+    assert [t for _, t in values] == pytest.approx([3.0, 0.3])                      # the start: 5 and 1/2 durations

@@ -50,6 +50,7 @@ free DOFs).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from pathlib import Path
@@ -77,6 +78,8 @@ PRIORS = ("none", "linear")
 #: positions alone; the whole state; the state with the step's correction from its predictor in
 #: place of the velocity (``LinearPriorModel.correction_view``)
 PRIOR_INPUTS = ("positions", "state", "correction")
+#: model.prior_material values: the law prior's law is the scene's (data) or fitted to the data (learned)
+LAW_MATERIALS = ("data", "learned")
 #: model.prior_order values: the order at which the learned remainders start (LinearPriorModel.network_remainders)
 ORDERS = (1, 2)
 
@@ -497,6 +500,24 @@ def prior_settings(cfg_model) -> dict:
         raise ConfigError(f"model.prior_tangent = kept needs model.prior_law = true and model.prior_newton_max > "
                           f"model.prior_newton (= {newton}): a kept tangent iterates each step to "
                           f"model.prior_newton_rtol")
+    material = str(OmegaConf.select(cfg_model, "prior_material", default="data"))
+    if material not in LAW_MATERIALS:
+        raise ConfigError(f"model.prior_material = '{material}', expected " + " | ".join(LAW_MATERIALS)
+                          + " (the law prior's hyperelastic law: the scene's, or a strain energy fitted to the data)")
+    if material == "learned" and not law:
+        raise ConfigError("model.prior_material = learned needs model.prior_law = true (model=law_prior): it is "
+                          "the law the law prior steps")
+    hidden = OmegaConf.select(cfg_model, "prior_material_hidden", default=None)
+    if hidden is None:
+        from .learned_law import HIDDEN as hidden
+    hidden = list(hidden)
+    prony = str(OmegaConf.select(cfg_model, "prior_material_prony", default="learned"))
+    if prony not in LAW_MATERIALS:
+        raise ConfigError(f"model.prior_material_prony = '{prony}', expected " + " | ".join(LAW_MATERIALS)
+                          + " (a learned law's Prony terms: the scene's, or fitted with its energy)")
+    if len(hidden) != 2 or any(isinstance(h, bool) or not isinstance(h, int) or h < 1 for h in hidden):
+        raise ConfigError(f"model.prior_material_hidden = {hidden!r}, expected two integers >= 1 (the learned "
+                          f"law's isochoric and volumetric hidden units)")
     if law and (corotated or stress == "material"):
         raise ConfigError("model.prior_law = true steps the dataset's own law (its stress and Prony history "
                           "included): set model.prior_corotated=false and model.prior_stress=linear")
@@ -522,6 +543,11 @@ def prior_settings(cfg_model) -> dict:
                 settings["law_cuts"] = int(cuts)
             if tangent == "kept":                 # its tangent kept between iterations and steps
                 settings["law_tangent"] = "kept"
+        if material == "learned":                 # its law a strain energy fitted to the data
+            settings["law_material"] = "learned"
+            settings["law_hidden"] = [int(h) for h in hidden]
+            if prony == "learned":                # its Prony terms too (their values: ``learned_law_of``)
+                settings["law_prony"] = "learned"
     return settings
 
 
@@ -544,14 +570,19 @@ def neo_hookean_of(ds) -> Tuple[float, float]:
 
 def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material: bool = False,
                 law: int = 0, law_max: Optional[int] = None, law_rtol: Optional[float] = None,
-                law_cuts: int = 0, law_tangent: str = "fresh") -> NewmarkPrior:
+                law_cuts: int = 0, law_tangent: str = "fresh",
+                learned_law: Optional[Sequence[int]] = None,
+                prony: Optional[Sequence[Sequence[float]]] = None) -> NewmarkPrior:
     """The dataset's ``/linear`` as a NewmarkPrior (float64), relaxing as its viscous solid does
     with ``relax``, or corotated per cell with ``corotated`` > 0 fixed-point sweeps a step
     (:class:`CorotatedNewmarkPrior`), its stress the material's law with ``material``, or with
     ``law`` > 0 the dataset's own hyperelastic law stepped with that many Newton iterations, and up
     to ``law_max`` where a step has not converged to ``law_rtol``, halved up to ``law_cuts`` times
     where it still has not, its tangent ``law_tangent`` (fresh | kept; ``prior_settings`` records them)
-    (:class:`thermognn.train.law_prior.HyperelasticNewmarkPrior`);
+    (:class:`thermognn.train.law_prior.HyperelasticNewmarkPrior`), its law with ``learned_law``
+    (hidden units) a learned strain energy (:mod:`thermognn.train.learned_law`; its weights come
+    from a fit or a state_dict), its Prony terms ``prony`` [(ḡ_i, τ_i s)] where given (a learned
+    law's fitted ones), else the dataset's;
     one-line errors where it cannot be."""
     names = list(ds.layout.names)
     if names != LAYOUT:
@@ -580,9 +611,17 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
 
             if "law" not in ds.material:
                 raise DataError(f"{ds.path}: no scene.material in the dataset's config (model.prior_law = true)")
-            solid_law, prony = law_from_config(ds.material)
-            if not np.allclose(np.asarray(prony).reshape(-1, 2), np.asarray(linear.prony).reshape(-1, 2)):
-                raise ValueError(f"scene.material.prony {prony} is not /linear's {tuple(linear.prony)}")
+            solid_law, scene_prony = law_from_config(ds.material)
+            if not np.allclose(np.asarray(scene_prony).reshape(-1, 2), np.asarray(linear.prony).reshape(-1, 2)):
+                raise ValueError(f"scene.material.prony {scene_prony} is not /linear's {tuple(linear.prony)}")
+            if prony is not None:
+                if len(prony) != len(linear.prony):
+                    raise ValueError(f"{len(prony)} learned Prony terms, the scene has {len(linear.prony)}")
+                linear = dataclasses.replace(linear, prony=tuple((float(g), float(t)) for g, t in prony))
+            if learned_law is not None:
+                from .learned_law import StrainEnergy
+
+                solid_law = StrainEnergy(learned_law, mu=mu, kappa=lam + 2.0 * mu / 3.0)
             return HyperelasticNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                             solid_law, iterations=int(law), max_iterations=law_max,
                                             newton_rtol=law_rtol, step_cuts=int(law_cuts), tangent=law_tangent)
@@ -603,7 +642,11 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
                                              settings.get("stress", "linear") == "material",
                                              int(settings.get("law", 0)), settings.get("law_max"),
                                              settings.get("law_rtol"), int(settings.get("law_cuts", 0)),
-                                             str(settings.get("law_tangent", "fresh"))), X,
+                                             str(settings.get("law_tangent", "fresh")),
+                                             settings.get("law_hidden") if settings.get("law_material") == "learned"
+                                             else None,
+                                             settings["law_prony"] if isinstance(settings.get("law_prony"), list)
+                                             else None), X,
                             bool(settings.get("positions_only", True)),
                             int(settings.get("sweeps", 1)), int(settings.get("order", 1)),
                             settings.get("inputs") == "correction",
@@ -729,6 +772,77 @@ def law_scale_floor(trajs, free_nodes: Tensor, D: int) -> Tensor:
     floor[3:6] = torch.cat([t.force.double()[:, free_nodes] for t in trajs]).pow(2).mean().sqrt() * LAW_SCALE
     floor[6:12] = torch.cat([t.z.double()[..., 6:12].reshape(-1, 6) for t in trajs]).pow(2).mean(0).sqrt() * LAW_SCALE
     return floor
+
+
+#: the learned law's fit, kept beside the checkpoints (``learned_law_of``)
+LAW_FIT_FILE = "learned_law.pt"
+
+
+def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_ckpt: Optional[dict],
+                   dist, prony: bool = False) -> Tuple[set, Optional[list]]:
+    """Put the learned law (``model.prior_material=learned``) of a law prior in place before its
+    network trains: ``train.init``'s, else the fit kept in ``out_dir/learned_law.pt`` for this
+    dataset and shape (a rerun or a resumed run does not fit again), else fitted now to the training
+    trajectories (:func:`thermognn.train.learned_law.fit_strain_energy`, ``train.law_fit_iterations``
+    L-BFGS iterations) and kept there, written atomically; with ``prony`` the Prony terms are
+    fitted with it. Returns (the training trajectories' names the fit left out (where the FE cut
+    its steps), the fitted Prony terms [(ḡ_i, τ_i)] or None)."""
+    from thermognn.core.io import atomic_path
+
+    from .learned_law import FIT_ITERATIONS, FIT_TRAJECTORIES, fit_strain_energy, invariant_scales
+    from .loop import _sel
+
+    prior = model.prior
+    law = prior.learned_law
+    prefix = "prior.learned_law."
+    if _sel(tc, "init", None):
+        from thermognn.core.config import project_path
+
+        from .checkpoint import load_checkpoint
+
+        src = init_ckpt if init_ckpt is not None else load_checkpoint(project_path(str(tc.init)))
+        state = {k[len(prefix):]: v for k, v in src["state_dict"].items() if k.startswith(prefix)}
+        if not state:
+            raise ConfigError(f"train.init = '{tc.init}': its checkpoint holds no learned law (model.prior_material)")
+        law.load_state_dict(state)
+        fitted = (src.get("prior") or {}).get("law_prony")
+        if prony and not isinstance(fitted, list):
+            raise ConfigError(f"train.init = '{tc.init}': its learned law has the scene's Prony terms "
+                              f"(set model.prior_material_prony=data)")
+        return set(), (fitted if prony else None)
+    path = out_dir / LAW_FIT_FILE
+    from .data import fingerprint
+
+    key = {"dataset": repr(sorted(fingerprint(ds).items())),
+           "hidden": list(law.hidden), "trajectories": sorted(t.name for t in trajs),
+           "iterations": int(_sel(tc, "law_fit_iterations", FIT_ITERATIONS)),
+           "at_most": int(_sel(tc, "law_fit_trajectories", FIT_TRAJECTORIES)), "prony": bool(prony)}
+    if path.exists():
+        kept = torch.load(path, weights_only=True)
+        if kept.get("key") == key:
+            law.load_state_dict(kept["state"])
+            if dist.main:
+                print(f"train: the learned law from {path} (fitted before: RMS force remainder "
+                      f"{kept['report']['force']:.3e} of the loads, stress {kept['report']['stress']:.3e} of σ)")
+            return set(kept["report"]["left_out"]), kept["report"].get("prony")
+    X = model.reference_positions
+    with torch.no_grad():
+        Cs = []
+        for t in trajs:
+            F = prior.cells(prior.gather(t.z.double()[..., 0:3] - X))                      # [S, T, 3, 3]
+            Cs.append(F.transpose(-1, -2) @ F)
+        law.scales.copy_(torch.tensor(invariant_scales(torch.cat(Cs)), dtype=law.scales.dtype))
+    report = fit_strain_energy(prior, trajs, X, int(_sel(tc, "law_fit_iterations", FIT_ITERATIONS)),
+                               int(_sel(tc, "law_fit_trajectories", FIT_TRAJECTORIES)),
+                               log=print if dist.main else (lambda *_: None), prony=prony)
+    if dist.main:
+        with atomic_path(path) as tmp:
+            torch.save({"key": key, "state": law.state_dict(),
+                        "report": {"force": report["force"], "stress": report["stress"],
+                                   "seconds": report["seconds"], "left_out": [n for n, _ in report["left_out"]],
+                                   "prony": report["prony"]}},
+                       tmp)
+    return {n for n, _ in report["left_out"]}, report["prony"]
 
 
 def _lr(base: float, decay: float, progress: float) -> float:
@@ -1002,9 +1116,21 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     model = prior_model(net, settings, ds, ds.dt)
     train_trajs, val_trajs = data.of("train"), data.of("val")
     graph = data.graph
+    law_left_out = None
+    if settings.get("law_material") == "learned":   # the law itself first: fitted, read from train.init, or kept
+        law_left_out, prony = learned_law_of(model, train_trajs, out_dir, ds, tc, init_ckpt, dist,
+                                             settings.get("law_prony") == "learned")
+        if prony is not None:                    # the prior again, with its fitted Prony terms
+            settings["law_prony"] = [list(t) for t in prony]
+            law_state = model.prior.learned_law.state_dict()
+            model = prior_model(net, settings, ds, ds.dt)
+            model.prior.learned_law.load_state_dict(law_state)
     G_true, H_true = exact_remainders(model, train_trajs)
     fit_trajs = train_trajs
-    if "law" in settings:                        # the data's own step: its remainders vanish but where the FE cut steps
+    if law_left_out is not None:                 # the learned law's residual is what the network learns
+        keep = [i for i, t in enumerate(train_trajs) if t.name not in law_left_out]
+        fit_trajs, G_true, H_true = [train_trajs[i] for i in keep], [G_true[i] for i in keep], [H_true[i] for i in keep]
+    elif "law" in settings:                        # the data's own step: its remainders vanish but where the FE cut steps
         fit_trajs, G_true, H_true, cut = law_fit_trajectories(train_trajs, G_true, H_true, model.prior.free_nodes())
         if cut and dist.main:
             print(f"train: the law prior leaves {len(cut)} of {len(train_trajs)} training trajectories out of the fit "

@@ -53,6 +53,8 @@ from torch import Tensor
 from thermognn.core.hyperelastic import NeoHookean, Ogden
 from thermognn.core.linear import LinearSolid
 
+from .learned_law import StrainEnergy
+
 from .prior import (BAND_MAX_SHARE, DISSECTION_MAX_SHARE, CorotatedNewmarkPrior, FactoredSolve, SparseSolve, _matrix,
                     _voigt, band_factor, band_layout, band_solve, dissection_factor, dissection_layout,
                     dissection_solve, lu_factor_each, lu_solves, sparse_factors)
@@ -306,7 +308,14 @@ def ogden_tangent(F: Tensor, mu: List[float], alpha: List[float], d: List[float]
     S = w_vol * S_vol + w_iso * S_iso
     if extra is not None:
         S = S + extra
-    FdS = (F @ (w_vol * dS_vol + w_iso * dS_iso)).movedim(0, -1)                     # [..., i, j, 6]
+    return pk1_tangent(F, S, w_vol * dS_vol + w_iso * dS_iso)
+
+
+def pk1_tangent(F: Tensor, S: Tensor, dS: Tensor) -> Tensor:
+    """∂P/∂F [..., 3, 3, 3, 3] Pa (P_ij by F_kl) of P = F S at F [..., 3, 3], from S [..., 3, 3] Pa
+    and its derivatives dS [6, ..., 3, 3] Pa along C's six symmetric directions
+    (``symmetric_directions``; :func:`ogden_tangent`'s formula, for any law of C)."""
+    FdS = (F @ dS).movedim(0, -1)                                                      # [..., i, j, 6]
     eye = _eye(F)
     index = symmetric_index()
     rows, columns = torch.tensor(index[0], device=F.device), torch.tensor(index[1], device=F.device)
@@ -315,6 +324,20 @@ def ogden_tangent(F: Tensor, mu: List[float], alpha: List[float], d: List[float]
                    + F.index_select(-1, rows)[..., :, None, :] * eye.index_select(0, columns).transpose(0, 1))
     A = torch.einsum("...ijn,...kln->...ijkl", FdS, coefficient)
     return A + eye[:, None, :, None] * S.transpose(-1, -2)[..., None, :, None, :]
+
+
+def learned_tangent(law: StrainEnergy, F: Tensor, w_iso: float, w_vol: float, extra: Optional[Tensor]) -> Tensor:
+    """∂P/∂F [..., 3, 3, 3, 3] Pa of P = F (w_vol S_vol + w_iso S_iso + extra) with the learned law
+    ``law`` (:class:`thermognn.train.learned_law.StrainEnergy`) at F [..., 3, 3]: its stress in
+    closed form, its derivatives along C's directions by central differences (``pk2_differentials``)."""
+    C = F.transpose(-1, -2) @ F
+    E = symmetric_directions(F).reshape([6] + [1] * (F.dim() - 2) + [3, 3])               # [6, ..., 3, 3]
+    S_iso, S_vol = law.pk2(C)
+    dS_iso, dS_vol = law.pk2_differentials(C, E)
+    S = w_vol * S_vol + w_iso * S_iso
+    if extra is not None:
+        S = S + extra
+    return pk1_tangent(F, S, w_vol * dS_vol + w_iso * dS_iso)
 
 
 class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
@@ -335,11 +358,11 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     __jit_ignored_attributes__ = ["_start_memo", "_kept_lus"]
 
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
-                 lam: float, mu: float, law: NeoHookean | Ogden, iterations: int = 1,
+                 lam: float, mu: float, law: NeoHookean | Ogden | StrainEnergy, iterations: int = 1,
                  max_iterations: Optional[int] = None, newton_rtol: Optional[float] = None,
                  step_cuts: int = 0, tangent: str = "fresh", dtype: torch.dtype = torch.float64) -> None:
-        if not isinstance(law, (NeoHookean, Ogden)):
-            raise ValueError(f"the law prior steps a NeoHookean or Ogden law, not {law!r}")
+        if not isinstance(law, (NeoHookean, Ogden, StrainEnergy)):
+            raise ValueError(f"the law prior steps a NeoHookean, Ogden or learned law, not {law!r}")
         if int(iterations) < 1:
             raise ValueError(f"the law prior's Newton iterations a step: {iterations!r}, expected >= 1")
         newton_rtol = NEWTON_RTOL if newton_rtol is None else newton_rtol
@@ -363,12 +386,19 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.max_iterations = int(max_iterations) if max_iterations is not None else self.iterations
         self.newton_rtol, self.newton_atol = float(newton_rtol), NEWTON_ATOL
         self.ogden = isinstance(law, Ogden)
+        # ``model.prior_material = learned``: the law is a fitted strain energy (its weights in the
+        # state_dict); otherwise a placeholder of it that is never evaluated (TorchScript types both)
+        self.learned = isinstance(law, StrainEnergy)
+        self.learned_law = law if isinstance(law, StrainEnergy) else StrainEnergy((1, 1), placeholder=True)
+        if isinstance(law, StrainEnergy):
+            self.c10, self.d1 = 0.0, 1.0
         if isinstance(law, Ogden):
             self.ogden_mu, self.ogden_alpha, self.ogden_d = list(law.mu), list(law.alpha), list(law.d)
         else:
             # unused; non-empty so that TorchScript types them List[float]
             self.ogden_mu, self.ogden_alpha, self.ogden_d = [0.0], [1.0], [1.0]
-            self.c10, self.d1 = law.c10, law.d1
+            if isinstance(law, NeoHookean):
+                self.c10, self.d1 = law.c10, law.d1
         # S_iso's weight in a relaxing step: g∞ + Σ ḡ_i w_i (1 elastic)
         self.iso_weight = 1.0 - self._shrink()
         # a step that has not converged after ``max_iterations`` is stepped again as two halves, each
@@ -435,6 +465,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     # --- the law per cell -----------------------------------------------------------------------
     def pk2(self, F: Tensor) -> Tuple[Tensor, Tensor]:
         """(S_iso, S_vol) [..., 3, 3] Pa of cells' deformation gradients F [..., 3, 3]."""
+        if self.learned:
+            return self.learned_law.pk2(F.transpose(-1, -2) @ F)
         if self.ogden:
             C = F.transpose(-1, -2) @ F
             return (ogden_isochoric_pk2(C, self.ogden_mu, self.ogden_alpha),
@@ -503,7 +535,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         with torch.no_grad():
             self.tangents_formed.add_(1)
             B, T = F.shape[0], F.shape[1]
-            if self.ogden:
+            if self.learned:
+                A = learned_tangent(self.learned_law, F, w_iso, w_vol, extra)
+            elif self.ogden:
                 A = ogden_tangent(F, self.ogden_mu, self.ogden_alpha, self.ogden_d, w_iso, w_vol, extra)
             else:
                 A = neo_hookean_tangent(F, self.c10, self.d1, w_iso, w_vol, extra)         # [B, T, i, j, k, l]
@@ -1162,5 +1196,6 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         return cell if H is None else cell + H
 
 
-__all__ = ["HyperelasticNewmarkPrior", "cofactor", "neo_hookean_pk2", "neo_hookean_tangent", "ogden_isochoric",
+__all__ = ["HyperelasticNewmarkPrior", "cofactor", "learned_tangent", "neo_hookean_pk2", "neo_hookean_tangent",
+           "ogden_isochoric", "pk1_tangent",
            "ogden_isochoric_pk2", "ogden_tangent", "ogden_volumetric_pk2"]

@@ -1,0 +1,296 @@
+"""A learned hyperelastic law (``model.prior_material=learned``): the strain energy a law prior
+steps, fitted to the training trajectories instead of read from the scene's material.
+
+The law prior (:mod:`thermognn.train.law_prior`) steps the FE's own discretisation (P1 cells, the
+stored mass, Rayleigh damping, Newmark rule) with a hyperelastic law and, for a viscous scene, its
+Prony terms. With ``model.prior_material=data`` that law is the scene's (neo-Hookean or Ogden); with
+``learned`` it is :class:`StrainEnergy`, an isotropic energy per unit reference volume
+
+    Ψ(C) = Ψ_iso(Ī1, Ī2) + U(J)                                                        [J/m³]
+    Ψ_iso = μ_s (c · x + Σ_k a_k (softplus(w_k · x + b_k) − softplus(b_k))),
+    x     = ((Ī1 − 3)/s1, (Ī2 − 3)/s2)
+    U     = κ_s (½ k0 y² + Σ_m e_m (softplus(v_m y + d_m) − softplus(d_m) − σ(d_m) v_m y)),  y = (J − 1)/s3
+
+with Ī1 = J^(-2/3) tr C, Ī2 = J^(-4/3) ½((tr C)² − tr C²), J = √det C: one hidden softplus layer
+in the two isochoric invariants, one in J. Any isotropic isochoric energy is a function of
+(Ī1, Ī2); the family holds the neo-Hookean (Ψ_iso = C10 (Ī1 − 3)) and Mooney–Rivlin laws exactly
+and approximates Ogden's. The isochoric stress vanishes at C = I for any weights (the invariants'
+derivatives do), and U'(1) = 0 by construction, so the body is stress-free at rest (and Ψ(I) = 0). μ_s, κ_s
+(the moduli at rest of ``/linear``) and s1..s3 (the training states' largest invariants) only
+scale the network; its weights start from a zero linear part (``c = k0 = 0``) and small random
+hidden ones, and are fitted to the data alone (:func:`fit_strain_energy`).
+
+As the scene's laws (:func:`thermognn.train.law_prior.neo_hookean_pk2`), the stress
+S = 2 ∂Ψ/∂C is in closed form (``pk2``): with ψ1, ψ2 = ∂Ψ_iso/∂Ī1, ∂Ψ_iso/∂Ī2,
+
+    ∂Ī1/∂C = J^(-2/3) I − Ī1/3 C⁻¹,   ∂Ī2/∂C = J^(-4/3) (tr C I − C) − 2 Ī2/3 C⁻¹,
+    S_iso = 2 (ψ1 ∂Ī1/∂C + ψ2 ∂Ī2/∂C),   S_vol = U'(J) J C⁻¹,
+
+and the Newton tangent takes S's derivatives along C's six symmetric directions by central
+differences of that closed form (``pk2_differentials``; step ``TANGENT_STEP``), which the law
+prior turns into ∂P/∂F as it does Ogden's. The weights are buffers, not parameters: they are
+fitted before the graph network trains and then held (a rollout's gradients pass them by), and
+they travel in the model's state_dict, so a checkpoint or an exported file carries its law.
+
+The fit (:func:`fit_strain_energy`) is equation error, not rollouts: along each training
+trajectory the law prior's exact remainders (``NewmarkPrior.remainders``: what the data's own
+balance M a + f_int(u) − f leaves per free DOF, and σ_data − σ_law per node) vanish for the data's
+law, so the fit minimises their mean squares, each relative to the loads' and the stresses' RMS,
+by L-BFGS over all of the weights at once. A viscous scene's Prony terms (as many as it declares)
+are fitted with them (``model.prior_material_prony=learned``, :class:`PronySeries`): the
+relaxation's weights and times enter the same remainders through the internal variables' history.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import List, Optional, Sequence, Tuple
+
+import torch
+from torch import Tensor, nn
+
+#: the relative step of the central differences that give the tangent (S's derivatives along C)
+TANGENT_STEP = 1.0e-6
+#: default hidden units (isochoric, volumetric): ``model.prior_material_hidden``
+HIDDEN = (16, 8)
+#: the fit's L-BFGS iterations (``train.law_fit_iterations``)
+FIT_ITERATIONS = 150
+#: ... on at most this many training trajectories (``train.law_fit_trajectories``)
+FIT_TRAJECTORIES = 8
+#: a training trajectory whose remainders under the fitted law exceed this many times the median
+#: trajectory's (relative to its loads) is left out of the fit and fitted again without it: where
+#: the FE cut its steps the data's step is not one Newmark step of Δt (the law prior's own rule)
+OUTLIER_FACTOR = 20.0
+
+
+def _softplus_sigmoid(z: Tensor) -> Tuple[Tensor, Tensor]:
+    return torch.nn.functional.softplus(z), torch.sigmoid(z)
+
+
+class StrainEnergy(nn.Module):
+    """The learned isotropic strain energy Ψ(C) (module docstring), hidden units ``hidden`` =
+    (isochoric, volumetric), scaled by the moduli at rest mu, kappa [Pa] and the invariants'
+    scales (s1, s2, s3). ``placeholder`` makes one the law prior holds but never evaluates (the
+    scene's law steps), its buffers left out of the state_dict."""
+
+    def __init__(self, hidden: Sequence[int] = HIDDEN, mu: float = 1.0, kappa: float = 1.0,
+                 scales: Sequence[float] = (1.0, 1.0, 1.0), seed: int = 0, placeholder: bool = False,
+                 dtype: torch.dtype = torch.float64) -> None:
+        super().__init__()
+        k, m = (int(h) for h in hidden)
+        if k < 1 or m < 1:
+            raise ValueError(f"the learned law's hidden units: {tuple(hidden)!r}, expected two integers >= 1")
+        self.hidden = [k, m]
+        self.mu_scale, self.kappa_scale = float(mu), float(kappa)
+        self.tangent_step = TANGENT_STEP
+        g = torch.Generator().manual_seed(int(seed))
+        keep = not placeholder
+
+        def buffer(name: str, value: Tensor) -> None:
+            self.register_buffer(name, value.to(dtype), persistent=keep)
+
+        buffer("scales", torch.tensor([float(s) for s in scales], dtype=torch.float64))   # [3] s1, s2, s3
+        buffer("iso_linear", torch.zeros(2, dtype=torch.float64))                           # [2] c
+        buffer("iso_weight", torch.randn(k, 2, generator=g, dtype=torch.float64))           # [k, 2] w
+        buffer("iso_bias", torch.randn(k, generator=g, dtype=torch.float64))                # [k] b
+        buffer("iso_out", 0.01 * torch.randn(k, generator=g, dtype=torch.float64))          # [k] a
+        buffer("vol_quadratic", torch.zeros(1, dtype=torch.float64))                         # [1] k0
+        buffer("vol_weight", torch.randn(m, generator=g, dtype=torch.float64))              # [m] v
+        buffer("vol_bias", torch.randn(m, generator=g, dtype=torch.float64))                # [m] d
+        buffer("vol_out", 0.01 * torch.randn(m, generator=g, dtype=torch.float64))          # [m] e
+
+    @torch.jit.unused
+    def weights(self) -> List[Tensor]:
+        """The fitted tensors (all but the scales), in a fixed order."""
+        return [self.iso_linear, self.iso_weight, self.iso_bias, self.iso_out,
+                self.vol_quadratic, self.vol_weight, self.vol_bias, self.vol_out]
+
+    def invariants(self, C: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(Ī1, Ī2, J, C⁻¹) of right Cauchy–Green tensors C [..., 3, 3]: [...] each, C⁻¹ [..., 3, 3]."""
+        J = torch.sqrt(torch.linalg.det(C))
+        I1 = C.diagonal(dim1=-2, dim2=-1).sum(-1)
+        I2 = 0.5 * (I1 * I1 - (C * C).sum((-2, -1)))
+        a = J.pow(-2.0 / 3.0)
+        return a * I1, a * a * I2, J, torch.linalg.inv(C)
+
+    def energy_derivatives(self, I1b: Tensor, I2b: Tensor, J: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+        """(ψ1 = ∂Ψ_iso/∂Ī1, ψ2 = ∂Ψ_iso/∂Ī2, U'(J)) [...] Pa at the invariants [...]."""
+        s = self.scales
+        x = torch.stack([(I1b - 3.0) / s[0], (I2b - 3.0) / s[1]], -1)                    # [..., 2]
+        _, sig = _softplus_sigmoid(x @ self.iso_weight.t() + self.iso_bias)                # [..., k]
+        dx = self.iso_linear + (sig * self.iso_out) @ self.iso_weight                      # [..., 2] ∂Ψ/∂x / μ_s
+        y = ((J - 1.0) / s[2]).unsqueeze(-1)                                               # [..., 1]
+        _, sv = _softplus_sigmoid(y * self.vol_weight + self.vol_bias)                     # [..., m]
+        dU = (self.vol_quadratic * y).squeeze(-1) + (
+            self.vol_out * self.vol_weight * (sv - torch.sigmoid(self.vol_bias))).sum(-1)   # [...] U'/κ_s·s3
+        return (self.mu_scale * dx[..., 0] / s[0], self.mu_scale * dx[..., 1] / s[1],
+                self.kappa_scale * dU / s[2])
+
+    def energy(self, C: Tensor) -> Tensor:
+        """Ψ(C) [...] J/m³ (not needed by a step; for tests and reports)."""
+        I1b, I2b, J, _ = self.invariants(C)
+        s = self.scales
+        x = torch.stack([(I1b - 3.0) / s[0], (I2b - 3.0) / s[1]], -1)
+        sp, _ = _softplus_sigmoid(x @ self.iso_weight.t() + self.iso_bias)
+        rest = torch.nn.functional.softplus(self.iso_bias)
+        iso = (x * self.iso_linear).sum(-1) + ((sp - rest) * self.iso_out).sum(-1)
+        y = ((J - 1.0) / s[2]).unsqueeze(-1)
+        z = y * self.vol_weight + self.vol_bias
+        vol = 0.5 * (self.vol_quadratic * y * y).squeeze(-1) + (self.vol_out * (
+            torch.nn.functional.softplus(z) - torch.nn.functional.softplus(self.vol_bias)
+            - torch.sigmoid(self.vol_bias) * self.vol_weight * y)).sum(-1)
+        return self.mu_scale * iso + self.kappa_scale * vol
+
+    @torch.jit.export
+    def pk2(self, C: Tensor) -> Tuple[Tensor, Tensor]:
+        """(S_iso, S_vol) [..., 3, 3] Pa, S = 2 ∂Ψ/∂C at C [..., 3, 3] (module docstring)."""
+        I1b, I2b, J, Ci = self.invariants(C)
+        psi1, psi2, dU = self.energy_derivatives(I1b, I2b, J)
+        eye = torch.eye(3, dtype=C.dtype, device=C.device)
+        a = J.pow(-2.0 / 3.0)[..., None, None]
+        I1 = C.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
+        dI1 = a * eye - (I1b / 3.0)[..., None, None] * Ci
+        dI2 = a * a * (I1 * eye - C) - (2.0 * I2b / 3.0)[..., None, None] * Ci
+        S_iso = 2.0 * (psi1[..., None, None] * dI1 + psi2[..., None, None] * dI2)
+        S_vol = (dU * J)[..., None, None] * Ci
+        return S_iso, S_vol
+
+    @torch.jit.export
+    def pk2_differentials(self, C: Tensor, E: Tensor) -> Tuple[Tensor, Tensor]:
+        """(dS_iso, dS_vol) [6, ..., 3, 3] Pa along C's directions E [6, 1.., 3, 3]: central
+        differences of ``pk2`` with the step ``TANGENT_STEP`` (C is O(1))."""
+        h = self.tangent_step
+        Cp, Cm = C.unsqueeze(0) + h * E, C.unsqueeze(0) - h * E                           # [6, ..., 3, 3]
+        sp_iso, sp_vol = self.pk2(Cp)
+        sm_iso, sm_vol = self.pk2(Cm)
+        return (sp_iso - sm_iso) / (2.0 * h), (sp_vol - sm_vol) / (2.0 * h)
+
+
+def invariant_scales(C: Tensor) -> Tuple[float, float, float]:
+    """(s1, s2, s3): the largest |Ī1 − 3|, |Ī2 − 3|, |J − 1| over cells' C [..., 3, 3] (at least 1e-6)."""
+    law = StrainEnergy(placeholder=True)
+    I1b, I2b, J, _ = law.invariants(C)
+    return tuple(max(float(v.abs().max()), 1e-6) for v in (I1b - 3.0, I2b - 3.0, J - 1.0))
+
+
+class PronySeries(nn.Module):
+    """Learned Prony terms (ḡ_i, τ_i) of a viscous law, as many as the scene declares: the weights
+    (g∞, ḡ_1, ..) = softmax(logits), so each is positive and g∞ = 1 − Σ ḡ_i > 0, and τ_i = exp(log τ_i)
+    [s], started equal (ḡ_i = 1/(T+1)) at τ log-spaced from half the trajectories' duration to
+    five times it (``duration`` [s])."""
+
+    def __init__(self, n_terms: int, duration: float) -> None:
+        super().__init__()
+        self.logits = nn.Parameter(torch.zeros(int(n_terms) + 1, dtype=torch.float64))
+        spread = torch.linspace(math.log(5.0 * duration), math.log(0.5 * duration), int(n_terms), dtype=torch.float64)
+        if n_terms == 1:
+            spread = torch.full((1,), math.log(duration), dtype=torch.float64)
+        self.log_tau = nn.Parameter(spread)
+
+    def terms(self, dt: float) -> Tuple[Tensor, Tensor, Tensor]:
+        """(ḡ_i, d_i = exp(−Δt/τ_i), w_i = τ_i/Δt (1 − d_i)) [T] over a step Δt [s]: the law prior's
+        ``prony_weight``, ``prony_decay``, ``prony_increment`` (``LinearSolid.relaxation``)."""
+        g = torch.softmax(self.logits, 0)[1:]
+        x = dt / torch.exp(self.log_tau)
+        return g, torch.exp(-x), -torch.expm1(-x) / x
+
+    def values(self) -> List[Tuple[float, float]]:
+        """[(ḡ_i, τ_i [s])] as plain floats (a checkpoint's ``law_prony``)."""
+        g = torch.softmax(self.logits.detach(), 0)[1:]
+        return [(float(a), float(b)) for a, b in zip(g, torch.exp(self.log_tau.detach()))]
+
+
+def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
+                      max_trajectories: int = FIT_TRAJECTORIES, log=print, prony: bool = False) -> dict:
+    """Fit the law prior's learned law ``prior.learned_law`` (a :class:`StrainEnergy`) to the
+    training trajectories ``trajs`` (``z`` [S, N, 12], ``force`` [S, N, 3], ``name``) by
+    equation error (module docstring), X [N, 3] m the reference positions: at most
+    ``max_trajectories`` of them, evenly through the list (a law has some hundred weights; each of
+    its trajectories gives thousands of cell states). Where one
+    trajectory's remainders stay above ``OUTLIER_FACTOR`` times the median's it is left out and the
+    fit goes on without it. With ``prony`` (a viscous prior) its Prony terms are fitted too
+    (:class:`PronySeries`, as many as it has) and left in its ``prony_*`` buffers. Returns a report
+    {"seconds", "iterations", "force", "stress" (the final RMS remainders relative to the loads'
+    and the stresses' RMS), "left_out" [(name, ratio)], "prony" [(ḡ_i, τ_i)] (None: not fitted)}."""
+    law = prior.learned_law
+    free = prior.free_nodes()
+    if len(trajs) > max_trajectories:          # evenly through the training list
+        trajs = [trajs[round(i * (len(trajs) - 1) / (max_trajectories - 1))] for i in range(max_trajectories)]
+    data = [(t.z.double(), t.force.double(), t.name) for t in trajs]
+    with torch.no_grad():                      # the data's Newmark accelerations: the law's at rest only (S(I) = 0)
+        accelerations = [prior.accelerations(prior.gather(z[..., 0:3] - X), prior.gather(z[..., 3:6]),
+                                             prior.gather(f)) for z, f, _ in data]
+    load_rms = torch.cat([f[:, free] for _, f, _ in data]).pow(2).mean().sqrt().clamp(min=1e-300)
+    stress_rms = torch.cat([z[..., 6:12].reshape(-1, 6) for z, _, _ in data]).pow(2).mean().sqrt()
+    stress_rms = stress_rms.clamp(min=1e-300)
+    weights = law.weights()
+    for w in weights:
+        w.requires_grad_(True)
+    series = None
+    if prony and prior.n_terms > 0:
+        duration = float(trajs[0].z.shape[0] - 1) * float(prior.dt)
+        series = PronySeries(prior.n_terms, duration)
+    t0, calls = time.perf_counter(), [0]
+
+    def residuals(chosen):
+        if series is not None:               # the prior's relaxation constants of the terms as they stand
+            prior.prony_weight, prior.prony_decay, prior.prony_increment = series.terms(float(prior.dt))
+        out = []
+        for z, f, _, a in chosen:
+            G, H = prior.remainders(z[..., 0:3] - X, z[..., 3:6], z[..., 6:12], f, a)
+            out.append((G.pow(2).mean() / load_rms**2, H.pow(2).mean() / stress_rms**2))
+        return out
+
+    def run(chosen, n):
+        opt = torch.optim.LBFGS(weights + ([] if series is None else list(series.parameters())), lr=1.0, max_iter=n, history_size=50, line_search_fn="strong_wolfe",
+                                tolerance_grad=1e-14, tolerance_change=1e-16)
+
+        def closure():
+            opt.zero_grad()
+            parts = residuals(chosen)
+            loss = sum(g + h for g, h in parts) / len(parts)
+            loss.backward()
+            calls[0] += 1
+            return loss
+
+        opt.step(closure)
+
+    data = [(z, f, name, a) for (z, f, name), a in zip(data, accelerations)]
+    left_out: List[Tuple[str, float]] = []
+    try:
+        run(data, iterations)
+        with torch.no_grad():
+            ratios = [float(g.sqrt()) for g, _ in residuals(data)]
+        median = sorted(ratios)[len(ratios) // 2]
+        keep = [d for d, r in zip(data, ratios) if r <= OUTLIER_FACTOR * max(median, 1e-12)]
+        left_out = [(d[2], r) for d, r in zip(data, ratios) if r > OUTLIER_FACTOR * max(median, 1e-12)]
+        if left_out and keep:
+            run(keep, iterations)
+        else:
+            keep = data
+        with torch.no_grad():
+            parts = residuals(keep)
+    finally:
+        for w in weights:
+            w.requires_grad_(False)
+        if series is not None:
+            with torch.no_grad():
+                prior.prony_weight, prior.prony_decay, prior.prony_increment = series.terms(float(prior.dt))
+    force = math.sqrt(sum(float(g) for g, _ in parts) / len(parts))
+    stress = math.sqrt(sum(float(h) for _, h in parts) / len(parts))
+    if not (math.isfinite(force) and math.isfinite(stress)):
+        raise RuntimeError("prior: a non-finite state while fitting the learned law")
+    report = {"seconds": time.perf_counter() - t0, "iterations": calls[0], "force": force, "stress": stress,
+              "left_out": left_out, "trajectories": len(keep),
+              "prony": None if series is None else series.values()}
+    log(f"train: the learned law fitted to {len(keep)} training trajectories in {report['seconds']:.0f} s "
+        f"({calls[0]} evaluations): RMS force remainder {force:.3e} of the loads, stress {stress:.3e} of σ"
+        + ("; Prony terms (g, tau [s]) " + ", ".join(f"({g:.4g}, {t:.4g})" for g, t in report["prony"])
+           if report["prony"] else "")
+        + (f"; {len(left_out)} left out (the FE cut its steps there?): " + ", ".join(n for n, _ in left_out)
+           if left_out else ""))
+    return report
+
+
+__all__ = ["HIDDEN", "PronySeries", "StrainEnergy", "fit_strain_energy", "invariant_scales"]
