@@ -243,7 +243,8 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
         return out
 
     def run(chosen, n):
-        opt = torch.optim.LBFGS(weights + ([] if series is None else list(series.parameters())), lr=1.0, max_iter=n, history_size=50, line_search_fn="strong_wolfe",
+        fitted = weights + ([] if series is None else list(series.parameters()))
+        opt = torch.optim.LBFGS(fitted, lr=1.0, max_iter=n, history_size=50, line_search_fn="strong_wolfe",
                                 tolerance_grad=1e-14, tolerance_change=1e-16)
 
         def closure():
