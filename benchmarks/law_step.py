@@ -11,6 +11,10 @@ and its time.
 
     .venv/bin/python benchmarks/law_step.py runs/s71_shell/dataset.h5 --iterations 1 --max 12 --rtol 1e-4 --cuts 4
     .venv/bin/python benchmarks/law_step.py runs/s71_liver96/dataset.h5 --iterations 1 --split test,val
+    .venv/bin/python benchmarks/law_step.py runs/s79_shell/dataset.h5 --law runs/s79_shell_ll/learned_law.pt ...
+
+``--law F`` steps a learned law instead of the dataset's (``model.prior_material=learned``: the fit
+``train`` keeps in ``learned_law.pt``, its Prony terms too where it fitted them).
 
 ``--iterations k`` alone is a fixed budget of k; ``--max m --rtol r`` lets a step that has not
 converged take up to m (``model.prior_newton_max``, ``model.prior_newton_rtol``), ``--cuts c``
@@ -68,20 +72,27 @@ def main() -> None:
                     help="a tangent formed every iteration, or kept while it contracts (with --max)")
     ap.add_argument("--split", default="test", help="comma-separated parts: train, val, test")
     ap.add_argument("--names", default="", help="comma-separated trajectory names (of the split's parts)")
+    ap.add_argument("--law", default="", help="a learned law's learned_law.pt (model.prior_material=learned)")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     parts = tuple(p for p in args.split.split(",") if p)
     data = load_data(args.dataset, [0.8, 0.1, 0.1], 0, torch.float64, parts=parts, state_dtype=torch.float64)
     stretch = args.max is not None and args.max > args.iterations
+    learned = torch.load(args.law, weights_only=True) if args.law else None
     prior = build_prior(data.dataset, data.dt, law=args.iterations,
                         **(dict(law_max=args.max, law_rtol=args.rtol, law_cuts=args.cuts, law_tangent=args.tangent)
-                           if stretch else {}))
+                           if stretch else {}),
+                        **(dict(learned_law=learned["key"]["hidden"], prony=learned["report"].get("prony"))
+                           if learned else {}))
+    if learned:
+        prior.learned_law.load_state_dict(learned["state"])
     X = torch.as_tensor(data.reference_positions(), dtype=torch.float64)
     names = {n for n in args.names.split(",") if n}
     budget = (f"{args.iterations} to {args.max} iterations to {args.rtol:g}, cuts {args.cuts}, {args.tangent} tangent"
               if stretch else f"{args.iterations} iteration{'s' if args.iterations > 1 else ''}")
-    print(f"{args.dataset}: the law alone, {budget}, {args.threads} threads")
+    print(f"{args.dataset}: the {'learned law of ' + args.law if learned else 'law'} alone, {budget}, "
+          f"{args.threads} threads")
     for part in parts:
         errors, times = [], []
         prior.newton_taken.zero_()

@@ -142,19 +142,29 @@ class StrainEnergy(nn.Module):
             - torch.sigmoid(self.vol_bias) * self.vol_weight * y)).sum(-1)
         return self.mu_scale * iso + self.kappa_scale * vol
 
-    @torch.jit.export
-    def pk2(self, C: Tensor) -> Tuple[Tensor, Tensor]:
-        """(S_iso, S_vol) [..., 3, 3] Pa, S = 2 ∂Ψ/∂C at C [..., 3, 3] (module docstring)."""
+    def geometry(self, C: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """What the stress takes from C [..., 3, 3] alone, whatever the weights: (Ī1, Ī2, J [...],
+        J C⁻¹, ∂Ī1/∂C, ∂Ī2/∂C [..., 3, 3])."""
         I1b, I2b, J, Ci = self.invariants(C)
-        psi1, psi2, dU = self.energy_derivatives(I1b, I2b, J)
         eye = torch.eye(3, dtype=C.dtype, device=C.device)
         a = J.pow(-2.0 / 3.0)[..., None, None]
         I1 = C.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
         dI1 = a * eye - (I1b / 3.0)[..., None, None] * Ci
         dI2 = a * a * (I1 * eye - C) - (2.0 * I2b / 3.0)[..., None, None] * Ci
+        return I1b, I2b, J, J[..., None, None] * Ci, dI1, dI2
+
+    def stress(self, I1b: Tensor, I2b: Tensor, J: Tensor, JCi: Tensor, dI1: Tensor, dI2: Tensor
+               ) -> Tuple[Tensor, Tensor]:
+        """(S_iso, S_vol) [..., 3, 3] Pa of ``geometry``'s tensors: 2 (ψ1 ∂Ī1/∂C + ψ2 ∂Ī2/∂C), U' J C⁻¹."""
+        psi1, psi2, dU = self.energy_derivatives(I1b, I2b, J)
         S_iso = 2.0 * (psi1[..., None, None] * dI1 + psi2[..., None, None] * dI2)
-        S_vol = (dU * J)[..., None, None] * Ci
-        return S_iso, S_vol
+        return S_iso, dU[..., None, None] * JCi
+
+    @torch.jit.export
+    def pk2(self, C: Tensor) -> Tuple[Tensor, Tensor]:
+        """(S_iso, S_vol) [..., 3, 3] Pa, S = 2 ∂Ψ/∂C at C [..., 3, 3] (module docstring)."""
+        I1b, I2b, J, JCi, dI1, dI2 = self.geometry(C)
+        return self.stress(I1b, I2b, J, JCi, dI1, dI2)
 
     @torch.jit.export
     def pk2_differentials(self, C: Tensor, E: Tensor) -> Tuple[Tensor, Tensor]:
@@ -165,6 +175,50 @@ class StrainEnergy(nn.Module):
         sp_iso, sp_vol = self.pk2(Cp)
         sm_iso, sm_vol = self.pk2(Cm)
         return (sp_iso - sm_iso) / (2.0 * h), (sp_vol - sm_vol) / (2.0 * h)
+
+
+class EquationError:
+    """The law prior's exact remainders along one trajectory (``NewmarkPrior.remainders``: G [S, n]
+    N, H [S, N, 6] Pa) as functions of a learned law's weights and Prony constants, for the fit:
+    what does not depend on them (the cells' F and ``StrainEnergy.geometry`` at the data's
+    states, the inertia M (a + αM v) − f − f_body) formed once, the rest vectorised over the steps.
+    ``prior`` the law prior, z [S, N, 12], f [S, N, 3] the trajectory, X [N, 3] m, a [S, n] its
+    Newmark accelerations (tests/test_law_prior.py: equal to ``remainders`` to round-off)."""
+
+    def __init__(self, prior, z: Tensor, f: Tensor, X: Tensor, a: Tensor) -> None:
+        self.prior = prior
+        with torch.no_grad():
+            u, v = prior.gather(z[..., 0:3] - X), prior.gather(z[..., 3:6])
+            self.F = prior.cells(u)                                                       # [S, T, 3, 3]
+            self.Ft = self.F.transpose(-1, -2)
+            self.geometry = prior.learned_law.geometry(self.Ft @ self.F)
+            self.inertia = prior.mass(a[1:] + prior.alpha_m * v[1:]) - prior.gather(f[1:]) - prior.body_force
+            self.sigma = z[..., 6:12]
+
+    def __call__(self, g: Optional[Tensor] = None, d: Optional[Tensor] = None,
+                 w: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
+        """(G [S, n] N, H [S, N, 6] Pa) under the law's weights as they stand and the Prony
+        constants g, d, w [T_p] (``PronySeries.terms``; None: the prior's own)."""
+        p = self.prior
+        S_iso, S_vol = p.learned_law.stress(*self.geometry)                               # [S, T, 3, 3] each
+        S = S_iso + S_vol
+        elastic = p.assemble(self.F @ S)                                                  # [S, n] f_el
+        f_int = elastic[1:]
+        if p.n_terms > 0:
+            g = p.prony_weight if g is None else g
+            d = p.prony_decay if d is None else d
+            w = p.prony_increment if w is None else w
+            h = S_iso[0].unsqueeze(0).expand(p.n_terms, -1, -1, -1)                      # [T_p, T, 3, 3]
+            relaxed = [(g.view(-1, 1, 1, 1) * (h - S_iso[0])).sum(0)]
+            for k in range(1, S_iso.shape[0]):
+                h = d.view(-1, 1, 1, 1) * h + w.view(-1, 1, 1, 1) * (S_iso[k] - S_iso[k - 1])
+                relaxed.append((g.view(-1, 1, 1, 1) * (h - S_iso[k])).sum(0))
+            relaxed = torch.stack(relaxed)                                                # [S, T, 3, 3]
+            f_int = f_int + p.assemble(self.F[1:] @ relaxed[1:])
+            S = S + relaxed
+        lumped = self.inertia + p.c * (elastic[1:] - elastic[:-1]) + f_int
+        J = self.geometry[2][..., None, None]
+        return p.carried_remainders(lumped), self.sigma - p.nodal(self.F @ S @ self.Ft / J)
 
 
 def invariant_scales(C: Tensor) -> Tuple[float, float, float]:
@@ -221,6 +275,7 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
     with torch.no_grad():                      # the data's Newmark accelerations: the law's at rest only (S(I) = 0)
         accelerations = [prior.accelerations(prior.gather(z[..., 0:3] - X), prior.gather(z[..., 3:6]),
                                              prior.gather(f)) for z, f, _ in data]
+    errors = [EquationError(prior, z, f, X, a) for (z, f, _), a in zip(data, accelerations)]
     load_rms = torch.cat([f[:, free] for _, f, _ in data]).pow(2).mean().sqrt().clamp(min=1e-300)
     stress_rms = torch.cat([z[..., 6:12].reshape(-1, 6) for z, _, _ in data]).pow(2).mean().sqrt()
     stress_rms = stress_rms.clamp(min=1e-300)
@@ -234,11 +289,10 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
     t0, calls = time.perf_counter(), [0]
 
     def residuals(chosen):
-        if series is not None:               # the prior's relaxation constants of the terms as they stand
-            prior.prony_weight, prior.prony_decay, prior.prony_increment = series.terms(float(prior.dt))
+        terms = (None, None, None) if series is None else series.terms(float(prior.dt))
         out = []
-        for z, f, _, a in chosen:
-            G, H = prior.remainders(z[..., 0:3] - X, z[..., 3:6], z[..., 6:12], f, a)
+        for _, _, _, error in chosen:
+            G, H = error(*terms)
             out.append((G.pow(2).mean() / load_rms**2, H.pow(2).mean() / stress_rms**2))
         return out
 
@@ -257,7 +311,7 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
 
         opt.step(closure)
 
-    data = [(z, f, name, a) for (z, f, name), a in zip(data, accelerations)]
+    data = [(z, f, name, error) for (z, f, name), error in zip(data, errors)]
     left_out: List[Tuple[str, float]] = []
     try:
         run(data, iterations)
@@ -294,4 +348,4 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
     return report
 
 
-__all__ = ["HIDDEN", "PronySeries", "StrainEnergy", "fit_strain_energy", "invariant_scales"]
+__all__ = ["HIDDEN", "EquationError", "PronySeries", "StrainEnergy", "fit_strain_energy", "invariant_scales"]

@@ -378,17 +378,14 @@ class NewmarkPrior(nn.Module):
         return a
 
     # --- what a learned model must supply ---------------------------------------------------
-    def remainders(self, u: Tensor, v: Tensor, sigma: Tensor, f: Tensor,
-                   a: Optional[Tensor] = None) -> tuple[Tensor, Tensor]:
+    def remainders(self, u: Tensor, v: Tensor, sigma: Tensor, f: Tensor) -> tuple[Tensor, Tensor]:
         """The exact remainders along one FE trajectory: G [S, n] N and H [S, N, 6] Pa, from its
         displacements u [S, N, 3], velocities v [S, N, 3], stresses [S, N, 6] and nodal forces
         f [S, N, 3]. Assumes G = 0 at the first state (an unloaded start at rest, as generate's);
-        the relaxing prior's internal variables follow the trajectory's own displacements.
-        ``a`` [S, n]: ``accelerations``' own, already formed (a learned law's fit forms them once)."""
+        the relaxing prior's internal variables follow the trajectory's own displacements."""
         uf, vf, ff = self.gather(u), self.gather(v), self.gather(f)
         c = self.c
-        if a is None:
-            a = self.accelerations(uf, vf, ff)
+        a = self.accelerations(uf, vf, ff)
         h = self.internal_history(uf)                                              # [S, T, n + 6N]
         # f_int,lin at every step's end: K u1 (the unrelaxed prior), or K u1 + Σ ḡ_i (h_i^f − K_iso u1)
         # (= K_Δt u1 + history_force, with the step's own update of h)
