@@ -329,7 +329,7 @@ def pk1_tangent(F: Tensor, S: Tensor, dS: Tensor) -> Tensor:
 def learned_tangent(law: StrainEnergy, F: Tensor, w_iso: float, w_vol: float, extra: Optional[Tensor]) -> Tensor:
     """∂P/∂F [..., 3, 3, 3, 3] Pa of P = F (w_vol S_vol + w_iso S_iso + extra) with the learned law
     ``law`` (:class:`thermognn.train.learned_law.StrainEnergy`) at F [..., 3, 3]: its stress in
-    closed form, its derivatives along C's directions by central differences (``pk2_differentials``)."""
+    closed form, and its derivatives along C's directions (``pk2_differentials``)."""
     C = F.transpose(-1, -2) @ F
     E = symmetric_directions(F).reshape([6] + [1] * (F.dim() - 2) + [3, 3])               # [6, ..., 3, 3]
     S_iso, S_vol = law.pk2(C)

@@ -26,9 +26,8 @@ S = 2 ∂Ψ/∂C is in closed form (``pk2``): with ψ1, ψ2 = ∂Ψ_iso/∂Ī1, 
     ∂Ī1/∂C = J^(-2/3) I − Ī1/3 C⁻¹,   ∂Ī2/∂C = J^(-4/3) (tr C I − C) − 2 Ī2/3 C⁻¹,
     S_iso = 2 (ψ1 ∂Ī1/∂C + ψ2 ∂Ī2/∂C),   S_vol = U'(J) J C⁻¹,
 
-and the Newton tangent takes S's derivatives along C's six symmetric directions by central
-differences of that closed form (``pk2_differentials``; step ``TANGENT_STEP``), which the law
-prior turns into ∂P/∂F as it does Ogden's. The weights are buffers, not parameters: they are
+and so are S's derivatives along C's six symmetric directions (``pk2_differentials``), which the
+law prior turns into the Newton tangent ∂P/∂F as it does Ogden's. The weights are buffers, not parameters: they are
 fitted before the graph network trains and then held (a rollout's gradients pass them by), and
 they travel in the model's state_dict, so a checkpoint or an exported file carries its law.
 
@@ -50,8 +49,6 @@ from typing import List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor, nn
 
-#: the relative step of the central differences that give the tangent (S's derivatives along C)
-TANGENT_STEP = 1.0e-6
 #: default hidden units (isochoric, volumetric): ``model.prior_material_hidden``
 HIDDEN = (16, 8)
 #: the fit's L-BFGS iterations (``train.law_fit_iterations``)
@@ -62,10 +59,6 @@ FIT_TRAJECTORIES = 8
 #: trajectory's (relative to its loads) is left out of the fit and fitted again without it: where
 #: the FE cut its steps the data's step is not one Newmark step of Δt (the law prior's own rule)
 OUTLIER_FACTOR = 20.0
-
-
-def _softplus_sigmoid(z: Tensor) -> Tuple[Tensor, Tensor]:
-    return torch.nn.functional.softplus(z), torch.sigmoid(z)
 
 
 class StrainEnergy(nn.Module):
@@ -83,7 +76,6 @@ class StrainEnergy(nn.Module):
             raise ValueError(f"the learned law's hidden units: {tuple(hidden)!r}, expected two integers >= 1")
         self.hidden = [k, m]
         self.mu_scale, self.kappa_scale = float(mu), float(kappa)
-        self.tangent_step = TANGENT_STEP
         g = torch.Generator().manual_seed(int(seed))
         keep = not placeholder
 
@@ -118,10 +110,10 @@ class StrainEnergy(nn.Module):
         """(ψ1 = ∂Ψ_iso/∂Ī1, ψ2 = ∂Ψ_iso/∂Ī2, U'(J)) [...] Pa at the invariants [...]."""
         s = self.scales
         x = torch.stack([(I1b - 3.0) / s[0], (I2b - 3.0) / s[1]], -1)                    # [..., 2]
-        _, sig = _softplus_sigmoid(x @ self.iso_weight.t() + self.iso_bias)                # [..., k]
+        sig = torch.sigmoid(x @ self.iso_weight.t() + self.iso_bias)                       # [..., k]
         dx = self.iso_linear + (sig * self.iso_out) @ self.iso_weight                      # [..., 2] ∂Ψ/∂x / μ_s
         y = ((J - 1.0) / s[2]).unsqueeze(-1)                                               # [..., 1]
-        _, sv = _softplus_sigmoid(y * self.vol_weight + self.vol_bias)                     # [..., m]
+        sv = torch.sigmoid(y * self.vol_weight + self.vol_bias)                            # [..., m]
         dU = (self.vol_quadratic * y).squeeze(-1) + (
             self.vol_out * self.vol_weight * (sv - torch.sigmoid(self.vol_bias))).sum(-1)   # [...] U'/κ_s·s3
         return (self.mu_scale * dx[..., 0] / s[0], self.mu_scale * dx[..., 1] / s[1],
@@ -132,7 +124,7 @@ class StrainEnergy(nn.Module):
         I1b, I2b, J, _ = self.invariants(C)
         s = self.scales
         x = torch.stack([(I1b - 3.0) / s[0], (I2b - 3.0) / s[1]], -1)
-        sp, _ = _softplus_sigmoid(x @ self.iso_weight.t() + self.iso_bias)
+        sp = torch.nn.functional.softplus(x @ self.iso_weight.t() + self.iso_bias)
         rest = torch.nn.functional.softplus(self.iso_bias)
         iso = (x * self.iso_linear).sum(-1) + ((sp - rest) * self.iso_out).sum(-1)
         y = ((J - 1.0) / s[2]).unsqueeze(-1)
@@ -166,15 +158,57 @@ class StrainEnergy(nn.Module):
         I1b, I2b, J, JCi, dI1, dI2 = self.geometry(C)
         return self.stress(I1b, I2b, J, JCi, dI1, dI2)
 
+    def energy_second_derivatives(self, I1b: Tensor, I2b: Tensor, J: Tensor
+                                  ) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(ψ11, ψ12, ψ22, U''(J)) [...] Pa: the energy's second derivatives in Ī1, Ī2 and J."""
+        s = self.scales
+        x = torch.stack([(I1b - 3.0) / s[0], (I2b - 3.0) / s[1]], -1)                    # [..., 2]
+        sig = torch.sigmoid(x @ self.iso_weight.t() + self.iso_bias)                       # [..., k]
+        curvature = sig * (1.0 - sig) * self.iso_out                                       # [..., k]
+        w1, w2 = self.iso_weight[:, 0], self.iso_weight[:, 1]
+        mu = self.mu_scale
+        y = ((J - 1.0) / s[2]).unsqueeze(-1)
+        sv = torch.sigmoid(y * self.vol_weight + self.vol_bias)                            # [..., m]
+        ddU = self.vol_quadratic + (self.vol_out * self.vol_weight * self.vol_weight * sv * (1.0 - sv)).sum(-1, True)
+        return (mu * (curvature * w1 * w1).sum(-1) / (s[0] * s[0]), mu * (curvature * w1 * w2).sum(-1) / (s[0] * s[1]),
+                mu * (curvature * w2 * w2).sum(-1) / (s[1] * s[1]), self.kappa_scale * ddU.squeeze(-1) / (s[2] * s[2]))
+
     @torch.jit.export
     def pk2_differentials(self, C: Tensor, E: Tensor) -> Tuple[Tensor, Tensor]:
-        """(dS_iso, dS_vol) [6, ..., 3, 3] Pa along C's directions E [6, 1.., 3, 3]: central
-        differences of ``pk2`` with the step ``TANGENT_STEP`` (C is O(1))."""
-        h = self.tangent_step
-        Cp, Cm = C.unsqueeze(0) + h * E, C.unsqueeze(0) - h * E                           # [6, ..., 3, 3]
-        sp_iso, sp_vol = self.pk2(Cp)
-        sm_iso, sm_vol = self.pk2(Cm)
-        return (sp_iso - sm_iso) / (2.0 * h), (sp_vol - sm_vol) / (2.0 * h)
+        """(dS_iso, dS_vol) [6, ..., 3, 3] Pa along C's directions E [6, 1.., 3, 3], in closed
+        form: with e = C⁻¹ : E, t = tr E, a = J^(-2/3), dJ = J e / 2, dC⁻¹ = −C⁻¹ E C⁻¹,
+
+            dĪ1 = a t − Ī1 e / 3,   dĪ2 = a² (I1 t − C : E) − 2 Ī2 e / 3,
+            d∂Ī1/∂C = −a e / 3 I − dĪ1 / 3 C⁻¹ − Ī1 / 3 dC⁻¹,
+            d∂Ī2/∂C = −2 a² e / 3 (I1 I − C) + a² (t I − E) − 2 dĪ2 / 3 C⁻¹ − 2 Ī2 / 3 dC⁻¹,
+            dS_iso = 2 (dψ1 ∂Ī1/∂C + ψ1 d∂Ī1/∂C + dψ2 ∂Ī2/∂C + ψ2 d∂Ī2/∂C),  dψ_k = Σ_l ψ_kl dĪ_l,
+            dS_vol = (U'' J + U') dJ C⁻¹ + U' J dC⁻¹."""
+        I1b, I2b, J, JCi, dI1, dI2 = self.geometry(C)
+        psi1, psi2, dU = self.energy_derivatives(I1b, I2b, J)
+        p11, p12, p22, ddU = self.energy_second_derivatives(I1b, I2b, J)
+        Ci = JCi / J[..., None, None]
+        eye = torch.eye(3, dtype=C.dtype, device=C.device)
+        a = J.pow(-2.0 / 3.0)
+        I1 = C.diagonal(dim1=-2, dim2=-1).sum(-1)
+        e = (Ci * E).sum((-2, -1))                                                         # [6, ...]
+        t = E.diagonal(dim1=-2, dim2=-1).sum(-1)                                           # [6, 1..]
+        CE = (C * E).sum((-2, -1))
+        dCi = -(Ci @ E @ Ci)                                                               # [6, ..., 3, 3]
+        dJ = 0.5 * J * e
+        dI1b = a * t - I1b * e / 3.0
+        dI2b = a * a * (I1 * t - CE) - 2.0 * I2b * e / 3.0
+        m = [6] + [1] * (C.dim() - 2)
+        ddI1 = (-(a * e / 3.0))[..., None, None] * eye - (dI1b / 3.0)[..., None, None] * Ci \
+            - (I1b / 3.0)[..., None, None] * dCi
+        ddI2 = (-(2.0 * a * a * e / 3.0))[..., None, None] * (I1[..., None, None] * eye - C) \
+            + (a * a)[..., None, None] * (t.reshape(m)[..., None, None] * eye - E) \
+            - (2.0 * dI2b / 3.0)[..., None, None] * Ci - (2.0 * I2b / 3.0)[..., None, None] * dCi
+        dpsi1 = p11 * dI1b + p12 * dI2b
+        dpsi2 = p12 * dI1b + p22 * dI2b
+        dS_iso = 2.0 * (dpsi1[..., None, None] * dI1 + psi1[..., None, None] * ddI1
+                        + dpsi2[..., None, None] * dI2 + psi2[..., None, None] * ddI2)
+        dS_vol = ((ddU * J + dU) * dJ)[..., None, None] * Ci + (dU * J)[..., None, None] * dCi
+        return dS_iso, dS_vol
 
 
 class EquationError:
