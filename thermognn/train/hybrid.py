@@ -834,7 +834,8 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
         law.scales.copy_(torch.tensor(invariant_scales(torch.cat(Cs)), dtype=law.scales.dtype))
     report = fit_strain_energy(prior, trajs, X, int(_sel(tc, "law_fit_iterations", FIT_ITERATIONS)),
                                int(_sel(tc, "law_fit_trajectories", FIT_TRAJECTORIES)),
-                               log=print if dist.main else (lambda *_: None), prony=prony)
+                               log=(lambda m: print(m, flush=True)) if dist.main else (lambda *_: None),
+                               prony=prony)
     if dist.main:
         with atomic_path(path) as tmp:
             torch.save({"key": key, "state": law.state_dict(),

@@ -55,6 +55,8 @@ HIDDEN = (16, 8)
 FIT_ITERATIONS = 150
 #: ... on at most this many training trajectories (``train.law_fit_trajectories``)
 FIT_TRAJECTORIES = 8
+#: the fit reports its loss at most this often [s]
+PROGRESS_SECONDS = 60.0
 #: a training trajectory whose remainders under the fitted law exceed this many times the median
 #: trajectory's (relative to its loads) is left out of the fit and fitted again without it: where
 #: the FE cut its steps the data's step is not one Newmark step of Δt (the law prior's own rule)
@@ -321,6 +323,7 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
         duration = float(trajs[0].z.shape[0] - 1) * float(prior.dt)
         series = PronySeries(prior.n_terms, duration)
     t0, calls = time.perf_counter(), [0]
+    shown = [t0]
 
     def residuals(chosen):
         terms = (None, None, None) if series is None else series.terms(float(prior.dt))
@@ -341,6 +344,10 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
             loss = sum(g + h for g, h in parts) / len(parts)
             loss.backward()
             calls[0] += 1
+            if time.perf_counter() - shown[0] > PROGRESS_SECONDS:   # a fit of some minutes says where it is
+                shown[0] = time.perf_counter()
+                log(f"train: fitting the learned law: evaluation {calls[0]}, loss {float(loss):.3e} "
+                    f"({shown[0] - t0:.0f} s)")
             return loss
 
         opt.step(closure)
