@@ -678,6 +678,24 @@ def test_learned_law_fits_the_block_and_steps_it(tmp_path, tiny_block):
     assert float(weights["prior.learned_law.iso_linear"].abs().max()) > 0.0         # fitted from zero
     res = _train_prior(out, tiny_block, *args)
     assert f"train: the learned law from {out / 'learned_law.pt'}" in res.stdout, res.stdout[-2000:]
+    # loads 10x the data's (beyond the invariants it was fitted on): the learned law's steps stay
+    # finite, no cell inverted
+    import torch
+
+    from thermognn.train.checkpoint import model_from_checkpoint
+
+    ds = Dataset(tiny_block)
+    prior = model_from_checkpoint(ckpt, ds).prior
+    traj = ds.read(ds.ok_names[0])
+    f = 10.0 * torch.as_tensor(traj.force, dtype=torch.float64)
+    u = v = torch.zeros(1, prior.n_free, dtype=torch.float64)
+    G, h = torch.zeros_like(u), prior.internal_variables(u)
+    a = prior.initial_acceleration(u, v, prior.gather(f[:1]), G)
+    with torch.no_grad():
+        for k in range(1, f.shape[0]):
+            u, v, a, h = prior.step(u, v, a, prior.gather(f[k:k + 1]), G, G, h)
+    assert bool(torch.isfinite(u).all()) and float(torch.linalg.det(prior.cells(u)).min()) > 0.0
+    assert float(u.abs().max()) > 0.0
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "evaluate", f"out={out}", f"paths.dataset={tiny_block}",
                           "train.eval_max_train=1", "train.threads=1", "rollout.remainders=zero"],
                          capture_output=True, text=True, timeout=600)
