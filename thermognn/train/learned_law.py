@@ -346,7 +346,7 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
             calls[0] += 1
             if time.perf_counter() - shown[0] > PROGRESS_SECONDS:   # a fit of some minutes says where it is
                 shown[0] = time.perf_counter()
-                log(f"train: fitting the learned law: evaluation {calls[0]}, loss {float(loss):.3e} "
+                log(f"train: fitting the learned law: evaluation {calls[0]}, loss {float(loss.detach()):.3e} "
                     f"({shown[0] - t0:.0f} s)")
             return loss
 
