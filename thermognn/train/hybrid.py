@@ -789,6 +789,7 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
     its steps), the fitted Prony terms [(ḡ_i, τ_i)] or None)."""
     from thermognn.core.io import atomic_path
 
+    from .data import fingerprint
     from .learned_law import FIT_ITERATIONS, FIT_TRAJECTORIES, fit_strain_energy, invariant_scales
     from .loop import _sel
 
@@ -811,8 +812,6 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
                               f"(set model.prior_material_prony=data)")
         return set(), (fitted if prony else None)
     path = out_dir / LAW_FIT_FILE
-    from .data import fingerprint
-
     key = {"dataset": repr(sorted(fingerprint(ds).items())),
            "hidden": list(law.hidden), "trajectories": sorted(t.name for t in trajs),
            "iterations": int(_sel(tc, "law_fit_iterations", FIT_ITERATIONS)),

@@ -329,11 +329,10 @@ def pk1_tangent(F: Tensor, S: Tensor, dS: Tensor) -> Tensor:
 def learned_tangent(law: StrainEnergy, F: Tensor, w_iso: float, w_vol: float, extra: Optional[Tensor]) -> Tensor:
     """∂P/∂F [..., 3, 3, 3, 3] Pa of P = F (w_vol S_vol + w_iso S_iso + extra) with the learned law
     ``law`` (:class:`thermognn.train.learned_law.StrainEnergy`) at F [..., 3, 3]: its stress in
-    closed form, and its derivatives along C's directions (``pk2_differentials``)."""
+    closed form, and its derivatives along C's directions (``pk2_differentials``, which gives both)."""
     C = F.transpose(-1, -2) @ F
     E = symmetric_directions(F).reshape([6] + [1] * (F.dim() - 2) + [3, 3])               # [6, ..., 3, 3]
-    S_iso, S_vol = law.pk2(C)
-    dS_iso, dS_vol = law.pk2_differentials(C, E)
+    S_iso, S_vol, dS_iso, dS_vol = law.pk2_differentials(C, E)
     S = w_vol * S_vol + w_iso * S_iso
     if extra is not None:
         S = S + extra
@@ -390,8 +389,6 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         # state_dict); otherwise a placeholder of it that is never evaluated (TorchScript types both)
         self.learned = isinstance(law, StrainEnergy)
         self.learned_law = law if isinstance(law, StrainEnergy) else StrainEnergy((1, 1), placeholder=True)
-        if isinstance(law, StrainEnergy):
-            self.c10, self.d1 = 0.0, 1.0
         if isinstance(law, Ogden):
             self.ogden_mu, self.ogden_alpha, self.ogden_d = list(law.mu), list(law.alpha), list(law.d)
         else:

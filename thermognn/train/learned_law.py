@@ -176,9 +176,10 @@ class StrainEnergy(nn.Module):
                 mu * (curvature * w2 * w2).sum(-1) / (s[1] * s[1]), self.kappa_scale * ddU.squeeze(-1) / (s[2] * s[2]))
 
     @torch.jit.export
-    def pk2_differentials(self, C: Tensor, E: Tensor) -> Tuple[Tensor, Tensor]:
-        """(dS_iso, dS_vol) [6, ..., 3, 3] Pa along C's directions E [6, 1.., 3, 3], in closed
-        form: with e = C⁻¹ : E, t = tr E, a = J^(-2/3), dJ = J e / 2, dC⁻¹ = −C⁻¹ E C⁻¹,
+    def pk2_differentials(self, C: Tensor, E: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(S_iso, S_vol) [..., 3, 3] Pa as ``pk2`` gives them, and (dS_iso, dS_vol) [6, ..., 3, 3]
+        Pa along C's directions E [6, 1.., 3, 3] (one evaluation of the invariants and the energy's
+        derivatives for both), in closed form: with e = C⁻¹ : E, t = tr E, a = J^(-2/3), dJ = J e / 2, dC⁻¹ = −C⁻¹ E C⁻¹,
 
             dĪ1 = a t − Ī1 e / 3,   dĪ2 = a² (I1 t − C : E) − 2 Ī2 e / 3,
             d∂Ī1/∂C = −a e / 3 I − dĪ1 / 3 C⁻¹ − Ī1 / 3 dC⁻¹,
@@ -210,7 +211,8 @@ class StrainEnergy(nn.Module):
         dS_iso = 2.0 * (dpsi1[..., None, None] * dI1 + psi1[..., None, None] * ddI1
                         + dpsi2[..., None, None] * dI2 + psi2[..., None, None] * ddI2)
         dS_vol = ((ddU * J + dU) * dJ)[..., None, None] * Ci + (dU * J)[..., None, None] * dCi
-        return dS_iso, dS_vol
+        S_iso = 2.0 * (psi1[..., None, None] * dI1 + psi2[..., None, None] * dI2)
+        return S_iso, dU[..., None, None] * JCi, dS_iso, dS_vol
 
 
 class EquationError:
