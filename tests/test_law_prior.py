@@ -11,7 +11,7 @@ from thermognn.core.hyperelastic import NeoHookean, Ogden  # noqa: E402
 from thermognn.train.law_prior import (HyperelasticNewmarkPrior, cofactor, learned_tangent,  # noqa: E402
                                        neo_hookean_pk2, neo_hookean_tangent, ogden_isochoric_pk2,
                                        ogden_tangent, ogden_volumetric_pk2)
-from thermognn.train.learned_law import StrainEnergy  # noqa: E402
+from thermognn.train.learned_law import CONVEX, StrainEnergy  # noqa: E402
 
 
 def _gradients() -> np.ndarray:
@@ -214,3 +214,33 @@ def test_learned_prony_terms_relax_as_the_linear_solids_own():
     got = torch.stack(series.terms(0.02), 1)
     assert torch.allclose(got, expected, rtol=1e-12, atol=0.0)
     assert [t for _, t in values] == pytest.approx([3.0, 0.3])                      # the start: 5 and 1/2 durations
+
+
+def test_the_convex_learned_family_cannot_soften():
+    """With the convex family's weights (``CONVEX``: the hidden outputs a, the volumetric k0 and e)
+    positive, the energy's Hessian in the isochoric invariants is positive semi-definite and U'' > 0
+    everywhere, far beyond the fitted states too (second derivatives autograd's of the first);
+    with those weights free in sign (the default family) the same law softens somewhere."""
+    gen = torch.Generator().manual_seed(3)
+    I1b = 3.0 + 20.0 * torch.rand(400, dtype=torch.float64, generator=gen)    # far beyond s1, s2 = 0.2, 0.3
+    I2b = 3.0 + 20.0 * torch.rand(400, dtype=torch.float64, generator=gen)
+    J = 0.2 + 3.0 * torch.rand(400, dtype=torch.float64, generator=gen)       # and s3 = 0.05
+
+    def hessians(law):
+        p11, p12, p22, ddU = law.energy_second_derivatives(I1b, I2b, J)
+        x = torch.stack([I1b, I2b, J], -1).requires_grad_()
+        psi1, psi2, dU = law.energy_derivatives(x[:, 0], x[:, 1], x[:, 2])
+        d1, d2, d3 = (torch.autograd.grad(y.sum(), x, retain_graph=True)[0] for y in (psi1, psi2, dU))
+        for mine, auto in ((p11, d1[:, 0]), (p12, d1[:, 1]), (p12, d2[:, 0]), (p22, d2[:, 1]), (ddU, d3[:, 2])):
+            assert float((mine - auto).abs().max()) <= 1e-10 * float(auto.abs().max())
+        return torch.minimum(p11, p22), p11 * p22 - p12 * p12, ddU
+
+    free = _learned()
+    lowest, det, ddU = hessians(free)
+    assert bool((lowest < 0).any() | (det < 0).any())
+    convex = _learned()
+    with torch.no_grad():
+        for name in CONVEX:
+            getattr(convex, name).abs_().add_(1e-3)
+    lowest, det, ddU = hessians(convex)
+    assert bool((lowest >= 0).all()) and bool((det >= -1e-12 * lowest.abs().max() ** 2).all()) and bool((ddU > 0).all())

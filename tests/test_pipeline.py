@@ -708,10 +708,33 @@ def test_learned_law_fits_the_block_and_steps_it(tmp_path, tiny_block):
                          capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     assert verify(out / "alone.pt")["step"]["remainders"] == "zero"
+    # the convex family (model.prior_material_convex=true): the hidden units' outputs and the
+    # volumetric stiffness fitted non-negative, so the energy cannot soften beyond the fitted states;
+    # it is as near the held-out data
+    from thermognn.train.learned_law import CONVEX
+
+    out = tmp_path / "convex"
+    res = _train_prior(out, tiny_block, *args[:-1], "train.law_fit_iterations=150", "model.prior_material_convex=true")
+    assert "train: the learned law (convex) fitted to 4 training trajectories" in res.stdout, res.stdout[-2000:]
+    ckpt = load_checkpoint(out / "model.ckpt")
+    assert ckpt["prior"]["law_convex"] is True
+    for name in CONVEX:
+        assert float(ckpt["state_dict"][f"prior.learned_law.{name}"].min()) >= 0.0, name
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "evaluate", f"out={out}", f"paths.dataset={tiny_block}",
+                          "train.eval_max_train=1", "train.threads=1", "rollout.remainders=zero"],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    alone = json.loads((out / "eval" / "rrmse.json").read_text())
+    for g in ("q", "v", "sigma"):
+        assert 0 < alone[f"whole_{g}"] < min(0.02, 0.2 * alone[f"linear_fe_whole_{g}"]), (g, alone)
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'data_law'}",
                           f"paths.dataset={tiny_block}", "model=linear_prior", "model.prior_material=learned"],
                          capture_output=True, text=True, timeout=600)
     assert res.returncode != 0 and "model.prior_material = learned needs model.prior_law = true" in res.stderr
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'data_law'}",
+                          f"paths.dataset={tiny_block}", "model=learned_law", "model.prior_material_convex=yes"],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode != 0 and "model.prior_material_convex = 'yes', expected true or false" in res.stderr
     # a viscous block (one Prony term): the term's weight and time are fitted with the energy
     # (model.prior_material_prony=learned, the preset's), kept in the checkpoint's settings, and
     # stepped so by evaluate and export

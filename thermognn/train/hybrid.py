@@ -512,6 +512,9 @@ def prior_settings(cfg_model) -> dict:
         from .learned_law import HIDDEN as hidden
     hidden = list(hidden)
     prony = str(OmegaConf.select(cfg_model, "prior_material_prony", default="learned"))
+    convex = OmegaConf.select(cfg_model, "prior_material_convex", default=False)
+    if not isinstance(convex, bool):
+        raise ConfigError(f"model.prior_material_convex = {convex!r}, expected true or false (a convex learned energy)")
     if prony not in LAW_MATERIALS:
         raise ConfigError(f"model.prior_material_prony = '{prony}', expected " + " | ".join(LAW_MATERIALS)
                           + " (a learned law's Prony terms: the scene's, or fitted with its energy)")
@@ -548,6 +551,8 @@ def prior_settings(cfg_model) -> dict:
             settings["law_hidden"] = [int(h) for h in hidden]
             if prony == "learned":                # its Prony terms too (their values: ``learned_law_of``)
                 settings["law_prony"] = "learned"
+            if convex:                            # fitted as a convex energy (absent otherwise)
+                settings["law_convex"] = True
     return settings
 
 
@@ -779,14 +784,14 @@ LAW_FIT_FILE = "learned_law.pt"
 
 
 def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_ckpt: Optional[dict],
-                   dist, prony: bool = False) -> Tuple[set, Optional[list]]:
+                   dist, prony: bool = False, convex: bool = False) -> Tuple[set, Optional[list]]:
     """Put the learned law (``model.prior_material=learned``) of a law prior in place before its
     network trains: ``train.init``'s, else the fit kept in ``out_dir/learned_law.pt`` for this
     dataset and shape (a rerun or a resumed run does not fit again), else fitted now to the training
     trajectories (:func:`thermognn.train.learned_law.fit_strain_energy`, ``train.law_fit_iterations``
     L-BFGS iterations) and kept there, written atomically; with ``prony`` the Prony terms are
     fitted with it. Returns (the training trajectories' names the fit left out (where the FE cut
-    its steps), the fitted Prony terms [(ḡ_i, τ_i)] or None)."""
+    its steps), the fitted Prony terms [(ḡ_i, τ_i)] or None); ``convex`` fits the convex family."""
     from thermognn.core.io import atomic_path
 
     from .data import fingerprint
@@ -816,6 +821,8 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
            "hidden": list(law.hidden), "trajectories": sorted(t.name for t in trajs),
            "iterations": int(_sel(tc, "law_fit_iterations", FIT_ITERATIONS)),
            "at_most": int(_sel(tc, "law_fit_trajectories", FIT_TRAJECTORIES)), "prony": bool(prony)}
+    if convex:                                   # absent otherwise: fits kept before keep their keys
+        key["convex"] = True
     if path.exists():
         kept = torch.load(path, weights_only=True)
         if kept.get("key") == key:
@@ -834,7 +841,7 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
     report = fit_strain_energy(prior, trajs, X, int(_sel(tc, "law_fit_iterations", FIT_ITERATIONS)),
                                int(_sel(tc, "law_fit_trajectories", FIT_TRAJECTORIES)),
                                log=(lambda m: print(m, flush=True)) if dist.main else (lambda *_: None),
-                               prony=prony)
+                               prony=prony, convex=convex)
     if dist.main:
         with atomic_path(path) as tmp:
             torch.save({"key": key, "state": law.state_dict(),
@@ -1119,7 +1126,7 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     law_left_out = None
     if settings.get("law_material") == "learned":   # the law itself first: fitted, read from train.init, or kept
         law_left_out, prony = learned_law_of(model, train_trajs, out_dir, ds, tc, init_ckpt, dist,
-                                             settings.get("law_prony") == "learned")
+                                             settings.get("law_prony") == "learned", bool(settings.get("law_convex")))
         if prony is not None:                    # the prior again, with its fitted Prony terms
             settings["law_prony"] = [list(t) for t in prony]
             law_state = model.prior.learned_law.state_dict()

@@ -61,6 +61,14 @@ PROGRESS_SECONDS = 60.0
 #: trajectory's (relative to its loads) is left out of the fit and fitted again without it: where
 #: the FE cut its steps the data's step is not one Newmark step of Δt (the law prior's own rule)
 OUTLIER_FACTOR = 20.0
+#: StrainEnergy's fitted tensors, in order
+WEIGHT_NAMES = ("iso_linear", "iso_weight", "iso_bias", "iso_out", "vol_quadratic", "vol_weight", "vol_bias", "vol_out")
+#: the convex family (``model.prior_material_convex``): these weights non-negative (squares). Ψ_iso's Hessian in x
+#: is μ_s Σ_k a_k σ_k (1 − σ_k) w_k w_kᵀ and U'' = κ_s (k0 + Σ_m e_m v_m² σ_m (1 − σ_m)) / s3², so
+#: with a, k0, e >= 0 the energy is convex in x and in y whatever the other weights
+CONVEX = ("iso_out", "vol_quadratic", "vol_out")
+#: ... each starting from its random value's magnitude, at least this (relative to μ_s, κ_s)
+CONVEX_START = 1e-3
 
 
 class StrainEnergy(nn.Module):
@@ -96,9 +104,8 @@ class StrainEnergy(nn.Module):
 
     @torch.jit.unused
     def weights(self) -> List[Tensor]:
-        """The fitted tensors (all but the scales), in a fixed order."""
-        return [self.iso_linear, self.iso_weight, self.iso_bias, self.iso_out,
-                self.vol_quadratic, self.vol_weight, self.vol_bias, self.vol_out]
+        """The fitted tensors (all but the scales), in the order of ``WEIGHT_NAMES``."""
+        return [getattr(self, name) for name in WEIGHT_NAMES]
 
     def invariants(self, C: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
         """(Ī1, Ī2, J, C⁻¹) of right Cauchy–Green tensors C [..., 3, 3]: [...] each, C⁻¹ [..., 3, 3]."""
@@ -294,7 +301,8 @@ class PronySeries(nn.Module):
 
 
 def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
-                      max_trajectories: int = FIT_TRAJECTORIES, log=print, prony: bool = False) -> dict:
+                      max_trajectories: int = FIT_TRAJECTORIES, log=print, prony: bool = False,
+                      convex: bool = False) -> dict:
     """Fit the law prior's learned law ``prior.learned_law`` (a :class:`StrainEnergy`) to the
     training trajectories ``trajs`` (``z`` [S, N, 12], ``force`` [S, N, 3], ``name``) by
     equation error (module docstring), X [N, 3] m the reference positions: at most
@@ -302,7 +310,9 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
     its trajectories gives thousands of cell states). Where one
     trajectory's remainders stay above ``OUTLIER_FACTOR`` times the median's it is left out and the
     fit goes on without it. With ``prony`` (a viscous prior) its Prony terms are fitted too
-    (:class:`PronySeries`, as many as it has) and left in its ``prony_*`` buffers. Returns a report
+    (:class:`PronySeries`, as many as it has) and left in its ``prony_*`` buffers. With ``convex``
+    the fit keeps the energy convex in x and in y (``CONVEX``: the hidden units' output weights and
+    k0 fitted by their square roots, so never negative), so it cannot soften beyond the states it saw. Returns a report
     {"seconds", "iterations", "force", "stress" (the final RMS remainders relative to the loads'
     and the stresses' RMS), "left_out" [(name, ratio)], "prony" [(ḡ_i, τ_i)] (None: not fitted)}."""
     law = prior.learned_law
@@ -317,9 +327,21 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
     load_rms = torch.cat([f[:, free] for _, f, _ in data]).pow(2).mean().sqrt().clamp(min=1e-300)
     stress_rms = torch.cat([z[..., 6:12].reshape(-1, 6) for z, _, _ in data]).pow(2).mean().sqrt()
     stress_rms = stress_rms.clamp(min=1e-300)
-    weights = law.weights()
-    for w in weights:
+    positive = {}                              # the convex family's non-negative weights, fitted by their square roots
+    if convex:
+        with torch.no_grad():
+            for name in CONVEX:
+                start = getattr(law, name).abs().clamp(min=CONVEX_START)
+                setattr(law, name, start.clone())
+                positive[name] = start.sqrt()
+    weights = [w for w, name in zip(law.weights(), WEIGHT_NAMES) if name not in positive]
+    roots = list(positive.values())
+    for w in weights + roots:
         w.requires_grad_(True)
+
+    def positive_weights() -> None:            # the law's buffers from their square roots (in the graph)
+        for name, root in positive.items():
+            setattr(law, name, root * root)
     series = None
     if prony and prior.n_terms > 0:
         duration = float(trajs[0].z.shape[0] - 1) * float(prior.dt)
@@ -329,6 +351,7 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
 
     def residuals(chosen):
         terms = (None, None, None) if series is None else series.terms(float(prior.dt))
+        positive_weights()
         out = []
         for _, _, _, error in chosen:
             G, H = error(*terms)
@@ -336,7 +359,7 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
         return out
 
     def run(chosen, n):
-        fitted = weights + ([] if series is None else list(series.parameters()))
+        fitted = weights + roots + ([] if series is None else list(series.parameters()))
         opt = torch.optim.LBFGS(fitted, lr=1.0, max_iter=n, history_size=50, line_search_fn="strong_wolfe",
                                 tolerance_grad=1e-14, tolerance_change=1e-16)
 
@@ -370,8 +393,10 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
         with torch.no_grad():
             parts = residuals(keep)
     finally:
-        for w in weights:
+        for w in weights + roots:
             w.requires_grad_(False)
+        with torch.no_grad():
+            positive_weights()
         if series is not None:
             with torch.no_grad():
                 prior.prony_weight, prior.prony_decay, prior.prony_increment = series.terms(float(prior.dt))
@@ -382,7 +407,7 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
     report = {"seconds": time.perf_counter() - t0, "iterations": calls[0], "force": force, "stress": stress,
               "left_out": left_out, "trajectories": len(keep),
               "prony": None if series is None else series.values()}
-    log(f"train: the learned law fitted to {len(keep)} training trajectories in {report['seconds']:.0f} s "
+    log(f"train: the learned law{' (convex)' if convex else ''} fitted to {len(keep)} training trajectories in {report['seconds']:.0f} s "
         f"({calls[0]} evaluations): RMS force remainder {force:.3e} of the loads, stress {stress:.3e} of σ"
         + ("; Prony terms (g, tau [s]) " + ", ".join(f"({g:.4g}, {t:.4g})" for g, t in report["prony"])
            if report["prony"] else "")
@@ -391,4 +416,4 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
     return report
 
 
-__all__ = ["HIDDEN", "EquationError", "PronySeries", "StrainEnergy", "fit_strain_energy", "invariant_scales"]
+__all__ = ["CONVEX", "HIDDEN", "EquationError", "PronySeries", "StrainEnergy", "fit_strain_energy", "invariant_scales"]
