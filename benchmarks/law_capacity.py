@@ -4,8 +4,8 @@ equation error (no dynamics, no Prony history).
 ``model.prior_material=learned`` fits :class:`thermognn.train.learned_law.StrainEnergy` to the
 training trajectories through the law prior's remainders, where the energy, the Prony terms and
 the trajectories' dynamics are all tangled. This script asks the simpler question first: at the
-cells' states C the data passes through (up to ``--trajectories`` trajectories, evenly through
-the dataset, ``--cells`` of their cell states at random), how near can the family's isochoric
+cells' states C the data passes through (up to ``--trajectories`` training trajectories, evenly
+through the training split, ``--cells`` of their cell states at random), how near can the family's isochoric
 stress S_iso = 2 ∂Ψ_iso/∂C come to the scene's own (neo-Hookean or Ogden, with the FE's
 regularised eigenvalues), fitted by L-BFGS directly to that stress? It prints the relative RMS and
 the largest relative error per state for each family (``--families free,convex``), the hidden
@@ -27,17 +27,19 @@ import time
 
 import torch
 
-from thermognn.train.data import Dataset
+from thermognn.train.data import Dataset, split_names, spread
 from thermognn.train.law_prior import neo_hookean_pk2, ogden_isochoric_pk2
-from thermognn.train.learned_law import CONVEX, CONVEX_START, StrainEnergy, invariant_scales
+from thermognn.train.learned_law import StrainEnergy, convex_roots, invariant_scales
+
+#: train's default split (conf/train/default.yaml ``split``)
+TRAIN_SPLIT = (0.8, 0.1, 0.1)
 
 
 def cell_states(ds: Dataset, trajectories: int, cells: int, seed: int = 0) -> torch.Tensor:
     """Right Cauchy–Green tensors C [cells, 3, 3] of the dataset's cells along up to
-    ``trajectories`` of its trajectories (evenly through its list), ``cells`` of them at random."""
-    names = ds.ok_names
-    if len(names) > trajectories:
-        names = [names[round(i * (len(names) - 1) / max(trajectories - 1, 1))] for i in range(trajectories)]
+    ``trajectories`` of its training trajectories (``train``'s default split, seed 0; evenly
+    through the list, as the learned law's fit picks them), ``cells`` of them at random."""
+    names = spread(split_names(ds, TRAIN_SPLIT, 0)["train"], trajectories)
     X = torch.as_tensor(ds.mesh.nodes, dtype=torch.float64)                     # [N, 3] m
     tets = torch.as_tensor(ds.mesh.tets, dtype=torch.long)                      # [T, 4]
     Dm_inv = torch.linalg.inv((X[tets[:, 1:]] - X[tets[:, :1]]).transpose(-1, -2))   # [T, 3, 3]
@@ -66,12 +68,9 @@ def fit(ds: Dataset, C: torch.Tensor, S: torch.Tensor, hidden: int, iterations: 
     """The family's isochoric part fitted to S [n, 3, 3] at C by L-BFGS; its errors and seconds."""
     lam, mu = ds.linear_solid().lame()
     law = StrainEnergy((hidden, 1), mu=mu, kappa=lam + 2.0 * mu / 3.0, scales=invariant_scales(C))
-    roots = {}
-    if convex:                                   # as fit_strain_energy's convex family
-        with torch.no_grad():
-            law.iso_out.copy_(law.iso_out.abs().clamp(min=CONVEX_START))
-        roots = {"iso_out": law.iso_out.sqrt().clone().requires_grad_()}
-    assert set(roots) <= set(CONVEX)
+    roots = convex_roots(law, ("iso_out",)) if convex else {}   # as fit_strain_energy's convex family
+    for r in roots.values():
+        r.requires_grad_()
     fitted = [getattr(law, n).requires_grad_() for n in ("iso_linear", "iso_weight", "iso_bias", "iso_out")
               if n not in roots] + list(roots.values())
     opt = torch.optim.LBFGS(fitted, lr=1.0, max_iter=iterations, history_size=50, line_search_fn="strong_wolfe",

@@ -472,7 +472,8 @@ def test_share_of_the_linear_error_left_and_the_training_sample():
     """error_left: the mean over trajectories of the model's error over the linear model's, per
     group, skipping groups the linear model does not predict (nan) or gets exactly (0); spread:
     an evenly spaced sample of the training trajectories with both ends (every load level)."""
-    from thermognn.train.evaluation import error_left, spread
+    from thermognn.train.data import spread
+    from thermognn.train.evaluation import error_left
 
     nan = float("nan")
     model = [{"q": 1.0, "v": 0.02, "s": 0.5}, {"q": 3.0, "v": 0.01, "s": 0.5}]

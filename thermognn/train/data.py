@@ -190,6 +190,17 @@ def _split_groups(names: list[str], split_groups: dict[str, str]) -> list[list[s
     return list(groups.values())
 
 
+def spread(names: list, k: int) -> list:
+    """At most k of ``names`` (names or trajectories), evenly spaced over the list (its first and last included), in order:
+    a sample of the training trajectories that covers every load level of a dataset generated with
+    several magnitudes (``generate`` lists the cases of one magnitude after another)."""
+    if k <= 0 or not names:
+        return []
+    if k >= len(names):
+        return list(names)
+    return [names[i] for i in sorted({int(round(x)) for x in np.linspace(0, len(names) - 1, k)})]
+
+
 def load_graph(ds: Dataset, dtype: torch.dtype) -> Graph:
     mesh = ds.mesh
     faces = mesh.boundary_faces() if len(mesh.tets) else np.zeros((0, 3), np.int64)

@@ -39,7 +39,7 @@ from thermognn.core.state import describe_step
 
 from .checkpoint import load_checkpoint, model_from_checkpoint, model_step, torch_dtype, with_rollout
 from .data import (Graph, LoadedData, TrajectoryTensors, check_fingerprint, load_data, rest_trajectory,
-                   velocity_columns)
+                   spread, velocity_columns)
 from .loop import held_out_sentence, print_rrmse_table, rest_growth
 from .device import cpu_randn
 from .hybrid import LinearPriorModel
@@ -513,17 +513,6 @@ def error_left(model: list[dict[str, float]], linear: list[dict[str, float]], gr
     (capacity, training)."""
     return _mean_groups([{g: m[g] / lin[g] if lin[g] > 0 else math.nan for g in groups}
                          for m, lin in zip(model, linear)], groups)
-
-
-def spread(names: list[str], k: int) -> list[str]:
-    """At most k of ``names``, evenly spaced over the list (its first and last included), in order:
-    a sample of the training trajectories that covers every load level of a dataset generated with
-    several magnitudes (``generate`` lists the cases of one magnitude after another)."""
-    if k <= 0 or not names:
-        return []
-    if k >= len(names):
-        return list(names)
-    return [names[i] for i in sorted({int(round(x)) for x in np.linspace(0, len(names) - 1, k)})]
 
 
 #: the load scale of the gentle-load check (:func:`gentle_load_gaps`): 1 % of the data's loads

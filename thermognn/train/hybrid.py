@@ -816,11 +816,16 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
             raise ConfigError(f"train.init = '{tc.init}': its learned law has the scene's Prony terms "
                               f"(set model.prior_material_prony=data)")
         return set(), (fitted if prony else None)
+    counts = {}                                  # train.law_fit_iterations, train.law_fit_trajectories
+    for name, default in (("iterations", FIT_ITERATIONS), ("trajectories", FIT_TRAJECTORIES)):
+        value = _sel(tc, f"law_fit_{name}", default)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ConfigError(f"train.law_fit_{name} = {value!r}: expected a whole number of at least 1")
+        counts[name] = value
     path = out_dir / LAW_FIT_FILE
     key = {"dataset": repr(sorted(fingerprint(ds).items())),
            "hidden": list(law.hidden), "trajectories": sorted(t.name for t in trajs),
-           "iterations": int(_sel(tc, "law_fit_iterations", FIT_ITERATIONS)),
-           "at_most": int(_sel(tc, "law_fit_trajectories", FIT_TRAJECTORIES)), "prony": bool(prony)}
+           "iterations": counts["iterations"], "at_most": counts["trajectories"], "prony": bool(prony)}
     if convex:                                   # absent otherwise: fits kept before keep their keys
         key["convex"] = True
     if path.exists():
@@ -838,8 +843,7 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
             F = prior.cells(prior.gather(t.z.double()[..., 0:3] - X))                      # [S, T, 3, 3]
             Cs.append(F.transpose(-1, -2) @ F)
         law.scales.copy_(torch.tensor(invariant_scales(torch.cat(Cs)), dtype=law.scales.dtype))
-    report = fit_strain_energy(prior, trajs, X, int(_sel(tc, "law_fit_iterations", FIT_ITERATIONS)),
-                               int(_sel(tc, "law_fit_trajectories", FIT_TRAJECTORIES)),
+    report = fit_strain_energy(prior, trajs, X, counts["iterations"], counts["trajectories"],
                                log=(lambda m: print(m, flush=True)) if dist.main else (lambda *_: None),
                                prony=prony, convex=convex)
     if dist.main:

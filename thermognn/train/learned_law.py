@@ -49,6 +49,8 @@ from typing import List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor, nn
 
+from .data import spread
+
 #: default hidden units (isochoric, volumetric): ``model.prior_material_hidden``
 HIDDEN = (16, 8)
 #: the fit's L-BFGS iterations (``train.law_fit_iterations``)
@@ -300,6 +302,14 @@ class PronySeries(nn.Module):
         return [(float(a), float(b)) for a, b in zip(g, torch.exp(self.log_tau.detach()))]
 
 
+def convex_roots(law: "StrainEnergy", names: Sequence[str] = CONVEX) -> dict:
+    """The convex family's start (``model.prior_material_convex``): each of ``names`` (of ``CONVEX``)
+    its random value's magnitude, at least ``CONVEX_START``; returned as {name: its square root}, the
+    tensors a fit adjusts (the law's weight is then the root squared, never negative)."""
+    with torch.no_grad():
+        return {name: getattr(law, name).abs().clamp(min=CONVEX_START).sqrt() for name in names}
+
+
 def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
                       max_trajectories: int = FIT_TRAJECTORIES, log=print, prony: bool = False,
                       convex: bool = False) -> dict:
@@ -317,8 +327,7 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
     and the stresses' RMS), "left_out" [(name, ratio)], "prony" [(ḡ_i, τ_i)] (None: not fitted)}."""
     law = prior.learned_law
     free = prior.free_nodes()
-    if len(trajs) > max_trajectories:          # evenly through the training list
-        trajs = [trajs[round(i * (len(trajs) - 1) / (max_trajectories - 1))] for i in range(max_trajectories)]
+    trajs = spread(trajs, max_trajectories)    # evenly through the training list
     data = [(t.z.double(), t.force.double(), t.name) for t in trajs]
     with torch.no_grad():                      # the data's Newmark accelerations: the law's at rest only (S(I) = 0)
         accelerations = [prior.accelerations(prior.gather(z[..., 0:3] - X), prior.gather(z[..., 3:6]),
@@ -327,13 +336,7 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
     load_rms = torch.cat([f[:, free] for _, f, _ in data]).pow(2).mean().sqrt().clamp(min=1e-300)
     stress_rms = torch.cat([z[..., 6:12].reshape(-1, 6) for z, _, _ in data]).pow(2).mean().sqrt()
     stress_rms = stress_rms.clamp(min=1e-300)
-    positive = {}                              # the convex family's non-negative weights, fitted by their square roots
-    if convex:
-        with torch.no_grad():
-            for name in CONVEX:
-                start = getattr(law, name).abs().clamp(min=CONVEX_START)
-                setattr(law, name, start.clone())
-                positive[name] = start.sqrt()
+    positive = convex_roots(law) if convex else {}   # the convex family's non-negative weights, by their square roots
     weights = [w for w, name in zip(law.weights(), WEIGHT_NAMES) if name not in positive]
     roots = list(positive.values())
     for w in weights + roots:
@@ -416,4 +419,5 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
     return report
 
 
-__all__ = ["CONVEX", "HIDDEN", "EquationError", "PronySeries", "StrainEnergy", "fit_strain_energy", "invariant_scales"]
+__all__ = ["CONVEX", "HIDDEN", "EquationError", "PronySeries", "StrainEnergy", "convex_roots", "fit_strain_energy",
+           "invariant_scales"]
