@@ -244,3 +244,19 @@ def test_the_convex_learned_family_cannot_soften():
             getattr(convex, name).abs_().add_(1e-3)
     lowest, det, ddU = hessians(convex)
     assert bool((lowest >= 0).all()) and bool((det >= -1e-12 * lowest.abs().max() ** 2).all()) and bool((ddU > 0).all())
+
+
+def test_the_learned_laws_fit_picks_the_widest_trajectories_first():
+    """widest_first (``train.law_fit_pick=widest``): the trajectories reaching the largest
+    |Ī1 − 3|, |Ī2 − 3|, |J − 1| are always among the k picked (each once), the rest evenly through
+    the others, in the list's order; k at least the list's length keeps it all."""
+    from thermognn.train.learned_law import widest_first
+
+    names = [f"traj_{i}" for i in range(20)]
+    extents = torch.full((20, 3), 0.1, dtype=torch.float64)                  # [n, (Ī1, Ī2, J)]
+    extents[13, 0], extents[13, 1], extents[7, 2] = 0.7, 0.5, 0.3             # traj_13 widest twice
+    picked = widest_first(names, extents, 4)
+    assert len(picked) == 4 and {"traj_13", "traj_7"} <= set(picked) and picked == sorted(picked, key=names.index)
+    assert set(picked) - {"traj_13", "traj_7"} == {"traj_0", "traj_19"}       # the others' ends
+    assert widest_first(names, extents, 1) == ["traj_13"]
+    assert widest_first(names[:3], extents[:3], 8) == names[:3]

@@ -739,6 +739,10 @@ def test_learned_law_fits_the_block_and_steps_it(tmp_path, tiny_block):
                           f"paths.dataset={tiny_block}", "model=learned_law", "train.law_fit_trajectories=0"],
                          capture_output=True, text=True, timeout=600)
     assert res.returncode != 0 and "train.law_fit_trajectories = 0: expected a whole number of at least 1" in res.stderr
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'data_law'}",
+                          f"paths.dataset={tiny_block}", "model=learned_law", "train.law_fit_pick=all"],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode != 0 and "train.law_fit_pick = 'all': expected widest or spread" in res.stderr
     # a viscous block (one Prony term): the term's weight and time are fitted with the energy
     # (model.prior_material_prony=learned, the preset's), kept in the checkpoint's settings, and
     # stepped so by evaluate and export

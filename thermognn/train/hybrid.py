@@ -789,7 +789,8 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
     network trains: ``train.init``'s, else the fit kept in ``out_dir/learned_law.pt`` for this
     dataset and shape (a rerun or a resumed run does not fit again), else fitted now to the training
     trajectories (:func:`thermognn.train.learned_law.fit_strain_energy`, ``train.law_fit_iterations``
-    L-BFGS iterations) and kept there, written atomically; with ``prony`` the Prony terms are
+    L-BFGS iterations on at most ``train.law_fit_trajectories`` of them, picked by
+    ``train.law_fit_pick``) and kept there, written atomically; with ``prony`` the Prony terms are
     fitted with it. Returns (the training trajectories' names the fit left out (where the FE cut
     its steps), the fitted Prony terms [(ḡ_i, τ_i)] or None); ``convex`` fits the convex family."""
     from thermognn.core.io import atomic_path
@@ -822,12 +823,17 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ConfigError(f"train.law_fit_{name} = {value!r}: expected a whole number of at least 1")
         counts[name] = value
+    pick = str(_sel(tc, "law_fit_pick", "widest"))
+    if pick not in ("widest", "spread"):
+        raise ConfigError(f"train.law_fit_pick = {pick!r}: expected widest or spread")
     path = out_dir / LAW_FIT_FILE
     key = {"dataset": repr(sorted(fingerprint(ds).items())),
            "hidden": list(law.hidden), "trajectories": sorted(t.name for t in trajs),
            "iterations": counts["iterations"], "at_most": counts["trajectories"], "prony": bool(prony)}
     if convex:                                   # absent otherwise: fits kept before keep their keys
         key["convex"] = True
+    if pick == "widest":                         # fits kept before session 81 picked by spread
+        key["pick"] = pick
     if path.exists():
         kept = torch.load(path, weights_only=True)
         if kept.get("key") == key:
@@ -843,9 +849,10 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
             F = prior.cells(prior.gather(t.z.double()[..., 0:3] - X))                      # [S, T, 3, 3]
             Cs.append(F.transpose(-1, -2) @ F)
         law.scales.copy_(torch.tensor(invariant_scales(torch.cat(Cs)), dtype=law.scales.dtype))
+        extents = torch.tensor([invariant_scales(C) for C in Cs]) if pick == "widest" else None   # [n, 3]
     report = fit_strain_energy(prior, trajs, X, counts["iterations"], counts["trajectories"],
                                log=(lambda m: print(m, flush=True)) if dist.main else (lambda *_: None),
-                               prony=prony, convex=convex)
+                               prony=prony, convex=convex, extents=extents)
     if dist.main:
         with atomic_path(path) as tmp:
             torch.save({"key": key, "state": law.state_dict(),

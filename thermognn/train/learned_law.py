@@ -310,14 +310,35 @@ def convex_roots(law: "StrainEnergy", names: Sequence[str] = CONVEX) -> dict:
         return {name: getattr(law, name).abs().clamp(min=CONVEX_START).sqrt() for name in names}
 
 
+def widest_first(trajs: list, extents: Tensor, k: int) -> list:
+    """At most k of ``trajs`` for the learned law's fit (``train.law_fit_pick=widest``): first the
+    ones reaching the training states' largest |Ī1 − 3|, |Ī2 − 3| and |J − 1| (``extents`` [n, 3],
+    each trajectory's largest, ``invariant_scales``), then the rest evenly through the others
+    (``spread``), in the list's order. A law fitted by equation error is only known on the states
+    its trajectories pass through; beyond them a free family may soften, so the fit sees the
+    widest the training split reaches."""
+    if k >= len(trajs):
+        return list(trajs)
+    widest = []
+    for column in extents.T:                    # [n] one invariant's largest per trajectory
+        i = int(torch.argmax(column))
+        if i not in widest:
+            widest.append(i)
+    widest = widest[:k]
+    others = [i for i in range(len(trajs)) if i not in widest]
+    chosen = set(widest) | set(spread(others, k - len(widest)))
+    return [t for i, t in enumerate(trajs) if i in chosen]
+
+
 def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
                       max_trajectories: int = FIT_TRAJECTORIES, log=print, prony: bool = False,
-                      convex: bool = False) -> dict:
+                      convex: bool = False, extents: Optional[Tensor] = None) -> dict:
     """Fit the law prior's learned law ``prior.learned_law`` (a :class:`StrainEnergy`) to the
     training trajectories ``trajs`` (``z`` [S, N, 12], ``force`` [S, N, 3], ``name``) by
     equation error (module docstring), X [N, 3] m the reference positions: at most
     ``max_trajectories`` of them, evenly through the list (a law has some hundred weights; each of
-    its trajectories gives thousands of cell states). Where one
+    its trajectories gives thousands of cell states), or with ``extents`` [len(trajs), 3] (each
+    trajectory's largest |Ī1 − 3|, |Ī2 − 3|, |J − 1|) the widest ones first (``widest_first``). Where one
     trajectory's remainders stay above ``OUTLIER_FACTOR`` times the median's it is left out and the
     fit goes on without it. With ``prony`` (a viscous prior) its Prony terms are fitted too
     (:class:`PronySeries`, as many as it has) and left in its ``prony_*`` buffers. With ``convex``
@@ -327,7 +348,7 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
     and the stresses' RMS), "left_out" [(name, ratio)], "prony" [(ḡ_i, τ_i)] (None: not fitted)}."""
     law = prior.learned_law
     free = prior.free_nodes()
-    trajs = spread(trajs, max_trajectories)    # evenly through the training list
+    trajs = spread(trajs, max_trajectories) if extents is None else widest_first(trajs, extents, max_trajectories)
     data = [(t.z.double(), t.force.double(), t.name) for t in trajs]
     with torch.no_grad():                      # the data's Newmark accelerations: the law's at rest only (S(I) = 0)
         accelerations = [prior.accelerations(prior.gather(z[..., 0:3] - X), prior.gather(z[..., 3:6]),
@@ -420,4 +441,4 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
 
 
 __all__ = ["CONVEX", "HIDDEN", "EquationError", "PronySeries", "StrainEnergy", "convex_roots", "fit_strain_energy",
-           "invariant_scales"]
+           "invariant_scales", "widest_first"]
