@@ -5,8 +5,8 @@ equation error (no dynamics, no Prony history).
 training trajectories through the law prior's remainders, where the energy, the Prony terms and
 the trajectories' dynamics are all tangled. This script asks the simpler question first: at the
 cells' states C the data passes through (up to ``--trajectories`` training trajectories, evenly
-through the training split, ``--cells`` of their cell states at random), how near can the family's isochoric
-stress S_iso = 2 ∂Ψ_iso/∂C come to the scene's own (neo-Hookean or Ogden, with the FE's
+through the training split, ``--cells`` of their cell states at random), how near can the
+family's isochoric stress S_iso = 2 ∂Ψ_iso/∂C come to the scene's own (neo-Hookean or Ogden, with the FE's
 regularised eigenvalues), fitted by L-BFGS directly to that stress? It prints the relative RMS and
 the largest relative error per state for each family (``--families free,convex``), the hidden
 units and the iterations. The volumetric part is left out: the scene's U = (J − 1)²/D is the

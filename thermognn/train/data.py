@@ -191,9 +191,10 @@ def _split_groups(names: list[str], split_groups: dict[str, str]) -> list[list[s
 
 
 def spread(names: list, k: int) -> list:
-    """At most k of ``names`` (names or trajectories), evenly spaced over the list (its first and last included), in order:
-    a sample of the training trajectories that covers every load level of a dataset generated with
-    several magnitudes (``generate`` lists the cases of one magnitude after another)."""
+    """At most k of ``names`` (names or trajectories), evenly spaced over the list (its first and
+    last included), in order: a sample of the training trajectories that covers every load level
+    of a dataset generated with several magnitudes (``generate`` lists the cases of one magnitude
+    after another)."""
     if k <= 0 or not names:
         return []
     if k >= len(names):
