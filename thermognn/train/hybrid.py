@@ -844,15 +844,15 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
             return set(kept["report"]["left_out"]), kept["report"].get("prony")
     X = model.reference_positions
     with torch.no_grad():
-        Cs = []
+        extents = []                             # each trajectory's largest |Ī1 − 3|, |Ī2 − 3|, |J − 1|
         for t in trajs:
             F = prior.cells(prior.gather(t.z.double()[..., 0:3] - X))                      # [S, T, 3, 3]
-            Cs.append(F.transpose(-1, -2) @ F)
-        law.scales.copy_(torch.tensor(invariant_scales(torch.cat(Cs)), dtype=law.scales.dtype))
-        extents = torch.tensor([invariant_scales(C) for C in Cs]) if pick == "widest" else None   # [n, 3]
+            extents.append(invariant_scales(F.transpose(-1, -2) @ F))
+        extents = torch.tensor(extents, dtype=torch.float64)                               # [n, 3]
+        law.scales.copy_(extents.max(0).values.to(law.scales.dtype))                        # the split's largest
     report = fit_strain_energy(prior, trajs, X, counts["iterations"], counts["trajectories"],
                                log=(lambda m: print(m, flush=True)) if dist.main else (lambda *_: None),
-                               prony=prony, convex=convex, extents=extents)
+                               prony=prony, convex=convex, extents=extents if pick == "widest" else None)
     if dist.main:
         with atomic_path(path) as tmp:
             torch.save({"key": key, "state": law.state_dict(),
