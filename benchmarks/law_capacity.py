@@ -6,8 +6,8 @@ training trajectories through the law prior's remainders, where the energy, the 
 the trajectories' dynamics are all tangled. This script asks the simpler question first: at the
 cells' states C the data passes through (up to ``--trajectories`` training trajectories, evenly
 through the training split, ``--cells`` of their cell states at random), how near can the
-family's isochoric stress S_iso = 2 ∂Ψ_iso/∂C come to the scene's own (neo-Hookean or Ogden, with the FE's
-regularised eigenvalues), fitted by L-BFGS directly to that stress? It prints the relative RMS and
+family's isochoric stress S_iso = 2 ∂Ψ_iso/∂C come to the scene's own (neo-Hookean or Ogden,
+with the FE's regularised eigenvalues), fitted by L-BFGS directly to that stress? It prints the relative RMS and
 the largest relative error per state for each family (``--families free,convex``), the hidden
 units and the iterations. The volumetric part is left out: the scene's U = (J − 1)²/D is the
 family's k0 term exactly.
@@ -27,19 +27,18 @@ import time
 
 import torch
 
+from thermognn.core.config import load_config
 from thermognn.train.data import Dataset, split_names, spread
 from thermognn.train.law_prior import neo_hookean_pk2, ogden_isochoric_pk2
 from thermognn.train.learned_law import StrainEnergy, convex_roots, invariant_scales
 
-#: train's default split (conf/train/default.yaml ``split``)
-TRAIN_SPLIT = (0.8, 0.1, 0.1)
-
 
 def cell_states(ds: Dataset, trajectories: int, cells: int, seed: int = 0) -> torch.Tensor:
     """Right Cauchy–Green tensors C [cells, 3, 3] of the dataset's cells along up to
-    ``trajectories`` of its training trajectories (``train``'s default split, seed 0; evenly
+    ``trajectories`` of its training trajectories (``train``'s default split and seed; evenly
     through the list, as the learned law's fit picks them), ``cells`` of them at random."""
-    names = spread(split_names(ds, TRAIN_SPLIT, 0)["train"], trajectories)
+    cfg = load_config()                                                          # train's default split and seed
+    names = spread(split_names(ds, list(cfg.train.split), int(cfg.seed))["train"], trajectories)
     X = torch.as_tensor(ds.mesh.nodes, dtype=torch.float64)                     # [N, 3] m
     tets = torch.as_tensor(ds.mesh.tets, dtype=torch.long)                      # [T, 4]
     Dm_inv = torch.linalg.inv((X[tets[:, 1:]] - X[tets[:, :1]]).transpose(-1, -2))   # [T, 3, 3]

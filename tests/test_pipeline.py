@@ -733,7 +733,7 @@ def test_learned_law_fits_the_block_and_steps_it(tmp_path, tiny_block):
                 "model.prior_material_convex = 'yes', expected true or false"),
                (("model=learned_law", "train.law_fit_trajectories=0"),
                 "train.law_fit_trajectories = 0: expected a whole number of at least 1"),
-               (("model=learned_law", "train.law_fit_pick=all"), "train.law_fit_pick = 'all': expected widest or spread")]
+               (("model=learned_law", "train.law_fit_pick=all"), "train.law_fit_pick = 'all', expected widest | spread")]
     for overrides, message in refused:
         res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'data_law'}",
                               f"paths.dataset={tiny_block}", *overrides], capture_output=True, text=True, timeout=600)

@@ -798,6 +798,7 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
     from .data import fingerprint
     from .learned_law import FIT_ITERATIONS, FIT_TRAJECTORIES, fit_strain_energy, invariant_scales
     from .loop import _sel
+    from .model import _choice
 
     prior = model.prior
     law = prior.learned_law
@@ -824,8 +825,7 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
             raise ConfigError(f"train.law_fit_{name} = {value!r}: expected a whole number of at least 1")
         counts[name] = value
     pick = str(_sel(tc, "law_fit_pick", "widest"))
-    if pick not in ("widest", "spread"):
-        raise ConfigError(f"train.law_fit_pick = {pick!r}: expected widest or spread")
+    _choice("law_fit_pick", pick, ("widest", "spread"), "train")
     path = out_dir / LAW_FIT_FILE
     key = {"dataset": repr(sorted(fingerprint(ds).items())),
            "hidden": list(law.hidden), "trajectories": sorted(t.name for t in trajs),
