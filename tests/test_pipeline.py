@@ -654,11 +654,12 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
         "error: train.fit_target = budget with model.prior_newton_max = 3"), res.stderr[-2000:]
 
 
-def _learned_law_alone_within_2_percent(out, data) -> None:
-    """``evaluate`` of a learned law alone (``rollout.remainders=zero``): whole-rollout errors
-    within 2 % and below a fifth of the linearised FE model's, each group."""
+def _learned_law_alone_within_2_percent(out, data, zero: bool = True) -> None:
+    """``evaluate`` of a learned law alone (``rollout.remainders=zero``; not with ``zero`` false:
+    the checkpoint is the law alone): whole-rollout errors within 2 % and below a fifth of the
+    linearised FE model's, each group."""
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "evaluate", f"out={out}", f"paths.dataset={data}",
-                          "train.eval_max_train=1", "train.threads=1", "rollout.remainders=zero"],
+                          "train.eval_max_train=1", "train.threads=1", *(["rollout.remainders=zero"] if zero else [])],
                          capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     alone = json.loads((out / "eval" / "rrmse.json").read_text())
@@ -683,13 +684,50 @@ def test_learned_law_fits_the_block_and_steps_it(tmp_path, tiny_block):
     res = _train_prior(out, tiny_block, *args)
     assert "train: the learned law fitted to 4 training trajectories" in res.stdout, res.stdout[-2000:]
     assert (out / "learned_law.pt").exists()
+    # the law alone is the best checkpoint's first candidate (train.prior_alone_candidate=auto):
+    # the epoch is kept only where it validates nearer the data
+    alone_val = float(re.search(r"train: the prior alone \(its remainders zero\) validates at (\S+) ", res.stdout).group(1))
     ckpt = load_checkpoint(out / "model.ckpt")
+    assert 0 < ckpt["val_error"] <= alone_val
+    if ckpt["prior"].get("remainders") == "zero":
+        assert ckpt["epoch"] == 0 and "train: no epoch beat the prior alone on validation" in res.stdout
+    else:
+        assert ckpt["epoch"] == 1 and ckpt["val_error"] < alone_val
     assert ckpt["prior"]["law_material"] == "learned" and ckpt["prior"]["law_hidden"] == [16, 8]
     weights = {k: v for k, v in ckpt["state_dict"].items() if k.startswith("prior.learned_law.")}
     assert set(weights) >= {"prior.learned_law.iso_linear", "prior.learned_law.vol_quadratic"}
     assert float(weights["prior.learned_law.iso_linear"].abs().max()) > 0.0         # fitted from zero
     res = _train_prior(out, tiny_block, *args)
     assert f"train: the learned law from {out / 'learned_law.pt'}" in res.stdout, res.stdout[-2000:]
+    # no epochs at all: the law (its fit kept beside the checkpoints, read again) written alone as
+    # the model, its remainders zero; evaluate and export step it so and say so, and refuse to
+    # step its untrained network
+    import shutil
+
+    from thermognn.core.state import describe_step
+    from thermognn.train.checkpoint import model_step
+
+    law_only = tmp_path / "law_only"
+    law_only.mkdir()
+    shutil.copy(out / "learned_law.pt", law_only / "learned_law.pt")
+    res = _train_prior(law_only, tiny_block, *args[:-3], "train.epochs=0", "train.rollout_epochs=0", args[-1])
+    assert "the model (no epochs)" in res.stdout and "train: the learned law from" in res.stdout, res.stdout[-2000:]
+    only = load_checkpoint(law_only / "model.ckpt")
+    assert only["prior"]["remainders"] == "zero" and only["epoch"] == 0 and not (law_only / "model.last.ckpt").exists()
+    phrase = describe_step(model_step(only))
+    assert "a strain energy learned from the data" in phrase and "alone (its remainders zero, no network call)" in phrase
+    _learned_law_alone_within_2_percent(law_only, tiny_block, zero=False)
+    assert phrase in (law_only / "eval" / "summary.md").read_text()
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "evaluate", f"out={law_only}",
+                          f"paths.dataset={tiny_block}", "train.threads=1", "rollout.remainders=learned"],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode != 0 and "rollout.remainders = learned:" in res.stderr and \
+        "is the prior alone, which no training epoch beat" in res.stderr, res.stderr[-2000:]
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'none'}",
+                          f"paths.dataset={tiny_block}", "model=learned_law", "train.epochs=0", "train.rollout_epochs=0",
+                          "train.prior_alone_candidate=false"], capture_output=True, text=True, timeout=600)
+    assert res.returncode != 0 and res.stderr.strip() == ("error: train.epochs = 0, train.rollout_epochs = 0: "
+                                                          "expected >= 0 each and >= 1 together"), res.stderr[-2000:]
     # loads 10x the data's (beyond the invariants it was fitted on): the learned law's steps stay
     # finite, no cell inverted
     import torch
@@ -733,7 +771,9 @@ def test_learned_law_fits_the_block_and_steps_it(tmp_path, tiny_block):
                 "model.prior_material_convex = 'yes', expected true or false"),
                (("model=learned_law", "train.law_fit_trajectories=0"),
                 "train.law_fit_trajectories = 0: expected a whole number of at least 1"),
-               (("model=learned_law", "train.law_fit_pick=all"), "train.law_fit_pick = 'all', expected widest | spread")]
+               (("model=learned_law", "train.law_fit_pick=all"), "train.law_fit_pick = 'all', expected widest | spread"),
+               (("model=learned_law", "train.prior_alone_candidate=maybe"),
+                "train.prior_alone_candidate = 'maybe', expected auto | true | false")]
     for overrides, message in refused:
         res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'data_law'}",
                               f"paths.dataset={tiny_block}", *overrides], capture_output=True, text=True, timeout=600)

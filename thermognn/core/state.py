@@ -101,12 +101,15 @@ def describe_step(step) -> str:
         if step.get("law"):
             iterations = int(step["law"])
             most = int(step.get("law_max", iterations))
-            solid = (f"solid of the data's own law ({iterations} Newton iteration{'s' if iterations > 1 else ''}"
+            law = "a strain energy learned from the data" if step.get("law_material") == "learned" else "the data's own law"
+            solid = (f"solid of {law} ({iterations} Newton iteration{'s' if iterations > 1 else ''}"
                      + (f", up to {most} until converged to {float(step['law_rtol']):g}" if most > iterations
                         else "")
                      + (f", halved down to Δt/{2 ** int(step['law_cuts'])} where not" if step.get("law_cuts") else "")
                      + (", its tangent kept while it contracts" if step.get("law_tangent") == "kept" else "")
                      + ")")
+        if step.get("remainders") == "zero":
+            return f"the data's Newmark step of the {solid} alone (its remainders zero, no network call)"
         return (f"the data's Newmark step of the {solid} with learned remainders"
                 + (" of second order" if second else "")
                 + f" ({calls} network call{'s' if calls > 1 else ''} a step"

@@ -197,6 +197,10 @@ def with_remainders(ckpt: dict, want) -> tuple[dict, str]:
         raise ConfigError(f"rollout.remainders = {want}: only a model.prior=linear model (linear_prior, "
                           f"law_prior) has remainders; leave it null")
     if want == "learned":                        # as every model is trained
+        if ckpt["prior"].get("remainders") == "zero":
+            raise ConfigError(f"rollout.remainders = learned: {ckpt.get('_path', 'the checkpoint')} is the prior "
+                              f"alone, which no training epoch beat (train.prior_alone_candidate); its network "
+                              f"was not trained (the last epoch's is in model.last.ckpt)")
         return ckpt, ""
     return {**ckpt, "prior": {**ckpt["prior"], "remainders": "zero"}}, \
         "its remainders zero, the prior alone (trained: learned)"
@@ -252,8 +256,9 @@ def model_step(ckpt: dict) -> dict:
     "material" where its stress is the material's law, "law": the Newton iterations a step of the
     law prior, "law_max": the most it takes where a step has not converged, "law_rtol": to what,
     "law_cuts": how many times a step that still has not is halved, "law_tangent": "kept" where its
-    tangent is kept between iterations and steps, "remainders": "zero" where the prior steps
-    alone, ``rollout.remainders``)."""
+    tangent is kept between iterations and steps, "law_material": "learned" where the law is a
+    strain energy learned from the data, "remainders": "zero" where the prior steps alone,
+    ``rollout.remainders`` or ``train.prior_alone_candidate``)."""
     from .model import step_settings
 
     prior = ckpt.get("prior")
@@ -264,6 +269,7 @@ def model_step(ckpt: dict) -> dict:
                 **({"corotated": int(prior["corotated"])} if prior.get("corotated") else {}),
                 **({"stress": "material"} if prior.get("stress") == "material" else {}),
                 **({"law": int(prior["law"])} if prior.get("law") else {}),
+                **({"law_material": "learned"} if prior.get("law_material") == "learned" else {}),
                 **({"law_max": int(prior["law_max"])} if prior.get("law_max") else {}),
                 **({"law_rtol": float(prior["law_rtol"])} if prior.get("law_rtol") else {}),
                 **({"law_cuts": int(prior["law_cuts"])} if prior.get("law_cuts") else {}),

@@ -1037,9 +1037,29 @@ class Phases(NamedTuple):
     fit_target: str = "exact"    #: train.fit_target: one of FIT_TARGETS
 
 
-def training_phases(tc) -> Phases:
+#: ``train.prior_alone_candidate`` values (``prior_alone_candidate``)
+PRIOR_ALONE = ("auto", "true", "false")
+
+
+def prior_alone_candidate(tc, settings: dict) -> bool:
+    """``train.prior_alone_candidate``: whether the prior alone (its remainders zero, the network
+    not evaluated; ``rollout.remainders = zero``) is the first candidate for the best checkpoint,
+    validated before any epoch, so that an epoch is kept only where it beats it. auto (default):
+    where the prior's law is learned from the data (``model.prior_material = learned``: the prior
+    alone is then itself a model learned from the data, and a network on top of it may only make
+    it worse, as on the liver in session 81); true: every prior model; false: never. A one-line
+    ``ConfigError`` for anything else."""
+    value = OmegaConf.select(tc, "prior_alone_candidate", default="auto")
+    value = {True: "true", False: "false"}.get(value, value) if isinstance(value, bool) else value
+    if value not in PRIOR_ALONE:
+        raise ConfigError(f"train.prior_alone_candidate = {value!r}, expected " + " | ".join(PRIOR_ALONE))
+    return value == "true" or (value == "auto" and settings.get("law_material") == "learned")
+
+
+def training_phases(tc, none_ok: bool = False) -> Phases:
     """``Phases`` from ``cfg.train``: each phase's epochs >= 0 and at least one epoch in all (the
-    fit phase may be skipped: a fine-tune of rollouts from ``train.init``), the window >= 0 and
+    fit phase may be skipped: a fine-tune of rollouts from ``train.init``; all of them where
+    ``none_ok``: the prior alone is the model, ``prior_alone_candidate``), the window >= 0 and
     the scale one of ``ROLLOUT_SCALES``, else a one-line ``ConfigError``. Checked before the
     dataset is read."""
     fit = int(tc.epochs)
@@ -1049,7 +1069,7 @@ def training_phases(tc) -> Phases:
         raise ConfigError(f"train.rollout_epochs = {roll}, expected >= 0")
     if whole < 0:
         raise ConfigError(f"train.whole_epochs = {whole}, expected >= 0")
-    if fit < 0 or fit + roll + whole < 1:
+    if fit < 0 or fit + roll + whole < (0 if none_ok else 1):
         raise ConfigError(f"train.epochs = {fit}, train.rollout_epochs = {roll}"
                           + (f", train.whole_epochs = {whole}" if whole else "")
                           + ": expected >= 0 each and >= 1 together")
@@ -1252,9 +1272,9 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     saves = EpochCheckpoints(_sel(tc, "checkpoint_minutes", 10), dist)
     patience = int(_sel(tc, "patience", 0))
     phase_best, stale = math.inf, 0              # early stopping ends a phase (the fit phase: on to rollouts)
-    opt = optimizer(0)
+    opt = optimizer(0) if epochs else None       # (none without epochs: the prior alone is the model)
     last = last_path(ckpt_path)
-    if bool(_sel(tc, "resume", True)) and last.exists():
+    if bool(_sel(tc, "resume", True)) and last.exists() and epochs > 0:
         state = load_checkpoint(last)
         if identity_changes(state.get("identity") or {}, identity):
             if dist.main:
@@ -1283,6 +1303,19 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
               + (f", {dist.world} processes" if dist.world > 1 else "")
               + linear_validation_error(data, val_trajs, corotated="corotated" in settings))
 
+    if prior_alone_candidate(tc, settings) and start == 0 and best_val == math.inf:
+        t0 = time.perf_counter()
+        model.eval()
+        model.learned = False                    # G = H = 0, the network not evaluated
+        best_val = validation_error(model, graph, val_trajs, data.layout, ds.dt)
+        model.learned = True
+        if dist.main:
+            save_checkpoint({**base, "prior": {**settings, "remainders": "zero"}, "state_dict": model.state_dict(),
+                             "epoch": 0, "val_error": best_val}, ckpt_path)
+            print(f"train: the prior alone (its remainders zero) validates at {best_val:.4e} "
+                  f"({time.perf_counter() - t0:.0f} s): {ckpt_path.name}"
+                  + (" until an epoch beats it " if epochs else ", the model (no epochs) ")
+                  + "(train.prior_alone_candidate)", flush=True)
     tb = _tensorboard(_sel(tc, "tensorboard", "auto"), out_dir / "tensorboard") if dist.main else None
     fields = ["epoch", "phase", "lr", "loss", "data_loss", "degeneracy_loss", "val_error", "seconds"]
     with _progress(disable=not dist.main) as progress:
@@ -1392,7 +1425,13 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
         raise DataError(f"{ckpt_path}: no best checkpoint written (delete {last} and retrain)")
     from .checkpoint import model_from_checkpoint
 
-    best = model_from_checkpoint(load_checkpoint(ckpt_path), ds)
+    kept = load_checkpoint(ckpt_path)
+    if (kept.get("prior") or {}).get("remainders") == "zero" and history:
+        tried = min((r["val_error"] for r in history), default=math.nan)
+        print(f"train: no epoch beat the prior alone on validation ({tried:.4e} at best against "
+              f"{kept['val_error']:.4e}): {ckpt_path.name} steps the prior alone, its remainders zero; "
+              f"{last.name} holds the last epoch's network")
+    best = model_from_checkpoint(kept, ds)
     mean = rollout_errors(best, graph, data.of("test"), data.layout, ds.dt)[0]
     print_rrmse_table(f"test rollout RRMSE ({len(data.split['test'])} trajectories)", {"test": mean})
     return ckpt_path

@@ -25,7 +25,7 @@ from .data import (LoadedData, check_fingerprint, compute_stats, fingerprint, lo
                    make_window_batch, rest_rollout_steps, rest_samples, rest_trajectory, samples, state_images,
                    velocity_columns, window_starts)
 from .device import cpu_randn, training_device
-from .hybrid import prior_kind, train_linear_prior, training_phases
+from .hybrid import prior_alone_candidate, prior_kind, prior_settings, train_linear_prior, training_phases
 from .model import TIGNN, build_model, grown_blocks, hyperparameters, load_grown, parameter_count
 from .rollout import rollout, rollout_errors, validation_error
 
@@ -700,8 +700,9 @@ def _train_here(cfg) -> Path:
     seed = int(_sel(cfg, "seed", 0))
     epochs = int(tc.epochs)
     prior = prior_kind(cfg.model)
-    if prior == "linear":                    # its three phases (the fit phase's epochs may be 0)
-        phases = training_phases(tc)
+    if prior == "linear":                    # its three phases (the fit phase's epochs may be 0; all
+        #                                          of them where the prior alone is a candidate: a learned law's fit)
+        phases = training_phases(tc, none_ok=prior_alone_candidate(tc, prior_settings(cfg.model)))
     elif epochs < 0 or (epochs == 0 and not (_sel(tc, "init", None)
                                              and (readout_hops(cfg) or _sel(cfg, "model.mirror_average", False)))):
         raise ConfigError(f"train.epochs = {epochs}, expected >= 1 (or 0 with train.init and "
