@@ -929,8 +929,10 @@ def evaluate(cfg) -> dict:
              "degeneracy M dE/dz = 0 is not exact; with exact kinematics also dE/dq . (v - the "
              "network's dq/dt); `energy_error` in `energy_entropy.csv`)", drift_line,
              *([gentle_line] if gentle_line else []),
-             *([f"- model.prior = linear: the data's Newmark step of the {prior_name} solid with the network's "
-                "remainders G and H; the network's E and S are not the body's energy and entropy (energy "
+             *([f"- model.prior = linear: the data's Newmark step of the {prior_name} solid "
+                + ("alone, its remainders zero (the network not evaluated: its weights are untrained or "
+                   "unused)" if not model.learned else "with the network's remainders G and H")
+                + "; the network's E and S are not the body's energy and entropy (energy "
                 "columns nan); its one step from a true state takes the data's own Newmark acceleration "
                 "there, recovered from the velocities"] if prior else []), "",
              "Relative L2 error per snapshot ||z_pred - z_gt|| / ||z_gt|| over all nodes of a group, "
