@@ -704,6 +704,8 @@ def test_learned_law_fits_the_block_and_steps_it(tmp_path, tiny_block):
     # step its untrained network
     import shutil
 
+    import torch
+
     from thermognn.core.state import describe_step
     from thermognn.train.checkpoint import model_step
 
@@ -722,7 +724,13 @@ def test_learned_law_fits_the_block_and_steps_it(tmp_path, tiny_block):
                           f"paths.dataset={tiny_block}", "train.threads=1", "rollout.remainders=learned"],
                          capture_output=True, text=True, timeout=600)
     assert res.returncode != 0 and "rollout.remainders = learned:" in res.stderr and \
-        "is the prior alone, which no training epoch beat" in res.stderr, res.stderr[-2000:]
+        "is the prior alone (train.prior_alone_candidate: no epoch beat it, or none ran)" in res.stderr, res.stderr[-2000:]
+    # a network trained on that law from the law-only checkpoint (train.init): its law read from it, not fitted
+    res = _train_prior(tmp_path / "on_law", tiny_block, *args, f"train.init={law_only / 'model.ckpt'}")
+    assert "fitting the learned law" not in res.stdout and "train: the prior alone" in res.stdout, res.stdout[-2000:]
+    on_law = load_checkpoint(tmp_path / "on_law" / "model.ckpt")
+    assert all(torch.equal(on_law["state_dict"][k], v) for k, v in only["state_dict"].items()
+               if k.startswith("prior.learned_law."))
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'none'}",
                           f"paths.dataset={tiny_block}", "model=learned_law", "train.epochs=0", "train.rollout_epochs=0",
                           "train.prior_alone_candidate=false"], capture_output=True, text=True, timeout=600)
@@ -730,8 +738,6 @@ def test_learned_law_fits_the_block_and_steps_it(tmp_path, tiny_block):
                                                           "expected >= 0 each and >= 1 together"), res.stderr[-2000:]
     # loads 10x the data's (beyond the invariants it was fitted on): the learned law's steps stay
     # finite, no cell inverted
-    import torch
-
     from thermognn.train.checkpoint import model_from_checkpoint
 
     ds = Dataset(tiny_block)

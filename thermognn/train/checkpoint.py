@@ -199,8 +199,8 @@ def with_remainders(ckpt: dict, want) -> tuple[dict, str]:
     if want == "learned":                        # as every model is trained
         if ckpt["prior"].get("remainders") == "zero":
             raise ConfigError(f"rollout.remainders = learned: {ckpt.get('_path', 'the checkpoint')} is the prior "
-                              f"alone, which no training epoch beat (train.prior_alone_candidate); its network "
-                              f"was not trained (the last epoch's is in model.last.ckpt)")
+                              f"alone (train.prior_alone_candidate: no epoch beat it, or none ran); its network "
+                              f"was not trained (the last epoch's, if any, is in model.last.ckpt)")
         return ckpt, ""
     return {**ckpt, "prior": {**ckpt["prior"], "remainders": "zero"}}, \
         "its remainders zero, the prior alone (trained: learned)"

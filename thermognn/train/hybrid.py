@@ -1047,7 +1047,7 @@ def prior_alone_candidate(tc, settings: dict) -> bool:
     validated before any epoch, so that an epoch is kept only where it beats it. auto (default):
     where the prior's law is learned from the data (``model.prior_material = learned``: the prior
     alone is then itself a model learned from the data, and a network on top of it may only make
-    it worse, as on the liver in session 81); true: every prior model; false: never. A one-line
+    it worse, as on session 80's liver law); true: every prior model; false: never. A one-line
     ``ConfigError`` for anything else."""
     value = OmegaConf.select(tc, "prior_alone_candidate", default="auto")
     value = {True: "true", False: "false"}.get(value, value) if isinstance(value, bool) else value
@@ -1213,7 +1213,9 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
         #                                              stress law may differ: it holds no weights)
         src = init_ckpt if init_ckpt is not None else load_checkpoint(project_path(str(tc.init)))
         grown = grown_blocks(src.get("hparams") or {}, hparams)   # or this model with more processor blocks
-        weights_of = lambda prior: {k: v for k, v in (prior or {}).items() if k != "stress"}  # noqa: E731
+        # (nor whether it stepped its prior alone: a law-only checkpoint starts a network on its law)
+        weights_of = lambda prior: {k: v for k, v in (prior or {}).items()  # noqa: E731
+                                    if k not in ("stress", "remainders")}
         if weights_of(src.get("prior")) != weights_of(settings) or (src.get("hparams") or {}) | (
                 {"message_passing": hparams["message_passing"]} if grown else {}) != hparams:
             raise ConfigError(f"train.init = '{tc.init}': not a model.prior=linear checkpoint of this model "
