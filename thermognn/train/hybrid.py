@@ -814,10 +814,10 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
             raise ConfigError(f"train.init = '{tc.init}': its checkpoint holds no learned law (model.prior_material)")
         law.load_state_dict(state)
         fitted = (src.get("prior") or {}).get("law_prony")
-        if prony and not isinstance(fitted, list):
+        if prony and prior.n_terms and not isinstance(fitted, list):   # (none to fit: an elastic scene)
             raise ConfigError(f"train.init = '{tc.init}': its learned law has the scene's Prony terms "
                               f"(set model.prior_material_prony=data)")
-        return set(), (fitted if prony else None)
+        return set(), (fitted if prony and isinstance(fitted, list) else None)
     counts = {}                                  # train.law_fit_iterations, train.law_fit_trajectories
     for name, default in (("iterations", FIT_ITERATIONS), ("trajectories", FIT_TRAJECTORIES)):
         value = _sel(tc, f"law_fit_{name}", default)
