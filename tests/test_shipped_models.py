@@ -58,17 +58,16 @@ def test_shipped_beam_model_reproduces_its_figures_and_beats_the_published_one(t
 LAWS = sorted(p.parent.name for p in (ROOT / "models").glob("*_law/model.ckpt"))
 
 
-def law_errors(ckpt_path: Path, dataset: Path) -> dict:
+def law_errors(ckpt: dict, dataset: Path) -> tuple[dict, dict]:
     """A learned law's checkpoint rolled out over every trajectory of ``dataset`` (of its scene)
     with the checkpoint's own Newton settings, from each first state under its stored loads:
-    {trajectory: whole-rollout relative error per group (evaluate's metric)} and, under
-    "newton", the Newton iterations, steps, unconverged and cut steps over them all."""
+    ({trajectory: whole-rollout relative error per group (evaluate's metric)}, the law prior's
+    Newton counts over them all: iterations, steps, unconverged and cut steps)."""
     import torch
 
     from thermognn.train.data import load_data
     from thermognn.train.rollout import rollout, trajectory_error
 
-    ckpt = load_checkpoint(ckpt_path)
     data = load_data(dataset, [0.8, 0.1, 0.1], 0, torch.float64, parts=(), state_dtype=torch.float64)
     model = model_from_checkpoint(ckpt, data.dataset).eval()
     model.prior.newton_taken.zero_()
@@ -76,8 +75,7 @@ def law_errors(ckpt_path: Path, dataset: Path) -> dict:
     for name in data.dataset.ok_names:
         t = data.read(name)
         errors[name] = trajectory_error(rollout(model, data.graph, t.z[0], t.force, data.dt), t.z, data.layout)
-    errors["newton"] = dict(zip(("iterations", "steps", "unconverged", "cut"), model.prior.newton_taken.tolist()))
-    return errors
+    return errors, dict(zip(("iterations", "steps", "unconverged", "cut"), model.prior.newton_taken.tolist()))
 
 
 @pytest.mark.parametrize("law", LAWS)
@@ -104,16 +102,15 @@ def test_shipped_learned_law_follows_fresh_fe_cases_within_2_percent(tmp_path, l
     left unconverged, and the figures recorded when it was shipped come back (to 1 % of each)."""
     from omegaconf import OmegaConf
 
-    figures = json.loads((ROOT / "models" / law / "figures.json").read_text())
-    fresh = figures["fresh"]
-    trained = OmegaConf.create(load_checkpoint(ROOT / "models" / law / "model.ckpt")["config"]).scene.loads
+    ckpt = load_checkpoint(ROOT / "models" / law / "model.ckpt")
+    fresh = json.loads((ROOT / "models" / law / "figures.json").read_text())["fresh"]
+    trained = OmegaConf.create(ckpt["config"]).scene.loads
     loads = OmegaConf.from_dotlist([o for o in fresh["generate"] if o.startswith("scene.loads.")]).scene.loads
     assert loads.seed != trained.seed and loads.magnitude != trained.magnitude, (loads, trained)
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "generate", f"out={tmp_path}", *fresh["generate"]],
                          capture_output=True, text=True, timeout=1800)
     assert res.returncode == 0, res.stderr[-3000:]
-    errors = law_errors(ROOT / "models" / law / "model.ckpt", tmp_path / "dataset.h5")
-    newton = errors.pop("newton")
+    errors, newton = law_errors(ckpt, tmp_path / "dataset.h5")
     assert newton["unconverged"] == 0, newton
     assert sorted(errors) == sorted(fresh["whole"])
     for name, err in errors.items():
