@@ -4,6 +4,7 @@ against analytic values and invariants, the linearised re-simulation, and genera
 import dataclasses
 import io
 import json
+import math
 import tempfile
 from pathlib import Path
 
@@ -490,6 +491,56 @@ def _bent_block_graph(**options):
     edges = torch.as_tensor(Mesh(X, s.cells[:, :4], node_type.numpy()).edges())
     return (layout, traj, dt, X, modes.linear_solid(s), node_type, edges, torch.as_tensor(traj.z),
             torch.as_tensor(traj.force))
+
+
+def test_a_validation_rollout_that_runs_away_is_stopped_there_and_counted_diverged():
+    """``validation_error`` stops a rollout whose state passes ``RUNAWAY_FACTOR`` times its
+    trajectory's largest in any group (``runaway_bound``) and counts it diverged (inf), as the
+    prior's non-finite state is: a
+    runaway's later steps are the dearest (session 86's bunny law: 2882 s validating 4.4e9). The
+    bound stops the batched rollout of a ``model=linear_prior`` model and a graph network's own
+    step alike, at the first step past it; a rollout within it is untouched (the damped 12 mm bend)."""
+    torch = pytest.importorskip("torch")
+    from thermognn.train.data import Graph, TrajectoryTensors
+    from thermognn.train.hybrid import LinearPriorModel
+    from thermognn.train.model import TIGNN
+    from thermognn.train.prior import RAN_AWAY, NewmarkPrior
+    from thermognn.train.rollout import RUNAWAY_FACTOR, rollout, runaway_bound, trajectory_error, validation_error
+
+    layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph()
+    ref = torch.as_tensor(X, dtype=torch.float32)
+    graph = Graph(ref, edges, node_type, torch.zeros(0, 3, dtype=torch.long))
+    torch.manual_seed(0)
+    net = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, velocity_edges=True)
+    net.set_stats({"dzdt_std": torch.full((12,), 1e-2)})
+    model = LinearPriorModel(net, NewmarkPrior(linear, len(X), dt), torch.as_tensor(X))
+    times = torch.arange(len(f)) * dt
+    data = TrajectoryTensors("bend", z, f, times)
+    pred = rollout(model, graph, z[0], f, dt)
+    reach = float((z[..., :3] - ref).abs().max())
+    assert float((pred[..., :3] - ref).abs().max()) < RUNAWAY_FACTOR * reach      # this one stays within
+    assert torch.equal(rollout(model, graph, z[0], f, dt, bound=runaway_bound(z, ref, layout)), pred)
+    errors = trajectory_error(pred, z, layout)
+    assert validation_error(model, graph, [data], layout, dt) == pytest.approx(
+        sum(errors.values()) / len(errors), rel=1e-12)
+
+    # the same loads against data whose displacements are 1e-6 of the bend's: the models'
+    # rollouts pass 10 times their largest at the first step, and stop there
+    small = TrajectoryTensors("small", torch.cat([ref + (z[..., :3] - ref) * 1e-6, z[..., 3:] * 1e-6], -1), f, times)
+    assert validation_error(model, graph, [data, small], layout, dt) == math.inf
+    bound = runaway_bound(small.z, ref, layout)
+    assert bound[:3].tolist() == pytest.approx([RUNAWAY_FACTOR * 1e-6 * reach] * 3, rel=1e-12)
+    for stepped, dtype in ((model, z.dtype), (net, torch.float32)):    # the batched rollout, a network's own step
+        with pytest.raises(RuntimeError, match=f"{RAN_AWAY} at step 1: column [0-9]+ reached .* past "):
+            rollout(stepped, graph, z[0].to(dtype), f.to(dtype), dt, bound=bound)
+    # one column past its bound is enough, whichever group it is in: here the stress alone
+    sigma = layout.slice("sigma")
+    only_stress = runaway_bound(z, ref, layout)
+    only_stress[sigma] = 1e-6 * float(z[..., sigma].abs().max())
+    with pytest.raises(RuntimeError, match=f"{RAN_AWAY} at step 1: column ({'|'.join(map(str, range(6, 12)))}) "):
+        rollout(model, graph, z[0], f, dt, bound=only_stress)
+    small32 = TrajectoryTensors("small", small.z.float(), f.float(), times)
+    assert validation_error(net, graph, [small32], layout, dt) == math.inf
 
 
 def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_rollout():

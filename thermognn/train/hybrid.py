@@ -66,7 +66,7 @@ from thermognn.core.errors import ConfigError, DataError
 
 from .device import cpu_randn
 from .model import TIGNN, grown_blocks, load_grown
-from .prior import DIVERGED, CorotatedNewmarkPrior, NewmarkPrior
+from .prior import DIVERGED, RAN_AWAY, CorotatedNewmarkPrior, NewmarkPrior, run_away
 
 #: the state layout the prior steps: positions, velocities and stresses, nothing else
 LAYOUT = ["q", "v", "sigma"]
@@ -376,20 +376,28 @@ class LinearPriorModel(nn.Module):
         return self.pack(u, v, a, G, H, h).to(z.dtype)
 
     def rollouts(self, z0: Tensor, forces: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
-                 steps: int, create_graph: bool) -> Tensor:
+                 steps: int, create_graph: bool, bound: Optional[Tensor] = None) -> Tensor:
         """Physical states [B, steps + 1, N, D] (float64) from z0 [B, N, D] under the loads
-        forces [B, S, N, 3] (forces[:, s] at t_s; the last one held beyond S - 1 steps)."""
+        forces [B, S, N, 3] (forces[:, s] at t_s; the last one held beyond S - 1 steps);
+        ``bound`` [D] as ``roll`` takes it."""
         r0 = self.rest_rates_once(z0.shape[0], edge_index, node_type, ref_pos, create_graph)
         u, v, a, G, H, h = self.begin(z0, forces[:, 0], edge_index, node_type, ref_pos, create_graph, r0)
-        return self.roll(u, v, a, G, H, h, forces, edge_index, node_type, ref_pos, steps, create_graph, r0)
+        return self.roll(u, v, a, G, H, h, forces, edge_index, node_type, ref_pos, steps, create_graph, r0,
+                         bound=bound)
 
     def roll(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, h: Tensor, forces: Tensor,
              edge_index: Tensor, node_type: Tensor, ref_pos: Tensor, steps: int, create_graph: bool,
-             rest_rates: Optional[Tensor] = None, recompute: bool = False) -> Tensor:
+             rest_rates: Optional[Tensor] = None, recompute: bool = False,
+             bound: Optional[Tensor] = None) -> Tensor:
         """``rollouts`` from its start (u, v, a, G, H, h), e.g. ``begin``'s with another acceleration
         and internal variables;
         ``rest_rates`` as ``rest_rates_once`` gives them (None: each step evaluates its own where
         it needs them, as ``network_remainders`` says).
+
+        ``bound`` [D]: a state past it (``prior.run_away``: each column's largest |z|, the
+        positions' as displacements) stops the rollout with the RuntimeError ``prior.RAN_AWAY``
+        (a validation rollout that ran away, ``rollout.validation_error``: a runaway's later steps
+        are the dearest, a law stepped to convergence cutting every one).
 
         ``recompute`` (with ``create_graph``; ``train.rollout_recompute``): keep only the states
         between steps for the backward pass and recompute each step's graph there
@@ -412,6 +420,10 @@ class LinearPriorModel(nn.Module):
                 u, v, a, G, H, h = self.advance(u, v, a, G, H, h, f1, edge_index, node_type, ref_pos, create_graph,
                                                 rest_rates)
             out.append(self.state(u, v, H, h))
+            if bound is not None:
+                away = run_away(out[-1], ref_pos, bound)
+                if away:
+                    raise RuntimeError(f"{RAN_AWAY} at step {s}: {away}")
         return torch.stack(out, 1)
 
 

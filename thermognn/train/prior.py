@@ -413,6 +413,23 @@ class NewmarkPrior(nn.Module):
 #: ("corotated prior: a non-finite state ...", "law prior: ..."; the steps raise it literally:
 #: TorchScript compiles no f-string of a global); training and validation catch it by this
 DIVERGED = "prior: a non-finite state"
+#: what the RuntimeError of a rollout stopped past its displacement bound holds
+#: (``LinearPriorModel.roll``'s ``bound``, ``rollout.validation_error``)
+RAN_AWAY = "rollout: ran away"
+
+
+def run_away(z: Tensor, ref_pos: Tensor, bound: Tensor) -> str:
+    """"" where the states z [..., N, D] (positions first, 3 columns) stay within ``bound`` [D]
+    (each column's largest |z| allowed, the positions' as displacements from ref_pos [N, 3] m),
+    else what ran away, "column c reached x past b" (a NaN runs away too): ``RAN_AWAY``'s rest."""
+    z = z.detach()
+    reach = torch.cat([(z[..., :3] - ref_pos.to(z.dtype)).abs().flatten(0, -2).amax(0),
+                       z[..., 3:].abs().flatten(0, -2).amax(0)])                              # [D]
+    within = reach <= bound.to(reach.dtype)
+    if bool(within.all()):
+        return ""
+    c = int(torch.nonzero(~within)[0])
+    return f"column {c} reached {float(reach[c]):.3g} past {float(bound[c]):.3g}"
 
 
 class SparsePattern:

@@ -12,14 +12,24 @@ from thermognn.core.state import StateLayout
 
 from .data import Graph, TrajectoryTensors
 from .hybrid import LinearPriorModel
-from .prior import DIVERGED
+from .prior import DIVERGED, RAN_AWAY, run_away
+
+#: a validation rollout whose state exceeds this many times its trajectory's largest in any column
+#: (the positions' as displacements) is stopped there and counted diverged (``validation_error``):
+#: its error is already over 900 %, and
+#: a runaway's later steps cost most (the bunny's learned law on traj_14, the FE cut 205 times:
+#: 4.4e9 after 2882 s of validation, session 86)
+RUNAWAY_FACTOR = 10.0
 
 
-def rollout(model, graph: Graph, z0: Tensor, forces: Tensor, dt: float, steps: int | None = None) -> Tensor:
+def rollout(model, graph: Graph, z0: Tensor, forces: Tensor, dt: float, steps: int | None = None,
+            bound: Tensor | None = None) -> Tensor:
     """Integrate from z0 [N, D] with the loads forces [S, N, 3] (force[s] drives z[s-1] -> z[s]).
 
     Returns z [S, N, D] (z[0] = z0 with the clamped nodes imposed). ``steps`` (default S - 1)
-    may exceed S - 1: the last load is then held."""
+    may exceed S - 1: the last load is then held. ``bound`` [D]: a state past it (each column's
+    largest |z|, the positions' as displacements, ``prior.run_away``) stops the rollout with a
+    RuntimeError holding ``RAN_AWAY``."""
     steps = forces.shape[0] - 1 if steps is None else steps
     if isinstance(model, LinearPriorModel):  # the linearised FE step, carrying a and G between steps
         # weights frozen meanwhile: else every step's solve hangs on their graph until the rollout
@@ -30,7 +40,7 @@ def rollout(model, graph: Graph, z0: Tensor, forces: Tensor, dt: float, steps: i
                 p.requires_grad_(False)
             with torch.enable_grad():
                 pred = model.rollouts(z0.unsqueeze(0), forces.unsqueeze(0), graph.edge_index, graph.node_type,
-                                      graph.ref_pos, steps, False)[0]
+                                      graph.ref_pos, steps, False, bound)[0]
         finally:
             for p in weights:
                 p.requires_grad_(True)
@@ -41,6 +51,9 @@ def rollout(model, graph: Graph, z0: Tensor, forces: Tensor, dt: float, steps: i
     with torch.enable_grad():  # the model differentiates E and S: never under no_grad
         for s in range(1, steps + 1):
             out.append(model.step(out[-1], loads[s], graph.edge_index, graph.node_type, graph.ref_pos, dt_t).detach())
+            away = "" if bound is None else run_away(out[-1], graph.ref_pos, bound)
+            if away:
+                raise RuntimeError(f"{RAN_AWAY} at step {s}: {away}")
     if getattr(model, "use_readout", False):    # the stress reported: read off the positions (and loads)
         return read_off(torch.stack(out), model.readout, graph, forces)
     return torch.stack(out)
@@ -113,21 +126,35 @@ def read_off(pred: Tensor, readout, graph: Graph, forces: Tensor) -> Tensor:
     return out
 
 
+def runaway_bound(z: Tensor, ref_pos: Tensor, layout: StateLayout) -> Tensor:
+    """[D] ``RUNAWAY_FACTOR`` times a trajectory's z [S, N, D] largest |z| in each variable group
+    (the positions' as displacements from ref_pos [N, 3] m; a group that stays zero: 1e-12):
+    ``validation_error``'s bound on its rollout."""
+    reach = torch.cat([(z[..., :3] - ref_pos.to(z.dtype)).abs().flatten(0, -2).amax(0),
+                       z[..., 3:].abs().flatten(0, -2).amax(0)]).double()                  # [D]
+    bound = torch.empty_like(reach)
+    for name in layout.names:
+        sl = layout.slice(name)
+        bound[sl] = RUNAWAY_FACTOR * max(float(reach[sl].max()), 1e-12)
+    return bound
+
+
 def validation_error(model, graph: Graph, trajs: list[TrajectoryTensors], layout: StateLayout, dt: float,
                      readout=None) -> float:
     """One number for model selection and early stopping: :func:`trajectory_error` of the rollouts
     from each trajectory's initial state, averaged over the finite groups and the trajectories
-    (inf if none is finite, or where the corotated prior's rollout diverges: the run goes on).
-    With ``readout`` the rollouts' stress is read off their positions by it (:func:`read_off`)."""
+    (inf if none is finite, where the corotated prior's rollout diverges, or where a rollout runs
+    away, past ``runaway_bound``: it is stopped there, and the run goes on). With ``readout`` the rollouts' stress is read off their positions
+    by it (:func:`read_off`)."""
     vals = []
     for t in trajs:
         try:
-            pred = rollout(model, graph, t.z[0], t.force, dt)
+            pred = rollout(model, graph, t.z[0], t.force, dt, bound=runaway_bound(t.z, graph.ref_pos, layout))
             if readout is not None:
                 pred = read_off(pred, readout, graph, t.force)
             errors = trajectory_error(pred, t.z, layout)
-        except RuntimeError as exc:          # the corotated prior met a non-finite state: diverged
-            if DIVERGED not in str(exc):
+        except RuntimeError as exc:          # the corotated prior met a non-finite state, or it ran away
+            if DIVERGED not in str(exc) and RAN_AWAY not in str(exc):
                 raise
             return float("inf")
         vals += [v for v in errors.values() if math.isfinite(v)]
