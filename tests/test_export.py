@@ -79,6 +79,22 @@ def test_export_times_the_scripted_step_with_the_optimisation_off_and_on(exporte
     assert "stepping a rollout" in lines[0]         # each step from the last one's state, as serve steps
     off, on = (float(x) for x in re.findall(r"takes ([0-9.]+) ms .* ([0-9.]+) ms with it on", lines[0])[0])
     assert off > 0 and on > 0
+    # train.export_optimized=false: checked and timed with the optimisation off only (as serve
+    # steps it), and says so; anything but a boolean is refused in one line
+    from omegaconf import OmegaConf
+
+    from thermognn.core.errors import ConfigError
+
+    off_only = OmegaConf.merge(cfg, {"train": {"export_optimized": False}})
+    assert torch.jit.load(str(export(off_only))).z0.shape == (27, 12)
+    said = capsys.readouterr().out
+    assert "the graph executor's optimisation off only (train.export_optimized=false)" in said
+    line = [ln for ln in said.splitlines() if "a step of the exported model takes" in ln][0]
+    assert "not timed with it on (train.export_optimized=false;" in line and "nan" not in line
+    assert float(re.findall(r"takes ([0-9.]+) ms", line)[0]) > 0
+    with pytest.raises(ConfigError, match=r"^train.export_optimized = 'no', expected true \| false") as err:
+        export(OmegaConf.merge(cfg, {"train": {"export_optimized": "no"}}))
+    assert "\n" not in str(err.value)
 
 
 def test_loads_with_torch_only(exported):

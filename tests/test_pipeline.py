@@ -493,6 +493,12 @@ def test_corotated_prior_through_train_evaluate_and_export(tmp_path, tiny_block)
         assert res.returncode == 2 and said in res.stderr.strip().splitlines()[-1], res.stderr[-2000:]
 
 
+#: export checked and timed with the graph executor's optimisation off only (as serve steps it):
+#: the law prior's model is checked both ways once below; each variant more would cost the
+#: executor's one-off optimisation of its step, about 25 s here (thermognn/export/exporter.py)
+OFF_ONLY = ("train.export_optimized=false",)
+
+
 def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     """`model=law_prior` (the data's own neo-Hookean law stepped with one Newton iteration a step,
     thermognn/train/law_prior.py) on the tiny block: a fit epoch and a rollout epoch (back-propagated
@@ -533,7 +539,7 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     for stage in ("evaluate", "export"):
         res = subprocess.run([sys.executable, "-m", "thermognn.cli", stage, f"out={out}", f"paths.dataset={tiny_block}",
                               f"paths.eval_dir={out / 'eval_kept'}", f"paths.exported={out / 'kept.pt'}",
-                              "train.eval_max_train=1", "train.threads=1", *kept],
+                              "train.eval_max_train=1", "train.threads=1", *kept, *OFF_ONLY],
                              capture_output=True, text=True, timeout=600)
         assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
         assert ("stepping the trained model with the law prior's step 1 to 16 Newton iterations to 1e-09, its "
@@ -554,7 +560,8 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
         assert alone[f"whole_{g}"] == pytest.approx(errors[f"newton1_fe_whole_{g}"], rel=1e-6), (g, alone)
         assert alone[f"whole_{g}"] != errors[f"whole_{g}"], g                   # the network added something
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={out}", f"paths.dataset={tiny_block}",
-                          f"paths.exported={out / 'law_alone.pt'}", "train.threads=1", "rollout.remainders=zero", *kept],
+                          f"paths.exported={out / 'law_alone.pt'}", "train.threads=1", "rollout.remainders=zero", *kept,
+                          *OFF_ONLY],
                          capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     assert verify(out / "law_alone.pt")["step"]["remainders"] == "zero"
@@ -582,7 +589,7 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     # serve's physics process warns once, naming the remedies (FD steps not counted)
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={out}", f"paths.dataset={tiny_block}",
                           f"paths.exported={out / 'short.pt'}", "train.threads=1", "rollout.prior_newton_max=2",
-                          "rollout.prior_newton_rtol=1e-15"], capture_output=True, text=True, timeout=600)
+                          "rollout.prior_newton_rtol=1e-15", *OFF_ONLY], capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     assert "export: note: a law step whose 2 Newton iterations run out" in res.stdout, res.stdout[-2000:]
     short = press_rollout(out / "short.pt", **press)
@@ -599,7 +606,8 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     # (those steps, taken as they stand, ran the block away, session 78); cut as the FE cuts them,
     # down to Δt/16, every one converges
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={out}", f"paths.dataset={tiny_block}",
-                          f"paths.exported={out / 'kept_cut.pt'}", "train.threads=1", *kept, "rollout.prior_step_cuts=4"],
+                          f"paths.exported={out / 'kept_cut.pt'}", "train.threads=1", *kept, "rollout.prior_step_cuts=4",
+                          *OFF_ONLY],
                          capture_output=True, text=True, timeout=600)
     assert res.returncode == 0 and "export: note:" not in res.stdout, res.stdout[-2000:] + res.stderr[-3000:]
     quiet, _ = run_physics_here(out / "kept_cut.pt", 12, [0.0, 0.0, 0.02 + 0.003 - 0.002])
@@ -615,7 +623,8 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     assert 1e-8 < ratio < 0.1, budget.stdout[-2000:]
     assert load_checkpoint(tmp_path / "budget" / "model.ckpt")["prior"]["inputs"] == "correction"
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={tmp_path / 'budget'}",
-                          f"paths.dataset={tiny_block}", "train.threads=1"], capture_output=True, text=True, timeout=600)
+                          f"paths.dataset={tiny_block}", "train.threads=1", *OFF_ONLY], capture_output=True, text=True,
+                         timeout=600)
     assert res.returncode == 0 and "export: scripted vs eager" in res.stdout, res.stdout[-2000:] + res.stderr[-3000:]
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={tmp_path / 'budget'}",
                           f"paths.dataset={tiny_block}", "train.threads=1", *kept],
@@ -637,7 +646,8 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     assert load_checkpoint(most / "model.ckpt")["prior"]["law_cuts"] == 4         # (no step here needs a cut)
     for stage in ("evaluate", "export"):
         res = subprocess.run([sys.executable, "-m", "thermognn.cli", stage, f"out={most}", f"paths.dataset={tiny_block}",
-                              "train.eval_max_train=1", "train.threads=1"], capture_output=True, text=True, timeout=600)
+                              "train.eval_max_train=1", "train.threads=1", *OFF_ONLY], capture_output=True, text=True,
+                             timeout=600)
         assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
         if stage == "evaluate":
             assert re.search(r"the law prior took \S+ Newton iterations a step \(1 at least, 4 at most", res.stdout), \

@@ -13,7 +13,7 @@ import torch
 from omegaconf import OmegaConf
 
 from thermognn.core.config import project_path
-from thermognn.core.errors import DataError
+from thermognn.core.errors import ConfigError, DataError
 from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
 from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint, model_step, torch_dtype, with_rollout
@@ -62,12 +62,13 @@ def script(module: ExportedTIGNN | ExportedLinearPrior) -> torch.jit.ScriptModul
         return torch.jit.script(module)
 
 
-def parity(eager: ExportedTIGNN | ExportedLinearPrior, scripted, ds: Dataset, steps: int = 3) -> tuple[float, float]:
+def parity(eager: ExportedTIGNN | ExportedLinearPrior, scripted, ds: Dataset, steps: int = 3,
+           modes: tuple[bool, ...] = (True, False)) -> tuple[float, float]:
     """Largest absolute and relative difference between scripted and eager steps on real data:
     one-step predictions from ``steps`` ground-truth states of the first trajectory and from the
     states of the eager model's own ``steps``-step rollout from its initial state (states off the
     data, as in serving), with the TorchScript graph executor's optimisation on and off
-    (``torch.jit.optimized_execution``). Relative: per state column, divided by the largest
+    (``torch.jit.optimized_execution``; ``modes``: those of the two to check). Relative: per state column, divided by the largest
     magnitude of that column over all the compared states (a linear-prior model's carried
     remainder G: at least the largest load). Both sides step from the same state: comparing two free rollouts
     would measure how fast the model amplifies round-off (an undertrained float32 model: 100x
@@ -80,7 +81,7 @@ def parity(eager: ExportedTIGNN | ExportedLinearPrior, scripted, ds: Dataset, st
     f = torch.as_tensor(traj.force, dtype=dtype)
     n = min(steps, z.shape[0] - 1)
     pairs = []                                           # (eager, scripted) states [N, D]
-    for optimize in (True, False):
+    for optimize in modes:
         with torch.jit.optimized_execution(optimize):
             za = eager.begin(z[0], f[0])
             for s in range(n):
@@ -106,21 +107,28 @@ def parity(eager: ExportedTIGNN | ExportedLinearPrior, scripted, ds: Dataset, st
 TIMED_STEPS = 7
 
 
-def step_times(path, ds: Dataset) -> tuple[float, float]:
+def step_times(path, ds: Dataset, optimized=None, modes: tuple[bool, ...] = (False, True)) -> tuple[float, float]:
     """Median wall time (ms) of one step of the exported file ``path`` along a rollout of the
     first trajectory, each step from the last one's state under the trajectory's next load (as
     serve steps it: a step from the state just timed would time what a model keeps of its last
     start, as the law prior keeps its tangent's factors, not a step), with the TorchScript graph
     executor's optimisation off and on (``torch.jit.optimized_execution``), each on a copy
-    freshly loaded as a user loads it (the executor keeps the plan it made first). Off is how
-    serve steps the model: on, the profiling executor re-optimises the autograd graph the step
-    differentiates, and the TIGNN beam's step took about 2x as long (docs/stages.md). A rollout
-    that stops (the law prior refuses a non-finite state) starts again from the first state."""
+    loaded from ``path`` as a user loads it (the executor keeps the plan it made first); with
+    optimisation on, ``optimized`` where given: such a copy that has already made its optimised
+    plan (``export``'s parity check), which the executor keeps (making it took the law prior's
+    step of the tiny block 25 s of the export's 60, session 87); ``modes``: which of the two
+    to time (NaN for the other: ``train.export_optimized=false``). Off is how serve steps the model:
+    on, the profiling executor re-optimises the autograd graph the step differentiates, and the
+    TIGNN beam's step took about 2x as long (docs/stages.md). A rollout that stops (the law prior
+    refuses a non-finite state) starts again from the first state."""
     traj = ds.read((ds.ok_names or ds.names)[0])
     S = traj.force.shape[0]
     times = []
     for optimize in (False, True):
-        module = torch.jit.load(str(path), map_location="cpu")
+        if optimize not in modes:
+            times.append(math.nan)
+            continue
+        module = optimized if optimize and optimized is not None else torch.jit.load(str(path), map_location="cpu")
         dtype = module.z0.dtype
         forces = [torch.as_tensor(traj.force[k % S], dtype=dtype) for k in range(2 * TIMED_STEPS + 1)]
         with torch.jit.optimized_execution(optimize):
@@ -160,24 +168,34 @@ def export(cfg) -> Path:
     dtype = torch_dtype(ckpt["dtype"])
     rtol = OmegaConf.select(cfg, "train.export_rtol", default=None)
     rtol = DEFAULT_RTOL[dtype] if rtol is None else float(rtol)
-    max_abs, max_rel = parity(eager, scripted, ds)
-    print(f"export: scripted vs eager on {ds.path.name}: max abs diff {max_abs:.3e}, "
-          f"max rel diff {max_rel:.3e} (tolerance {rtol:.1e})")
-    if not max_rel <= rtol:
-        raise DataError(f"{ckpt_path}: TorchScript export differs from the eager model by {max_rel:.3e} "
-                        f"(relative), above train.export_rtol = {rtol:.1e}")
+    optimized = OmegaConf.select(cfg, "train.export_optimized", default=True)
+    if not isinstance(optimized, bool):
+        raise ConfigError(f"train.export_optimized = {optimized!r}, expected true | false (whether export also checks "
+                          f"and times the step with TorchScript's graph-executor optimisation on)")
     out = project_path(cfg.paths.exported)
     internal = eager.core.prior.internal_columns() if isinstance(eager, ExportedLinearPrior) else []
     forget = getattr(scripted.core.prior, "forget", None) if isinstance(eager, ExportedLinearPrior) else None
     if forget is not None:              # the law prior's kept step start (its factors): not for the file
         forget()
-    with atomic_path(out) as tmp:
+    with atomic_path(out) as tmp:       # written to a temporary file; ``out`` only once all checks pass
         torch.jit.save(scripted, str(tmp), _extra_files={META_FILE: metadata(ckpt, internal)})
         verify(tmp)
-        off, on = step_times(tmp, ds)
+        # the file as a user loads it against the eager model; with its optimised plan made here,
+        # once, and kept for the timing below (the law prior's: 25 s of the tiny block's export)
+        loaded = torch.jit.load(str(tmp), map_location="cpu")
+        modes = (True, False) if optimized else (False,)
+        max_abs, max_rel = parity(eager, loaded, ds, modes=modes)
+        print(f"export: scripted vs eager on {ds.path.name}: max abs diff {max_abs:.3e}, "
+              f"max rel diff {max_rel:.3e} (tolerance {rtol:.1e})"
+              + ("" if optimized else ", the graph executor's optimisation off only (train.export_optimized=false)"))
+        if not max_rel <= rtol:
+            raise DataError(f"{ckpt_path}: TorchScript export differs from the eager model by {max_rel:.3e} "
+                            f"(relative), above train.export_rtol = {rtol:.1e}")
+        off, on = step_times(tmp, ds, optimized=loaded, modes=modes)
     print(f"export: a step of the exported model takes {off:.1f} ms with the graph executor's optimisation "
-          f"off (torch.jit.optimized_execution(False), as serve steps it), {on:.1f} ms with it on "
-          f"(each freshly loaded, stepping a rollout; median of {TIMED_STEPS}, {torch.get_num_threads()} threads)")
+          f"off (torch.jit.optimized_execution(False), as serve steps it), "
+          + (f"{on:.1f} ms with it on (each" if optimized else "not timed with it on (train.export_optimized=false; ")
+          + f" on a copy loaded from the file, stepping a rollout; median of {TIMED_STEPS}, {torch.get_num_threads()} threads)")
     print(f"export: wrote {out} ({ckpt['structure']}, {ckpt['dtype']}, {eager.z0.shape[0]} nodes)")
     return out
 
