@@ -494,8 +494,9 @@ def test_corotated_prior_through_train_evaluate_and_export(tmp_path, tiny_block)
 
 
 #: export checked and timed with the graph executor's optimisation off only (as serve steps it):
-#: the law prior's model is checked both ways once below; each variant more would cost the
-#: executor's one-off optimisation of its step, about 25 s here (thermognn/export/exporter.py)
+#: the law prior's model and the viscous learned law are checked both ways once below; each variant
+#: more would cost the executor's one-off optimisation of its step, about 25 s here
+#: (thermognn/export/exporter.py)
 OFF_ONLY = ("train.export_optimized=false",)
 
 
@@ -764,8 +765,8 @@ def test_learned_law_fits_the_block_and_steps_it(tmp_path, tiny_block):
     assert float(u.abs().max()) > 0.0
     _learned_law_alone_within_2_percent(out, tiny_block)
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={out}", f"paths.dataset={tiny_block}",
-                          f"paths.exported={out / 'alone.pt'}", "train.threads=1", "rollout.remainders=zero"],
-                         capture_output=True, text=True, timeout=600)
+                          f"paths.exported={out / 'alone.pt'}", "train.threads=1", "rollout.remainders=zero",
+                          *OFF_ONLY], capture_output=True, text=True, timeout=600)      # (the viscous law's below: both ways)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     assert verify(out / "alone.pt")["step"]["remainders"] == "zero"
     # the convex family (model.prior_material_convex=true): the hidden units' outputs and the
