@@ -68,10 +68,10 @@ def parity(eager: ExportedTIGNN | ExportedLinearPrior, scripted, ds: Dataset, st
     one-step predictions from ``steps`` ground-truth states of the first trajectory and from the
     states of the eager model's own ``steps``-step rollout from its initial state (states off the
     data, as in serving), with the TorchScript graph executor's optimisation on and off
-    (``torch.jit.optimized_execution``; ``modes``: those of the two to check). Relative: per state column, divided by the largest
-    magnitude of that column over all the compared states (a linear-prior model's carried
-    remainder G: at least the largest load). Both sides step from the same state: comparing two free rollouts
-    would measure how fast the model amplifies round-off (an undertrained float32 model: 100x
+    (``torch.jit.optimized_execution``; ``modes``: those of the two to check). Relative: per state
+    column, divided by the largest magnitude of that column over all the compared states (a
+    linear-prior model's carried remainder G: at least the largest load). Both sides step from
+    the same state: comparing two free rollouts would measure how fast the model amplifies round-off (an undertrained float32 model: 100x
     per step), not the export. States are made steppable by the eager ``begin`` (a linear-prior
     model's carried state)."""
     dtype = eager.z0.dtype
@@ -194,8 +194,9 @@ def export(cfg) -> Path:
         off, on = step_times(tmp, ds, optimized=loaded, modes=modes)
     print(f"export: a step of the exported model takes {off:.1f} ms with the graph executor's optimisation "
           f"off (torch.jit.optimized_execution(False), as serve steps it), "
-          + (f"{on:.1f} ms with it on (each" if optimized else "not timed with it on (train.export_optimized=false; ")
-          + f" on a copy loaded from the file, stepping a rollout; median of {TIMED_STEPS}, {torch.get_num_threads()} threads)")
+          + (f"{on:.1f} ms with it on (each" if optimized else "not timed with it on (train.export_optimized=false;")
+          + f" on a copy loaded from the file, stepping a rollout; median of {TIMED_STEPS}, "
+            f"{torch.get_num_threads()} threads)")
     print(f"export: wrote {out} ({ckpt['structure']}, {ckpt['dtype']}, {eager.z0.shape[0]} nodes)")
     return out
 

@@ -66,7 +66,7 @@ from thermognn.core.errors import ConfigError, DataError
 
 from .device import cpu_randn
 from .model import TIGNN, grown_blocks, load_grown
-from .prior import DIVERGED, RAN_AWAY, CorotatedNewmarkPrior, NewmarkPrior, run_away
+from .prior import DIVERGED, CorotatedNewmarkPrior, NewmarkPrior, stop_if_run_away
 
 #: the state layout the prior steps: positions, velocities and stresses, nothing else
 LAYOUT = ["q", "v", "sigma"]
@@ -394,7 +394,7 @@ class LinearPriorModel(nn.Module):
         ``rest_rates`` as ``rest_rates_once`` gives them (None: each step evaluates its own where
         it needs them, as ``network_remainders`` says).
 
-        ``bound`` [D]: a state past it (``prior.run_away``: each column's largest |z|, the
+        ``bound`` [D]: a state past it (``prior.stop_if_run_away``: each column's largest |z|, the
         positions' as displacements) stops the rollout with the RuntimeError ``prior.RAN_AWAY``
         (a validation rollout that ran away, ``rollout.validation_error``: a runaway's later steps
         are the dearest, a law stepped to convergence cutting every one).
@@ -421,9 +421,7 @@ class LinearPriorModel(nn.Module):
                                                 rest_rates)
             out.append(self.state(u, v, H, h))
             if bound is not None:
-                away = run_away(out[-1], ref_pos, bound)
-                if away:
-                    raise RuntimeError(f"{RAN_AWAY} at step {s}: {away}")
+                stop_if_run_away(out[-1], ref_pos, bound, s)
         return torch.stack(out, 1)
 
 

@@ -413,23 +413,29 @@ class NewmarkPrior(nn.Module):
 #: ("corotated prior: a non-finite state ...", "law prior: ..."; the steps raise it literally:
 #: TorchScript compiles no f-string of a global); training and validation catch it by this
 DIVERGED = "prior: a non-finite state"
-#: what the RuntimeError of a rollout stopped past its displacement bound holds
-#: (``LinearPriorModel.roll``'s ``bound``, ``rollout.validation_error``)
+#: what the RuntimeError of a rollout stopped past its bound holds (``stop_if_run_away``:
+#: ``LinearPriorModel.roll``'s ``bound``, ``rollout.validation_error``)
 RAN_AWAY = "rollout: ran away"
 
 
-def run_away(z: Tensor, ref_pos: Tensor, bound: Tensor) -> str:
-    """"" where the states z [..., N, D] (positions first, 3 columns) stay within ``bound`` [D]
-    (each column's largest |z| allowed, the positions' as displacements from ref_pos [N, 3] m),
-    else what ran away, "column c reached x past b" (a NaN runs away too): ``RAN_AWAY``'s rest."""
+def state_reach(z: Tensor, ref_pos: Tensor) -> Tensor:
+    """[D] each column's largest |z| over the states z [..., N, D] (positions first, 3 columns,
+    as displacements from ref_pos [N, 3] m; a NaN anywhere in a column makes it NaN)."""
     z = z.detach()
-    reach = torch.cat([(z[..., :3] - ref_pos.to(z.dtype)).abs().flatten(0, -2).amax(0),
-                       z[..., 3:].abs().flatten(0, -2).amax(0)])                              # [D]
+    return torch.cat([(z[..., :3] - ref_pos.to(z.dtype)).abs().flatten(0, -2).amax(0),
+                      z[..., 3:].abs().flatten(0, -2).amax(0)])
+
+
+def stop_if_run_away(z: Tensor, ref_pos: Tensor, bound: Tensor, step: int) -> None:
+    """Raise the RuntimeError ``RAN_AWAY`` ("... at step s: column c reached x past b") where the
+    states z [..., N, D] of rollout step ``step`` pass ``bound`` [D] (``state_reach``'s largest
+    allowed; a NaN runs away too)."""
+    reach = state_reach(z, ref_pos)
     within = reach <= bound.to(reach.dtype)
-    if bool(within.all()):
-        return ""
-    c = int(torch.nonzero(~within)[0])
-    return f"column {c} reached {float(reach[c]):.3g} past {float(bound[c]):.3g}"
+    if not bool(within.all()):
+        c = int(torch.nonzero(~within)[0])
+        raise RuntimeError(f"{RAN_AWAY} at step {step}: column {c} reached {float(reach[c]):.3g} "
+                           f"past {float(bound[c]):.3g}")
 
 
 class SparsePattern:

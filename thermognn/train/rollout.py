@@ -12,13 +12,12 @@ from thermognn.core.state import StateLayout
 
 from .data import Graph, TrajectoryTensors
 from .hybrid import LinearPriorModel
-from .prior import DIVERGED, RAN_AWAY, run_away
+from .prior import DIVERGED, RAN_AWAY, state_reach, stop_if_run_away
 
 #: a validation rollout whose state exceeds this many times its trajectory's largest in any column
 #: (the positions' as displacements) is stopped there and counted diverged (``validation_error``):
-#: its error is already over 900 %, and
-#: a runaway's later steps cost most (the bunny's learned law on traj_14, the FE cut 205 times:
-#: 4.4e9 after 2882 s of validation, session 86)
+#: its error is already over 900 %, and a runaway's later steps cost most (the bunny's learned law
+#: on traj_14, the FE cut 205 times: 4.4e9 after 2882 s of validation, session 86)
 RUNAWAY_FACTOR = 10.0
 
 
@@ -28,7 +27,7 @@ def rollout(model, graph: Graph, z0: Tensor, forces: Tensor, dt: float, steps: i
 
     Returns z [S, N, D] (z[0] = z0 with the clamped nodes imposed). ``steps`` (default S - 1)
     may exceed S - 1: the last load is then held. ``bound`` [D]: a state past it (each column's
-    largest |z|, the positions' as displacements, ``prior.run_away``) stops the rollout with a
+    largest |z|, the positions' as displacements, ``prior.stop_if_run_away``) stops the rollout with a
     RuntimeError holding ``RAN_AWAY``."""
     steps = forces.shape[0] - 1 if steps is None else steps
     if isinstance(model, LinearPriorModel):  # the linearised FE step, carrying a and G between steps
@@ -51,9 +50,8 @@ def rollout(model, graph: Graph, z0: Tensor, forces: Tensor, dt: float, steps: i
     with torch.enable_grad():  # the model differentiates E and S: never under no_grad
         for s in range(1, steps + 1):
             out.append(model.step(out[-1], loads[s], graph.edge_index, graph.node_type, graph.ref_pos, dt_t).detach())
-            away = "" if bound is None else run_away(out[-1], graph.ref_pos, bound)
-            if away:
-                raise RuntimeError(f"{RAN_AWAY} at step {s}: {away}")
+            if bound is not None:
+                stop_if_run_away(out[-1], graph.ref_pos, bound, s)
     if getattr(model, "use_readout", False):    # the stress reported: read off the positions (and loads)
         return read_off(torch.stack(out), model.readout, graph, forces)
     return torch.stack(out)
@@ -130,8 +128,7 @@ def runaway_bound(z: Tensor, ref_pos: Tensor, layout: StateLayout) -> Tensor:
     """[D] ``RUNAWAY_FACTOR`` times a trajectory's z [S, N, D] largest |z| in each variable group
     (the positions' as displacements from ref_pos [N, 3] m; a group that stays zero: 1e-12):
     ``validation_error``'s bound on its rollout."""
-    reach = torch.cat([(z[..., :3] - ref_pos.to(z.dtype)).abs().flatten(0, -2).amax(0),
-                       z[..., 3:].abs().flatten(0, -2).amax(0)]).double()                  # [D]
+    reach = state_reach(z, ref_pos).double()                                                # [D]
     bound = torch.empty_like(reach)
     for name in layout.names:
         sl = layout.slice(name)
@@ -144,8 +141,8 @@ def validation_error(model, graph: Graph, trajs: list[TrajectoryTensors], layout
     """One number for model selection and early stopping: :func:`trajectory_error` of the rollouts
     from each trajectory's initial state, averaged over the finite groups and the trajectories
     (inf if none is finite, where the corotated prior's rollout diverges, or where a rollout runs
-    away, past ``runaway_bound``: it is stopped there, and the run goes on). With ``readout`` the rollouts' stress is read off their positions
-    by it (:func:`read_off`)."""
+    away, past ``runaway_bound``: it is stopped there, and the run goes on). With ``readout`` the
+    rollouts' stress is read off their positions by it (:func:`read_off`)."""
     vals = []
     for t in trajs:
         try:
