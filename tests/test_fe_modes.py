@@ -496,10 +496,10 @@ def _bent_block_graph(**options):
 def test_a_validation_rollout_that_runs_away_is_stopped_there_and_counted_diverged():
     """``validation_error`` stops a rollout whose state passes ``RUNAWAY_FACTOR`` times its
     trajectory's largest in any group (``runaway_bound``) and counts it diverged (inf), as the
-    prior's non-finite state is: a
-    runaway's later steps are the dearest (session 86's bunny law: 2882 s validating 4.4e9). The
-    bound stops the batched rollout of a ``model=linear_prior`` model and a graph network's own
-    step alike, at the first step past it; a rollout within it is untouched (the damped 12 mm bend)."""
+    prior's non-finite state is: a runaway's later steps are the dearest (session 86's bunny law:
+    2882 s validating 4.4e9). The bound stops the batched rollout of a ``model=linear_prior`` model
+    and a graph network's own step alike, at the first step past it; a rollout within it is
+    untouched (the damped 12 mm bend)."""
     torch = pytest.importorskip("torch")
     from thermognn.train.data import Graph, TrajectoryTensors
     from thermognn.train.hybrid import LinearPriorModel
