@@ -1756,3 +1756,79 @@ def test_budget_fit_leaves_out_a_trajectory_no_load_lands():
     with pytest.raises(DataError, match=r"^train.fit_target = budget: no load lands the 1-iteration step on the data "
                                         r"in any training trajectory \(raise model.prior_newton\)$"):
         budget_fit_trajectories(model, [bad], H[:1])
+
+
+def test_law_prior_line_search_converges_a_step_its_undamped_newton_does_not():
+    """``model.prior_line_search`` (``HyperelasticNewmarkPrior(line_search=...)``) on the FE solid's
+    own data (the damped 1 N bend, stiff viscous Ogden, α = 8): from a state of the data under 100
+    times its next load, 40 undamped Newton updates do not converge (each would crush a cell and
+    is shortened by ``admissible``, and the next overshoots again), where updates halved until
+    they lower the residual norm converge in a few, to a step end whose residual is round-off of
+    the load. Along the data's rollout no update needs shortening: the same rollout as without
+    the search, to the bit. Scripted (its dense LU) it takes the same step; the config records it, ``rollout.prior_line_search`` steps a trained model so,
+    and both name what they cannot be."""
+    torch = pytest.importorskip("torch")
+    from omegaconf import OmegaConf
+
+    from thermognn.core.errors import ConfigError
+    from thermognn.core.state import describe_step
+    from thermognn.train.checkpoint import law_phrase, model_step, with_law_rollout
+    from thermognn.train.hybrid import prior_settings
+
+    from scripted_prior import PriorStep  # tests/scripted_prior.py
+
+    graph, prony, build = _ogden_bend_priors(steps=8)
+    layout, traj, dt, X, linear, node_type, edges, z, f = graph
+    u, v = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6]
+    n = int(linear.free.sum())
+    G0 = torch.zeros(len(f), n, dtype=torch.float64)
+    plain, searched = (build(iterations=1, max_iterations=40, newton_rtol=1e-10, line_search=k) for k in (0, 6))
+    assert all(torch.equal(x, y) for x, y in zip(_prior_rollout(plain, u, v, f, G0, None),
+                                                 _prior_rollout(searched, u, v, f, G0, None)))
+    assert int(searched.searched) == 0 and searched.newton_taken.tolist() == plain.newton_taken.tolist()
+    s0 = 3
+    uf, vf = plain.gather(u[s0:s0 + 1]), plain.gather(v[s0:s0 + 1])
+    h = plain.internal_variables(uf)
+    a = plain.initial_acceleration(uf, vf, plain.gather(f[s0:s0 + 1]), G0[:1])
+    load = 100.0 * plain.gather(f[s0 + 1:s0 + 2])
+    for prior in (plain, searched):
+        prior.newton_taken.zero_()
+        prior.searched.zero_()
+        prior.shortened.zero_()
+    plain.step(uf, vf, a, load, G0[:1], G0[:1], h)
+    taken, _, unconverged, _ = plain.newton_taken.tolist()
+    assert taken == 40 and unconverged == 1 and int(plain.shortened) > 30     # (measured: 39 shortened)
+    u1 = searched.step(uf, vf, a, load, G0[:1], G0[:1], h)[0]
+    taken, _, unconverged, _ = searched.newton_taken.tolist()
+    assert taken < 20 and unconverged == 0 and int(searched.searched) > 0   # (measured: 9, 3 searched)
+    predictor, _, extra, damping0, _ = searched.step_origin(uf, vf, a, h)
+    residual = searched.step_residual(u1, vf, a, predictor, extra, load + searched.body_force + damping0)[0]
+    assert float(residual.norm()) < 1e-8 * float(load.norm())
+    stepper = torch.jit.script(PriorStep(build(iterations=1, max_iterations=40, newton_rtol=1e-10, line_search=6)))
+    with torch.jit.optimized_execution(False):                   # (serve's setting; the optimiser's plan: minutes)
+        scripted = stepper(uf, vf, a, load, G0[:1], G0[:1], h)[0]
+    assert stepper.prior.newton_taken.tolist() == searched.newton_taken.tolist()
+    assert float((scripted - u1).norm() / u1.norm()) < 1e-12                  # dense LU, scripted
+
+    cfg = {"prior": "linear", "prior_law": True, "prior_newton": 1, "prior_newton_max": 8}
+    settings = prior_settings(OmegaConf.create({**cfg, "prior_line_search": 6}))
+    assert settings["law_search"] == 6 and model_step({"prior": settings})["law_search"] == 6
+    assert ", its updates line-searched (up to 6 halvings))" in describe_step(model_step({"prior": settings}))
+    assert "law_search" not in prior_settings(OmegaConf.create(cfg))
+    assert "law_search" not in prior_settings(OmegaConf.create({**cfg, "prior_line_search": 0}))
+    with pytest.raises(ConfigError, match=r"model.prior_line_search = 13, expected an integer 0 to 12"):
+        prior_settings(OmegaConf.create({**cfg, "prior_line_search": 13}))
+    with pytest.raises(ConfigError, match=r"model.prior_line_search = True, expected an integer 0 to 12"):
+        prior_settings(OmegaConf.create({**cfg, "prior_line_search": True}))
+    with pytest.raises(ConfigError, match=r"model.prior_line_search = 2 needs model.prior_law = true"):
+        prior_settings(OmegaConf.create({"prior": "linear", "prior_line_search": 2}))
+    with pytest.raises(ValueError, match="the law prior's line search: -1, expected 0"):
+        build(iterations=1, line_search=-1)
+    trained = {"prior": prior_settings(OmegaConf.create(cfg))}
+    ckpt, note = with_law_rollout(trained, {"prior_line_search": 6})
+    assert ckpt["prior"]["law_search"] == 6 and note.endswith(
+        "its updates line-searched (6 halvings) (trained: 1 to 8 Newton iterations to 1e-08)")
+    assert law_phrase(ckpt["prior"]).endswith(", its updates line-searched (6 halvings)")
+    assert "law_search" not in with_law_rollout(ckpt, {"prior_line_search": 0})[0]["prior"]
+    with pytest.raises(ConfigError, match=r"rollout.prior_line_search = 20, expected an integer 0 to 12"):
+        with_law_rollout(trained, {"prior_line_search": 20})

@@ -107,6 +107,8 @@ def describe_step(step) -> str:
                         else "")
                      + (f", halved down to Δt/{2 ** int(step['law_cuts'])} where not" if step.get("law_cuts") else "")
                      + (", its tangent kept while it contracts" if step.get("law_tangent") == "kept" else "")
+                     + (f", its updates line-searched (up to {int(step['law_search'])} halvings)"
+                        if step.get("law_search") else "")
                      + ")")
         if step.get("remainders") == "zero":
             return f"the data's Newmark step of the {solid} alone (its remainders zero, no network call)"

@@ -126,7 +126,8 @@ def model_from_checkpoint(ckpt: dict, dataset=None):
 #: how a trained model is stepped, overridable at evaluate and export time (``rollout.<key>``)
 ROLLOUT_KEYS = ("integrator", "implicit_iterations", "kinematics")
 #: ... and how a law-prior model's law is stepped (``rollout.<key>``, as ``model.<key>``)
-LAW_ROLLOUT_KEYS = ("prior_newton", "prior_newton_max", "prior_newton_rtol", "prior_step_cuts", "prior_tangent")
+LAW_ROLLOUT_KEYS = ("prior_newton", "prior_newton_max", "prior_newton_rtol", "prior_step_cuts", "prior_tangent",
+                    "prior_line_search")
 
 
 def law_phrase(prior: dict) -> str:
@@ -137,7 +138,9 @@ def law_phrase(prior: dict) -> str:
             else f"{k} Newton iteration{'s' if k > 1 else ''}")
     if prior.get("law_cuts"):
         text += f", cut down to Δt/{2 ** int(prior['law_cuts'])}"
-    return text + (", its tangent kept" if prior.get("law_tangent") == "kept" else "")
+    text += ", its tangent kept" if prior.get("law_tangent") == "kept" else ""
+    return text + (f", its updates line-searched ({int(prior['law_search'])} halvings)" if prior.get("law_search")
+                   else "")
 
 
 def with_law_rollout(ckpt: dict, want: dict) -> tuple[dict, str]:
@@ -164,13 +167,14 @@ def with_law_rollout(ckpt: dict, want: dict) -> tuple[dict, str]:
                           f"leave them null")
     law = {"prior": "linear", "prior_law": True, "prior_newton": prior["law"],
            "prior_newton_max": prior.get("law_max"), "prior_newton_rtol": prior.get("law_rtol"),
-           "prior_step_cuts": prior.get("law_cuts", 0), "prior_tangent": prior.get("law_tangent", "fresh")}
+           "prior_step_cuts": prior.get("law_cuts", 0), "prior_tangent": prior.get("law_tangent", "fresh"),
+           "prior_line_search": prior.get("law_search", 0)}
     law.update({k: v for k, v in want.items() if v is not None})
     try:
         stepped = prior_settings(OmegaConf.create(law))
     except ConfigError as exc:                  # named as they were set
         raise ConfigError(re.sub(r"model\.(" + "|".join(LAW_ROLLOUT_KEYS) + r")\b", r"rollout.\1", str(exc))) from None
-    keys = ("law", "law_max", "law_rtol", "law_cuts", "law_tangent")
+    keys = ("law", "law_max", "law_rtol", "law_cuts", "law_tangent", "law_search")
     new = {**{k: v for k, v in prior.items() if k not in keys}, **{k: stepped[k] for k in keys if k in stepped}}
     if law_phrase(new) == law_phrase(prior):
         return ckpt, ""
@@ -256,7 +260,8 @@ def model_step(ckpt: dict) -> dict:
     "material" where its stress is the material's law, "law": the Newton iterations a step of the
     law prior, "law_max": the most it takes where a step has not converged, "law_rtol": to what,
     "law_cuts": how many times a step that still has not is halved, "law_tangent": "kept" where its
-    tangent is kept between iterations and steps, "law_material": "learned" where the law is a
+    tangent is kept between iterations and steps, "law_search": the halvings of its line search,
+    "law_material": "learned" where the law is a
     strain energy learned from the data, "remainders": "zero" where the prior steps alone,
     ``rollout.remainders`` or ``train.prior_alone_candidate``)."""
     from .model import step_settings
@@ -274,5 +279,6 @@ def model_step(ckpt: dict) -> dict:
                 **({"law_rtol": float(prior["law_rtol"])} if prior.get("law_rtol") else {}),
                 **({"law_cuts": int(prior["law_cuts"])} if prior.get("law_cuts") else {}),
                 **({"law_tangent": str(prior["law_tangent"])} if prior.get("law_tangent") else {}),
+                **({"law_search": int(prior["law_search"])} if prior.get("law_search") else {}),
                 **({"remainders": "zero"} if prior.get("remainders") == "zero" else {})}
     return step_settings(ckpt.get("hparams", {}))

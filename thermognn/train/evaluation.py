@@ -629,8 +629,10 @@ def evaluate(cfg) -> dict:
     newton = model.prior.newton_taken if prior and isinstance(model.prior, HyperelasticNewmarkPrior) else None
     if newton is not None:
         newton.zero_()
+        model.prior.searched.zero_()
     preds, per_step, per_traj, ms, shortened = _rollouts(model, data, test)
     newton_test = newton.tolist() if newton is not None else None          # [iterations, steps, unconverged, cut]
+    searched_test = int(model.prior.searched) if newton is not None else 0
     preds_train, _, per_traj_train, _, _ = _rollouts(model, data, train_trajs)
     mean_test, mean_train = _mean_groups(per_traj, groups), _mean_groups(per_traj_train, groups)
     whole_traj = [trajectory_error(p, t.z, data.layout) for p, t in zip(preds, test)]
@@ -851,6 +853,11 @@ def evaluate(cfg) -> dict:
         if model.prior.step_cuts:
             mean_test["cut_steps"] = float(newton_test[3])
         print(f"evaluate: {newton_sentence(model.prior.iterations, model.prior.max_iterations, *newton_test, step_cuts=model.prior.step_cuts)} (test)")
+    if newton_test is not None and model.prior.line_search:
+        mean_test["line_searched_updates"] = float(searched_test)
+        print(f"evaluate: the law prior's line search shortened {searched_test} Newton update"
+              f"{'s' if searched_test != 1 else ''} that did not lower the residual norm (up to "
+              f"{model.prior.line_search} halvings each; model.prior_line_search) (test)")
     if any(shortened):
         mean_test["shortened_updates"] = float(sum(shortened))
         print(f"evaluate: {shortened_sentence([t.name for t in test], shortened)} (test)")

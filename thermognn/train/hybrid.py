@@ -510,6 +510,17 @@ def prior_settings(cfg_model) -> dict:
         raise ConfigError(f"model.prior_tangent = kept needs model.prior_law = true and model.prior_newton_max > "
                           f"model.prior_newton (= {newton}): a kept tangent iterates each step to "
                           f"model.prior_newton_rtol")
+    from .law_prior import MAX_HALVINGS
+
+    search = OmegaConf.select(cfg_model, "prior_line_search", default=0)
+    if search is None:
+        search = 0
+    if isinstance(search, bool) or not isinstance(search, int) or not 0 <= search <= MAX_HALVINGS:
+        raise ConfigError(f"model.prior_line_search = {search!r}, expected an integer 0 to {MAX_HALVINGS} (how many "
+                          f"times the law prior halves a Newton update that does not lower the residual norm)")
+    if search and not law:
+        raise ConfigError(f"model.prior_line_search = {search} needs model.prior_law = true (model=law_prior): it "
+                          f"searches the law prior's Newton updates")
     material = str(OmegaConf.select(cfg_model, "prior_material", default="data"))
     if material not in LAW_MATERIALS:
         raise ConfigError(f"model.prior_material = '{material}', expected " + " | ".join(LAW_MATERIALS)
@@ -556,6 +567,8 @@ def prior_settings(cfg_model) -> dict:
                 settings["law_cuts"] = int(cuts)
             if tangent == "kept":                 # its tangent kept between iterations and steps
                 settings["law_tangent"] = "kept"
+        if search:                                # its Newton updates line-searched (absent otherwise)
+            settings["law_search"] = int(search)
         if material == "learned":                 # its law a strain energy fitted to the data
             settings["law_material"] = "learned"
             settings["law_hidden"] = [int(h) for h in hidden]
@@ -585,7 +598,7 @@ def neo_hookean_of(ds) -> Tuple[float, float]:
 
 def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material: bool = False,
                 law: int = 0, law_max: Optional[int] = None, law_rtol: Optional[float] = None,
-                law_cuts: int = 0, law_tangent: str = "fresh",
+                law_cuts: int = 0, law_tangent: str = "fresh", law_search: int = 0,
                 learned_law: Optional[Sequence[int]] = None,
                 prony: Optional[Sequence[Sequence[float]]] = None) -> NewmarkPrior:
     """The dataset's ``/linear`` as a NewmarkPrior (float64), relaxing as its viscous solid does
@@ -593,7 +606,8 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
     (:class:`CorotatedNewmarkPrior`), its stress the material's law with ``material``, or with
     ``law`` > 0 the dataset's own hyperelastic law stepped with that many Newton iterations, and up
     to ``law_max`` where a step has not converged to ``law_rtol``, halved up to ``law_cuts`` times
-    where it still has not, its tangent ``law_tangent`` (fresh | kept; ``prior_settings`` records them)
+    where it still has not, its tangent ``law_tangent`` (fresh | kept), its updates line-searched
+    with up to ``law_search`` halvings (0: none; ``prior_settings`` records them)
     (:class:`thermognn.train.law_prior.HyperelasticNewmarkPrior`), its law with ``learned_law``
     (hidden units) a learned strain energy (:mod:`thermognn.train.learned_law`; its weights come
     from a fit or a state_dict), its Prony terms ``prony`` [(ḡ_i, τ_i s)] where given (a learned
@@ -639,7 +653,8 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
                 solid_law = StrainEnergy(learned_law, mu=mu, kappa=lam + 2.0 * mu / 3.0)
             return HyperelasticNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                             solid_law, iterations=int(law), max_iterations=law_max,
-                                            newton_rtol=law_rtol, step_cuts=int(law_cuts), tangent=law_tangent)
+                                            newton_rtol=law_rtol, step_cuts=int(law_cuts), tangent=law_tangent,
+                                            line_search=int(law_search))
         if corotated:
             return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                          sweeps=int(corotated), neo_hookean=neo_hookean_of(ds) if material else None,
@@ -658,6 +673,7 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
                                              int(settings.get("law", 0)), settings.get("law_max"),
                                              settings.get("law_rtol"), int(settings.get("law_cuts", 0)),
                                              str(settings.get("law_tangent", "fresh")),
+                                             int(settings.get("law_search", 0)),
                                              settings.get("law_hidden") if settings.get("law_material") == "learned"
                                              else None,
                                              settings["law_prony"] if isinstance(settings.get("law_prony"), list)

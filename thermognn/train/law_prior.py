@@ -67,6 +67,9 @@ EIGEN_EPS = 1.0e-6
 J_FLOOR = 0.05
 #: halvings of an update at most
 MAX_HALVINGS = 12
+#: ``line_search``: an update shortened to s of itself is taken where it lowers the residual norm
+#: by at least this share times s (Armijo's condition on ‖R‖)
+LINE_SEARCH_DECREASE = 1.0e-4
 #: ``budget_loads``: the largest miss of a step's end it leaves, relative to the largest displacement
 BUDGET_RTOL = 1.0e-10
 #: ``budget_loads``: load corrections at most
@@ -359,7 +362,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
                  lam: float, mu: float, law: NeoHookean | Ogden | StrainEnergy, iterations: int = 1,
                  max_iterations: Optional[int] = None, newton_rtol: Optional[float] = None,
-                 step_cuts: int = 0, tangent: str = "fresh", dtype: torch.dtype = torch.float64) -> None:
+                 step_cuts: int = 0, tangent: str = "fresh", line_search: int = 0,
+                 dtype: torch.dtype = torch.float64) -> None:
         if not isinstance(law, (NeoHookean, Ogden, StrainEnergy)):
             raise ValueError(f"the law prior steps a NeoHookean, Ogden or learned law, not {law!r}")
         if int(iterations) < 1:
@@ -378,8 +382,14 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                 max_iterations is not None and int(max_iterations) > int(iterations))):
             raise ValueError(f"the law prior's tangent: {tangent!r}, expected one of {' | '.join(TANGENTS)}, and kept "
                              f"only with max_iterations > iterations (a tolerance ends each step)")
+        if isinstance(line_search, bool) or not 0 <= int(line_search) <= MAX_HALVINGS:
+            raise ValueError(f"the law prior's line search: {line_search!r}, expected 0 (none) to {MAX_HALVINGS} "
+                             f"halvings of a Newton update")
         super().__init__(linear, n_nodes, dt, X, tets, lam, mu, sweeps=1, dtype=dtype, relax=bool(linear.prony))
         self.iterations = int(iterations)
+        # a Newton update shortened by up to this many halvings where it does not lower the
+        # residual norm (``searched_iterate``); 0: every update taken whole (``iterate``)
+        self.line_search, self.line_search_decrease = int(line_search), LINE_SEARCH_DECREASE
         # past ``iterations``, more (up to this many) while the last update still moved the state
         # by more than ``newton_rtol`` of its largest displacement (``step``); equal: a fixed budget
         self.max_iterations = int(max_iterations) if max_iterations is not None else self.iterations
@@ -449,6 +459,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         # how many updates ``admissible`` has shortened (samples x updates), since it was last zeroed:
         # where the budget does not hold a step (evaluate names such rollouts)
         self.register_buffer("shortened", torch.zeros((), dtype=torch.int64), persistent=False)
+        # ... and how many the line search has (``line_search``)
+        self.register_buffer("searched", torch.zeros((), dtype=torch.int64), persistent=False)
         # since they were last zeroed: the Newton iterations taken (a batch's step counts once, its
         # sub-steps' all), the steps taken, the steps that spent ``max_iterations`` > ``iterations``
         # and still moved (cut: at Δt / 2^step_cuts), and the steps cut into sub-steps: what the
@@ -799,7 +811,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         predictor and history stress ``extra``, ``fixed`` = its loads + c f_el(u0) [B, n] N:
         ``iterations`` in all, then up to ``max_iterations`` while the last update moved some DOF
         of the batch by more than ``newton_rtol`` of its sample's largest displacement. A fixed
-        budget always counts as converged."""
+        budget always counts as converged. With ``line_search`` > 0, ``searched_iterate``'s."""
+        if self.line_search > 0:
+            return self.searched_iterate(u1, u0, v0, a0, predictor, extra, fixed)
         w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
         taken = 1
         last = u0.detach() + self.dt * v0.detach()          # where the last update started: the predictor
@@ -816,6 +830,68 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         if self.max_iterations > self.iterations and taken == self.max_iterations:
             return u1, taken, self.moving(u1.detach() - last, u1.detach())
         return u1, taken, torch.zeros(u1.shape[0], dtype=torch.bool, device=u1.device)
+
+    def searched_iterate(self, u1: Tensor, u0: Tensor, v0: Tensor, a0: Tensor, predictor: Tensor,
+                         extra: Optional[Tensor], fixed: Tensor) -> Tuple[Tensor, int, Tensor]:
+        """``iterate`` with a back-tracking line search on the residual norm (``line_search`` > 0;
+        arguments and result as ``iterate``'s): each Newton update u − du, the first one's from
+        the predictor u0 + Δt v0 included, is taken as u − s du with the largest s of 1, 1/2, ...,
+        1/2^line_search that lowers ‖R‖ by at least ``LINE_SEARCH_DECREASE`` s of its value at u
+        (per sample; the smallest s where none does), as an undamped update can wander off where
+        the step's solution lies beyond a region the tangent does not describe (the bunny's
+        traj_14 at the cut floor, docs/accuracy.md session 88). An update within the step's
+        tolerance (``tolerance``: converged, its residual round-off) is never shortened, and one
+        taken whole is the plain update, to the bit; whether a step has converged is judged on the
+        whole update du, not a shortened one (the search's or ``admissible``'s: plain ``iterate``
+        judges what ``admissible`` left, so that an update it cuts to nothing counts as converged). s
+        carries no gradient."""
+        w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
+        taken = 1
+        base = u0 + self.dt * v0                             # where the first update started: the predictor
+        r_base, _ = self.step_residual(base, v0, a0, predictor, extra, fixed)
+        u1, residual, F, move = self.back_track(base, base - u1, r_base, u1, v0, a0, predictor, extra, fixed)
+        for it in range(1, self.max_iterations):
+            if it >= self.iterations and not bool(self.moving(move, u1.detach()).any()):
+                break
+            self.require_finite(residual)
+            du = self.solve(self.tangent_pairs(F.detach(), w_iso, w_vol, None if extra is None else extra.detach()),
+                            residual)
+            u1, residual, F, move = self.back_track(u1, du, residual, self.admissible(u1, du), v0, a0, predictor,
+                                                    extra, fixed)
+            taken += 1
+        if self.max_iterations > self.iterations and taken == self.max_iterations:
+            return u1, taken, self.moving(move, u1.detach())
+        return u1, taken, torch.zeros(u1.shape[0], dtype=u1.dtype, device=u1.device) != 0
+
+    def back_track(self, base: Tensor, du: Tensor, r_base: Tensor, trial: Tensor, v0: Tensor, a0: Tensor,
+                   predictor: Tensor, extra: Optional[Tensor], fixed: Tensor
+                   ) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(u [B, n] m, R(u) [B, n] N, the cells' F there, the update to judge convergence by
+        [B, n] m) of a Newton update du [B, n] from base (residual r_base) whose whole step
+        (``admissible``'s) is ``trial``: ``searched_iterate``'s line search."""
+        residual, F = self.step_residual(trial, v0, a0, predictor, extra, fixed)
+        with torch.no_grad():
+            before = torch.linalg.vector_norm(r_base.detach(), dim=1)                            # [B] N
+            s = torch.ones(base.shape[0], 1, dtype=base.dtype, device=base.device)
+            move = trial.detach() - base.detach()
+            # an update within the step's tolerance is converged: its residual is round-off, which
+            # need not decrease
+            settled = du.detach().abs().amax(1) <= self.tolerance(base.detach())                 # [B]
+        for k in range(self.line_search):
+            after = torch.linalg.vector_norm(residual.detach(), dim=1)
+            worse = ~(after <= (1.0 - self.line_search_decrease * s.squeeze(1)) * before) & ~settled   # NaN too
+            if not bool(worse.any()):
+                break
+            s = torch.where(worse.unsqueeze(1), 0.5 * s, s)
+            trial = self.admissible(base, s * du)
+            residual, F = self.step_residual(trial, v0, a0, predictor, extra, fixed)
+        with torch.no_grad():
+            # the whole update where it was shortened (by the search, or by ``admissible``): a short
+            # step taken is not a converged one
+            whole = (s.squeeze(1) == 1.0) & (trial.detach() == (base - du).detach()).all(1)           # [B]
+            move = torch.where(whole.unsqueeze(1), move, du.detach())
+            self.searched.add_((s < 1.0).sum())
+        return trial, residual, F, move
 
     def fresh_iterations(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor, loads: Tensor
                          ) -> Tuple[Tensor, Tensor, Tensor, int, Tensor]:
