@@ -989,11 +989,14 @@ def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.net.parameters() if p.requires_grad)
 
 
-def _carried_steps_follow_rollouts(prior, graph, width: int = 0, inputs: str = "positions"):
+def _carried_steps_follow_rollouts(prior, graph, width: int = 0, inputs: str = "positions", cut_loads: str = "end",
+                                   optimized: bool = True):
     """A LinearPriorModel on ``prior`` with a tiny seeded network seeing ``inputs``
-    (``model.prior_inputs``), on the bent block's ``graph`` (``_bent_block_graph``): its carried
-    step, eager and scripted, follows its batched rollout (carried states [N, 12 + 6 + width]);
-    returns (model, the batched rollout [S, N, 12])."""
+    (``model.prior_inputs``) and a cut step's sub-steps loaded as ``cut_loads`` says
+    (``model.prior_cut_loads``), on the bent block's ``graph`` (``_bent_block_graph``): its carried
+    step, eager and scripted (with TorchScript's graph-executor optimisation ``optimized``),
+    follows its batched rollout (carried states [N, 12 + 6 + width]); returns (model, the batched
+    rollout [S, N, 12])."""
     import torch
 
     from thermognn.train.hybrid import LinearPriorModel
@@ -1005,12 +1008,12 @@ def _carried_steps_follow_rollouts(prior, graph, width: int = 0, inputs: str = "
     net = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, velocity_edges=True)
     net.set_stats({"dzdt_std": torch.full((12,), 1e-2)})
     model = LinearPriorModel(net, prior, torch.as_tensor(X), positions_only=inputs == "positions", order=2,
-                             correction=inputs == "correction")
-    with torch.enable_grad():
+                             correction=inputs == "correction", cut_loads=cut_loads)
+    with torch.enable_grad(), torch.jit.optimized_execution(optimized):
         batched = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
         for stepper in (model, torch.jit.script(model)):
             states = [stepper.carry(z[0], f[0], edges, node_type, ref)]
-            assert states[0].shape == (len(X), 12 + 6 + width)
+            assert states[0].shape == (len(X), 12 + 6 + width + (3 if cut_loads == "linear" else 0))
             for k in range(1, len(f)):
                 states.append(stepper.step(states[-1], f[k], edges, node_type, ref, torch.tensor(dt)))
             assert float((torch.stack(states)[..., :12] - batched).norm() / batched.norm()) < 1e-9
@@ -1764,8 +1767,8 @@ def test_law_prior_line_search_converges_a_step_its_undamped_newton_does_not():
     times its next load, 40 undamped Newton updates do not converge (each would crush a cell and
     is shortened by ``admissible``, and the next overshoots again), where updates halved until
     they lower the residual norm converge in a few, to a step end whose residual is round-off of
-    the load. Along the data's rollout no update needs shortening: the same rollout as without
-    the search, to the bit. Scripted (its dense LU) it takes the same step; the config records it, ``rollout.prior_line_search`` steps a trained model so,
+    the load; so too from a start whose predictor inverts a cell. Along the data's rollout no
+    update needs shortening: the same rollout as without the search, to the bit. Scripted (its dense LU) it takes the same step; the config records it, ``rollout.prior_line_search`` steps a trained model so,
     and both name what they cannot be."""
     torch = pytest.importorskip("torch")
     from omegaconf import OmegaConf
@@ -1809,6 +1812,15 @@ def test_law_prior_line_search_converges_a_step_its_undamped_newton_does_not():
         scripted = stepper(uf, vf, a, load, G0[:1], G0[:1], h)[0]
     assert stepper.prior.newton_taken.tolist() == searched.newton_taken.tolist()
     assert float((scripted - u1).norm() / u1.norm()) < 1e-12                  # dense LU, scripted
+    # a start whose predictor u0 + Δt v0 inverts a cell (100 times the data's velocity): its residual
+    # is not finite, so any finite one lowers it; searched, the step converges, undamped it does not
+    fast = 100.0 * vf
+    assert float(torch.linalg.det(searched.cells(uf + dt * fast)).amin()) < 0.0
+    a_fast = searched.initial_acceleration(uf, fast, searched.gather(f[s0:s0 + 1]), G0[:1])
+    for prior, converges in ((plain, False), (searched, True)):
+        prior.newton_taken.zero_()
+        end = prior.step(uf, fast, a_fast, searched.gather(f[s0 + 1:s0 + 2]), G0[:1], G0[:1], h)[0]
+        assert bool(torch.isfinite(end).all()) and (prior.newton_taken.tolist()[2] == 0) == converges
 
     cfg = {"prior": "linear", "prior_law": True, "prior_newton": 1, "prior_newton_max": 8}
     settings = prior_settings(OmegaConf.create({**cfg, "prior_line_search": 6}))
@@ -1832,3 +1844,67 @@ def test_law_prior_line_search_converges_a_step_its_undamped_newton_does_not():
     assert "law_search" not in with_law_rollout(ckpt, {"prior_line_search": 0})[0]["prior"]
     with pytest.raises(ConfigError, match=r"rollout.prior_line_search = 20, expected an integer 0 to 12"):
         with_law_rollout(trained, {"prior_line_search": 20})
+
+
+def test_law_prior_loads_a_cut_steps_sub_steps_between_the_step_s_loads():
+    """``model.prior_cut_loads = linear`` (``HyperelasticNewmarkPrior.step(..., f0)``) on the FE
+    solid's own data (the damped 1 N bend, viscous Ogden, its load ramping over its 8 steps): a cut
+    step's sub-steps are loaded at their own end linearly between the step's start and end loads,
+    as the FE loads its sub-steps within a ramp, where ``end`` holds the step's end load. Told to
+    converge to round-off in 2 iterations every step is cut once: it is then, to round-off, two
+    steps of the prior built for Δt/2 under the loads halfway and at the end. A LinearPriorModel
+    with it carries the last load (3 more columns) and steps its carried state as its rollouts,
+    scripted too; the config records it and names what it cannot be."""
+    torch = pytest.importorskip("torch")
+    from omegaconf import OmegaConf
+
+    from thermognn.core.errors import ConfigError
+    from thermognn.core.state import describe_step
+    from thermognn.train.checkpoint import law_phrase, model_step, with_law_rollout
+    from thermognn.train.hybrid import prior_settings
+
+    graph, prony, build = _ogden_bend_priors(steps=8)
+    layout, traj, dt, X, linear, node_type, edges, z, f = graph
+    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
+    u, v = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6]
+    n = int(linear.free.sum())
+    G = 1e-3 * float(f.abs().max()) * torch.randn(len(f), n, dtype=torch.float64,
+                                                   generator=torch.Generator().manual_seed(1))
+    never = 1e-300                                      # no update is that small: 2 iterations never converge
+    cut, half = build(dt, max_iterations=2, newton_rtol=never, step_cuts=1), build(dt / 2, max_iterations=2,
+                                                                                   newton_rtol=never)
+    uc, vc = cut.gather(u[:1]), cut.gather(v[:1])
+    hc = cut.internal_variables(uc)
+    ac = cut.initial_acceleration(uc, vc, cut.gather(f[:1]), G[:1])
+    uf, vf, a, h = uc, vc, ac, hc
+    held = cut.step(uc, vc, ac, cut.gather(f[2:3]), G[1:2], G[2:3], hc)   # (a step of the ramp, held)
+    for k in range(1, len(f)):
+        f0, f1 = cut.gather(f[k - 1:k]), cut.gather(f[k:k + 1])
+        uc, vc, ac, hc = cut.step(uc, vc, ac, f1, G[k - 1:k], G[k:k + 1], hc, f0)
+        Gm = 0.5 * (G[k - 1:k] + G[k:k + 1])
+        uf, vf, a, h = half.step(uf, vf, a, 0.5 * (f0 + f1), G[k - 1:k], Gm, h)
+        uf, vf, a, h = half.step(uf, vf, a, f1, Gm, G[k:k + 1], h)
+        assert rel(uc, uf) < 1e-10 and rel(vc, vf) < 1e-9, k
+    assert cut.newton_taken.tolist()[3] == len(f)                 # every step cut (and the held one)
+    ramped = cut.step(cut.gather(u[:1]), cut.gather(v[:1]), cut.initial_acceleration(
+        cut.gather(u[:1]), cut.gather(v[:1]), cut.gather(f[:1]), G[:1]), cut.gather(f[1:2]), G[:1], G[1:2],
+        cut.internal_variables(cut.gather(u[:1])), cut.gather(f[:1]))
+    assert rel(ramped[1], held[1]) > 1e-3                         # (a ramp's loads matter)
+    _carried_steps_follow_rollouts(build(dt, max_iterations=2, newton_rtol=never, step_cuts=1), graph,
+                                   width=len(prony) * cut.cell_columns, cut_loads="linear", optimized=False)
+
+    cfg = {"prior": "linear", "prior_law": True, "prior_newton": 1, "prior_newton_max": 8, "prior_step_cuts": 4}
+    settings = prior_settings(OmegaConf.create({**cfg, "prior_cut_loads": "linear"}))
+    assert settings["law_cut_loads"] == "linear" and model_step({"prior": settings})["law_cut_loads"] == "linear"
+    assert ", its sub-steps loaded linearly between the step's loads)" in describe_step(model_step({"prior": settings}))
+    assert "law_cut_loads" not in prior_settings(OmegaConf.create(cfg))
+    assert "law_cut_loads" not in prior_settings(OmegaConf.create({**cfg, "prior_cut_loads": "end"}))
+    with pytest.raises(ConfigError, match=r"model.prior_cut_loads = 'ramp', expected end \| linear"):
+        prior_settings(OmegaConf.create({**cfg, "prior_cut_loads": "ramp"}))
+    with pytest.raises(ConfigError, match=r"model.prior_cut_loads = linear needs model.prior_law = true and "
+                                          r"model.prior_step_cuts > 0"):
+        prior_settings(OmegaConf.create({**cfg, "prior_step_cuts": 0, "prior_cut_loads": "linear"}))
+    trained = {"prior": prior_settings(OmegaConf.create(cfg))}
+    ckpt, note = with_law_rollout(trained, {"prior_cut_loads": "linear"})
+    assert ckpt["prior"]["law_cut_loads"] == "linear" and "its sub-steps loaded between the step's loads" in note
+    assert law_phrase(ckpt["prior"]).endswith("cut down to Δt/16, its sub-steps loaded between the step's loads")

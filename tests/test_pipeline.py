@@ -605,7 +605,8 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     assert err.count("thermognn serve: warning: the body's law step did not converge") == 1, err[-2000:]
     # a tool held 2 mm into the top from the first step: 16 iterations to 1e-9 run out in some steps
     # (those steps, taken as they stand, ran the block away, session 78); cut as the FE cuts them,
-    # down to Δt/16, every one converges
+    # down to Δt/16, every one converges; so too with the sub-steps loaded between the tool's loads
+    # at the step's start and end (the last load carried: 3 more columns) and a line search
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={out}", f"paths.dataset={tiny_block}",
                           f"paths.exported={out / 'kept_cut.pt'}", "train.threads=1", *kept, "rollout.prior_step_cuts=4",
                           *OFF_ONLY],
@@ -613,6 +614,17 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     assert res.returncode == 0 and "export: note:" not in res.stdout, res.stdout[-2000:] + res.stderr[-3000:]
     quiet, _ = run_physics_here(out / "kept_cut.pt", 12, [0.0, 0.0, 0.02 + 0.003 - 0.002])
     assert quiet["law_unconverged_steps"] == 0 and quiet["law_warning"] == "" and quiet["law_steps"] == 24, quiet
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={out}", f"paths.dataset={tiny_block}",
+                          f"paths.exported={out / 'kept_cut_linear.pt'}", "train.threads=1", *kept,
+                          "rollout.prior_step_cuts=4", "rollout.prior_cut_loads=linear", "rollout.prior_line_search=6",
+                          *OFF_ONLY], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0 and ("cut down to Δt/16, its sub-steps loaded between the step's loads, its tangent "
+                                    "kept, its updates line-searched (6 halvings)") in res.stdout, \
+        res.stdout[-2000:] + res.stderr[-3000:]
+    meta = verify(out / "kept_cut_linear.pt")
+    assert json.loads(meta["state_layout"])[-1] == ["f", 3] and meta["step"]["law_cut_loads"] == "linear"
+    linear, _ = run_physics_here(out / "kept_cut_linear.pt", 12, [0.0, 0.0, 0.02 + 0.003 - 0.002])
+    assert linear["law_unconverged_steps"] == 0 and linear["law_steps"] == 24, linear
     # train.fit_target=budget: the fit learns the load each one-iteration step misses, which is no
     # round-off (the exact remainders are); only the law prior has a budget to learn. The network
     # sees each step's correction from its predictor (model.prior_inputs=correction), exported too

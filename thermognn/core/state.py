@@ -106,6 +106,8 @@ def describe_step(step) -> str:
                      + (f", up to {most} until converged to {float(step['law_rtol']):g}" if most > iterations
                         else "")
                      + (f", halved down to Δt/{2 ** int(step['law_cuts'])} where not" if step.get("law_cuts") else "")
+                     + (", its sub-steps loaded linearly between the step's loads"
+                        if step.get("law_cut_loads") == "linear" else "")
                      + (", its tangent kept while it contracts" if step.get("law_tangent") == "kept" else "")
                      + (f", its updates line-searched (up to {int(step['law_search'])} halvings)"
                         if step.get("law_search") else "")

@@ -18,7 +18,7 @@ from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
 from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint, model_step, torch_dtype, with_rollout
 from thermognn.train.data import check_fingerprint, load_graph
-from thermognn.train.hybrid import carried_layout
+from thermognn.train.hybrid import CUT_LOADS_CARRIED, carried_layout
 
 from .module import ExportedLinearPrior, ExportedTIGNN
 
@@ -174,6 +174,8 @@ def export(cfg) -> Path:
                           f"and times the step with TorchScript's graph-executor optimisation on)")
     out = project_path(cfg.paths.exported)
     internal = eager.core.prior.internal_columns() if isinstance(eager, ExportedLinearPrior) else []
+    if isinstance(eager, ExportedLinearPrior) and eager.core.cut_loads_linear:   # the last step's load, carried
+        internal = list(internal) + [CUT_LOADS_CARRIED]
     forget = getattr(scripted.core.prior, "forget", None) if isinstance(eager, ExportedLinearPrior) else None
     if forget is not None:              # the law prior's kept step start (its factors): not for the file
         forget()

@@ -127,7 +127,7 @@ def model_from_checkpoint(ckpt: dict, dataset=None):
 ROLLOUT_KEYS = ("integrator", "implicit_iterations", "kinematics")
 #: ... and how a law-prior model's law is stepped (``rollout.<key>``, as ``model.<key>``)
 LAW_ROLLOUT_KEYS = ("prior_newton", "prior_newton_max", "prior_newton_rtol", "prior_step_cuts", "prior_tangent",
-                    "prior_line_search")
+                    "prior_line_search", "prior_cut_loads")
 
 
 def law_phrase(prior: dict) -> str:
@@ -138,6 +138,7 @@ def law_phrase(prior: dict) -> str:
             else f"{k} Newton iteration{'s' if k > 1 else ''}")
     if prior.get("law_cuts"):
         text += f", cut down to Δt/{2 ** int(prior['law_cuts'])}"
+        text += ", its sub-steps loaded between the step's loads" if prior.get("law_cut_loads") == "linear" else ""
     text += ", its tangent kept" if prior.get("law_tangent") == "kept" else ""
     return text + (f", its updates line-searched ({int(prior['law_search'])} halvings)" if prior.get("law_search")
                    else "")
@@ -168,13 +169,13 @@ def with_law_rollout(ckpt: dict, want: dict) -> tuple[dict, str]:
     law = {"prior": "linear", "prior_law": True, "prior_newton": prior["law"],
            "prior_newton_max": prior.get("law_max"), "prior_newton_rtol": prior.get("law_rtol"),
            "prior_step_cuts": prior.get("law_cuts", 0), "prior_tangent": prior.get("law_tangent", "fresh"),
-           "prior_line_search": prior.get("law_search", 0)}
+           "prior_line_search": prior.get("law_search", 0), "prior_cut_loads": prior.get("law_cut_loads", "end")}
     law.update({k: v for k, v in want.items() if v is not None})
     try:
         stepped = prior_settings(OmegaConf.create(law))
     except ConfigError as exc:                  # named as they were set
         raise ConfigError(re.sub(r"model\.(" + "|".join(LAW_ROLLOUT_KEYS) + r")\b", r"rollout.\1", str(exc))) from None
-    keys = ("law", "law_max", "law_rtol", "law_cuts", "law_tangent", "law_search")
+    keys = ("law", "law_max", "law_rtol", "law_cuts", "law_tangent", "law_search", "law_cut_loads")
     new = {**{k: v for k, v in prior.items() if k not in keys}, **{k: stepped[k] for k in keys if k in stepped}}
     if law_phrase(new) == law_phrase(prior):
         return ckpt, ""
@@ -260,7 +261,8 @@ def model_step(ckpt: dict) -> dict:
     "material" where its stress is the material's law, "law": the Newton iterations a step of the
     law prior, "law_max": the most it takes where a step has not converged, "law_rtol": to what,
     "law_cuts": how many times a step that still has not is halved, "law_tangent": "kept" where its
-    tangent is kept between iterations and steps, "law_search": the halvings of its line search,
+    tangent is kept between iterations and steps, "law_search": the halvings of its line search, "law_cut_loads":
+    "linear" where a cut step's sub-steps are loaded between the step's loads,
     "law_material": "learned" where the law is a
     strain energy learned from the data, "remainders": "zero" where the prior steps alone,
     ``rollout.remainders`` or ``train.prior_alone_candidate``)."""
@@ -280,5 +282,6 @@ def model_step(ckpt: dict) -> dict:
                 **({"law_cuts": int(prior["law_cuts"])} if prior.get("law_cuts") else {}),
                 **({"law_tangent": str(prior["law_tangent"])} if prior.get("law_tangent") else {}),
                 **({"law_search": int(prior["law_search"])} if prior.get("law_search") else {}),
+                **({"law_cut_loads": "linear"} if prior.get("law_cut_loads") == "linear" else {}),
                 **({"remainders": "zero"} if prior.get("remainders") == "zero" else {})}
     return step_settings(ckpt.get("hparams", {}))

@@ -72,6 +72,11 @@ from .prior import DIVERGED, CorotatedNewmarkPrior, NewmarkPrior, stop_if_run_aw
 LAYOUT = ["q", "v", "sigma"]
 #: the carried state's extra nodal columns after the physical ones: Newmark's acceleration, G
 CARRIED = (("a", 3), ("G", 3))
+#: ``model.prior_cut_loads``: a law prior's cut step holds its end load in its sub-steps (end) or
+#: loads them linearly between its start and end loads (linear)
+CUT_LOADS = ("end", "linear")
+#: ... and with linear, the carried state's last columns: the load the last step ended under
+CUT_LOADS_CARRIED = ("f", 3)
 #: PRIORS: model.prior values
 PRIORS = ("none", "linear")
 #: model.prior_inputs values: what the network sees of a state (``LinearPriorModel``): the
@@ -92,7 +97,7 @@ class LinearPriorModel(nn.Module):
 
     def __init__(self, net: TIGNN, prior: NewmarkPrior, reference_positions: Tensor,
                  positions_only: bool = True, sweeps: int = 1, order: int = 1, correction: bool = False,
-                 learned: bool = True) -> None:
+                 learned: bool = True, cut_loads: str = "end") -> None:
         super().__init__()
         if net.dim != 12:
             raise ValueError(f"linear prior: state dimension {net.dim}, expected 12 (q, v, sigma)")
@@ -109,6 +114,12 @@ class LinearPriorModel(nn.Module):
         self.correction = bool(correction) and not self.positions_only
         # ``rollout.remainders = zero``: G = H = 0 and the network not evaluated (the prior alone)
         self.learned = bool(learned)
+        # ``model.prior_cut_loads = linear``: a law prior's cut step loads its sub-steps linearly
+        # between the step's start and end loads (``HyperelasticNewmarkPrior.cut_step``), and the
+        # carried state keeps the last step's load (``pack``: 3 more columns, CUT_LOADS_CARRIED)
+        if cut_loads not in CUT_LOADS:
+            raise ValueError(f"linear prior: cut_loads {cut_loads!r}, expected one of {CUT_LOADS}")
+        self.cut_loads_linear = cut_loads == "linear"
         self.register_buffer("reference_positions", reference_positions.to(torch.float64).contiguous(),
                              persistent=False)                                       # [N, 3] m
         seen = torch.ones(self.dim, dtype=net.z_mean.dtype)
@@ -332,27 +343,35 @@ class LinearPriorModel(nn.Module):
         U = z[:, :, 0:3].to(torch.float64) - self.reference_positions.unsqueeze(0)        # [S, N, 3]
         return p.accelerations(p.gather(U), p.gather(z[:, :, 3:6].to(torch.float64)), p.gather(f.to(torch.float64)))
 
-    def pack(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, h: Tensor) -> Tensor:
-        """The carried state [N, D + 6 + 9 T] of one body ([1, ...] inputs): ``state`` with a, G
-        and the relaxing prior's internal variables (``pack_internal``; none unless it relaxes)."""
-        return torch.cat([self.state(u, v, H, h)[0], self.prior.scatter(a)[0], self.prior.scatter(G)[0],
-                          self.pack_internal(h)[0]], -1)
+    def pack(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, h: Tensor, f: Tensor) -> Tensor:
+        """The carried state [N, D + 6 + 9 T (+ 3)] of one body ([1, ...] inputs): ``state`` with a,
+        G and the relaxing prior's internal variables (``pack_internal``; none unless it relaxes),
+        and with ``cut_loads_linear`` the load f [1, N, 3] N the state is under."""
+        parts = [self.state(u, v, H, h)[0], self.prior.scatter(a)[0], self.prior.scatter(G)[0], self.pack_internal(h)[0]]
+        if self.cut_loads_linear:
+            parts.append(f[0].to(torch.float64))
+        return torch.cat(parts, -1)
 
     def advance(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, h: Tensor, f1: Tensor,
                 edge_index: Tensor, node_type: Tensor, ref_pos: Tensor, create_graph: bool,
-                rest_rates: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+                rest_rates: Optional[Tensor] = None, f0: Optional[Tensor] = None
+                ) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
         """One step under the loads f1 [B, N, 3] at its end: predict with the last G, evaluate
-        the network there (``sweeps`` times), step with its G1."""
+        the network there (``sweeps`` times), step with its G1; f0 [B, N, 3], the loads at its
+        start, load a cut step's sub-steps with ``cut_loads_linear`` (None: f1 held)."""
         f1 = f1.to(torch.float64)
         f1_rows = self.prior.gather(f1)
+        f0_rows: Optional[Tensor] = None
+        if self.cut_loads_linear and f0 is not None:
+            f0_rows = self.prior.gather(f0.to(torch.float64))
         G1 = G
         for _ in range(self.sweeps):
-            u1, v1, _a1, h1 = self.prior.step(u, v, a, f1_rows, G, G1, h)
+            u1, v1, _a1, h1 = self.prior.step(u, v, a, f1_rows, G, G1, h, f0_rows)
             z1 = self.state(u1, v1, H, h1)
             if self.correction:
                 z1 = self.correction_view(z1, u, v, u1)
             G1, H = self.remainders(z1, f1, edge_index, node_type, ref_pos, create_graph, rest_rates)
-        u1, v1, a1, h1 = self.prior.step(u, v, a, f1_rows, G, G1, h)
+        u1, v1, a1, h1 = self.prior.step(u, v, a, f1_rows, G, G1, h, f0_rows)
         return u1, v1, a1, G1, H, h1
 
     # --- the carried state [N, D + 6 (+ 9 T)]: what rollouts, export and serve step -------------
@@ -360,7 +379,7 @@ class LinearPriorModel(nn.Module):
     def carry(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor) -> Tensor:
         """The carried state [N, D + 6 + 9 T] of the physical state z [N, D] under the load f [N, 3]."""
         u, v, a, G, H, h = self.begin(z.unsqueeze(0), f.unsqueeze(0), edge_index, node_type, ref_pos, False)
-        return self.pack(u, v, a, G, H, h)
+        return self.pack(u, v, a, G, H, h, f.unsqueeze(0))
 
     @torch.jit.export
     def step(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
@@ -368,12 +387,16 @@ class LinearPriorModel(nn.Module):
         """One step of the carried state z [N, D + 6 + 9 T] driven by the load f [N, 3] [N] at the
         step's end (dt is the prior's own; the argument keeps TIGNN's signature)."""
         D = self.dim
-        x = z.to(torch.float64).unsqueeze(0)                                        # [1, N, D + 6 + 9 T]
+        x = z.to(torch.float64).unsqueeze(0)                                        # [1, N, D + 6 + 9 T (+ 3)]
+        f0: Optional[Tensor] = None
+        if self.cut_loads_linear:                  # the load the last step ended under: this one's start
+            f0, x = x[:, :, -3:], x[:, :, :-3]
         h = self.unpack_internal(x[:, :, D + 6:])
         u, v, H = self.unpack(x, h)
         a, G = self.prior.gather(x[:, :, D:D + 3]), self.prior.gather(x[:, :, D + 3:D + 6])
-        u, v, a, G, H, h = self.advance(u, v, a, G, H, h, f.unsqueeze(0), edge_index, node_type, ref_pos, False)
-        return self.pack(u, v, a, G, H, h).to(z.dtype)
+        u, v, a, G, H, h = self.advance(u, v, a, G, H, h, f.unsqueeze(0), edge_index, node_type, ref_pos, False,
+                                        None, f0)
+        return self.pack(u, v, a, G, H, h, f.unsqueeze(0)).to(z.dtype)
 
     def rollouts(self, z0: Tensor, forces: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                  steps: int, create_graph: bool, bound: Optional[Tensor] = None) -> Tensor:
@@ -412,13 +435,13 @@ class LinearPriorModel(nn.Module):
         S = forces.shape[1]
         out = [self.state(u, v, H, h)]
         for s in range(1, steps + 1):
-            f1 = forces[:, min(s, S - 1)]
+            f0, f1 = forces[:, min(s - 1, S - 1)], forces[:, min(s, S - 1)]
             if recompute and create_graph:
                 u, v, a, G, H, h = checkpoint(_checkpointed_advance, self, edge_index, node_type, ref_pos,
-                                              u, v, a, G, H, h, f1, rest_rates, use_reentrant=True)
+                                              u, v, a, G, H, h, f1, rest_rates, f0, use_reentrant=True)
             else:
                 u, v, a, G, H, h = self.advance(u, v, a, G, H, h, f1, edge_index, node_type, ref_pos, create_graph,
-                                                rest_rates)
+                                                rest_rates, f0)
             out.append(self.state(u, v, H, h))
             if bound is not None:
                 stop_if_run_away(out[-1], ref_pos, bound, s)
@@ -521,6 +544,13 @@ def prior_settings(cfg_model) -> dict:
     if search and not law:
         raise ConfigError(f"model.prior_line_search = {search} needs model.prior_law = true (model=law_prior): it "
                           f"searches the law prior's Newton updates")
+    cut_loads = str(OmegaConf.select(cfg_model, "prior_cut_loads", default="end") or "end")
+    if cut_loads not in CUT_LOADS:
+        raise ConfigError(f"model.prior_cut_loads = '{cut_loads}', expected " + " | ".join(CUT_LOADS)
+                          + " (a cut step's sub-steps under its end load, or linearly between its start and end loads)")
+    if cut_loads == "linear" and not (law and cuts):
+        raise ConfigError("model.prior_cut_loads = linear needs model.prior_law = true and model.prior_step_cuts > 0: "
+                          "it loads the sub-steps of a cut step")
     material = str(OmegaConf.select(cfg_model, "prior_material", default="data"))
     if material not in LAW_MATERIALS:
         raise ConfigError(f"model.prior_material = '{material}', expected " + " | ".join(LAW_MATERIALS)
@@ -565,6 +595,8 @@ def prior_settings(cfg_model) -> dict:
             settings["law_rtol"] = float(NEWTON_RTOL if rtol is None else rtol)
             if cuts:                              # and how often a step that has not is halved
                 settings["law_cuts"] = int(cuts)
+                if cut_loads == "linear":         # its sub-steps loaded between the step's loads
+                    settings["law_cut_loads"] = "linear"
             if tangent == "kept":                 # its tangent kept between iterations and steps
                 settings["law_tangent"] = "kept"
         if search:                                # its Newton updates line-searched (absent otherwise)
@@ -681,7 +713,8 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
                             bool(settings.get("positions_only", True)),
                             int(settings.get("sweeps", 1)), int(settings.get("order", 1)),
                             settings.get("inputs") == "correction",
-                            settings.get("remainders", "learned") != "zero")
+                            settings.get("remainders", "learned") != "zero",
+                            str(settings.get("law_cut_loads", "end")))
 
 
 def carried_layout(layout_json: str, internal: Sequence[Tuple[str, int]] = ()) -> str:
@@ -1035,17 +1068,18 @@ class _RolloutPhase:
 
 def _checkpointed_advance(model: LinearPriorModel, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
                           u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, h: Tensor, f1: Tensor,
-                          rest_rates: Optional[Tensor]) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+                          rest_rates: Optional[Tensor], f0: Optional[Tensor] = None
+                          ) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """``LinearPriorModel.advance`` as ``roll``'s checkpoint runs it (``recompute``): with gradients on
     (the recomputation in the backward pass) the step with its whole graph; with them off (the
     forward pass) the step's values alone, its network still differentiated for ∂E/∂z and ∂S/∂z
     but nothing kept."""
     if torch.is_grad_enabled():
-        return model.advance(u, v, a, G, H, h, f1, edge_index, node_type, ref_pos, True, rest_rates)
+        return model.advance(u, v, a, G, H, h, f1, edge_index, node_type, ref_pos, True, rest_rates, f0)
     with torch.enable_grad():
         out = model.advance(u.detach(), v.detach(), a.detach(), G.detach(), H.detach(), h.detach(), f1,
                             edge_index, node_type, ref_pos, False,
-                            None if rest_rates is None else rest_rates.detach())
+                            None if rest_rates is None else rest_rates.detach(), f0)
     return tuple(x.detach() for x in out)
 
 

@@ -872,6 +872,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         residual, F = self.step_residual(trial, v0, a0, predictor, extra, fixed)
         with torch.no_grad():
             before = torch.linalg.vector_norm(r_base.detach(), dim=1)                            # [B] N
+            # a base whose residual is not finite (a predictor that crushes a cell, which
+            # ``admissible`` shortened before the first update): any finite residual lowers it
+            before = torch.where(torch.isfinite(before), before, torch.full_like(before, float("inf")))
             s = torch.ones(base.shape[0], 1, dtype=base.dtype, device=base.device)
             move = trial.detach() - base.detach()
             # an update within the step's tolerance is converged: its residual is round-off, which
@@ -1039,7 +1042,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         return torch.cat([u0.reshape(-1), v0.reshape(-1), a0.reshape(-1), h0.reshape(-1)])
 
     def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
-             G1: Tensor, h0: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+             G1: Tensor, h0: Tensor, f0: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
         """(u1, v1, a1, h1) as :meth:`NewmarkPrior.step`: ``iterations`` Newton iterations on
         R(u1) = 0 (module docstring) from the predictor u0 + Δt v0 (the first one
         ``first_iteration``'s), then, up to ``max_iterations`` in all, more while the last update
@@ -1053,7 +1056,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         tangents decide it (the shell's snap-through takes another branch where a step is cut
         that the FE did not cut). With ``step_cuts`` > 0 the samples whose step still has not
         converged are stepped again from their start as the FE steps it (``cut_step``, with
-        fresh tangents); the others keep their whole step."""
+        fresh tangents); the others keep their whole step. A cut step's sub-steps hold its end
+        loads f1, or with the step's start loads f0 [B, n] N given, the loads linearly between
+        them at each sub-step's end (``cut_step``)."""
         if self.step_cuts > 0:              # (a cut an error left mid-way does not leave its constants)
             self.use_level(0)
         # what R takes from outside the step's start: loads and remainders
@@ -1079,7 +1084,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         B = u0.shape[0]
         u, v, a, h, t, unconverged = self.cut_step(
             self.rows(u0, B, cut), self.rows(v0, B, cut), self.rows(a0, B, cut), self.rows(f1, B, cut),
-            self.rows(G0, B, cut), self.rows(G1, B, cut), self.rows(h0, B, cut))
+            self.rows(G0, B, cut), self.rows(G1, B, cut), self.rows(h0, B, cut),
+            None if f0 is None else self.rows(f0, B, cut))
         self.count_step(taken + t, unconverged, 1)
         return u1.index_copy(0, cut, u), v1.index_copy(0, cut, v), a1.index_copy(0, cut, a), h1.index_copy(0, cut, h)
 
@@ -1089,13 +1095,15 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         return x.expand([batch] + list(x.shape[1:])).index_select(0, rows)
 
     def cut_step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor, G1: Tensor,
-                 h0: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor, int, int]:
+                 h0: Tensor, f0: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor, Tensor, int, int]:
         """``step`` from (u0, v0, a0, h0) under f1, G0, G1 [b, ...] as the FE steps it where a
         whole step fails (``thermognn.generate.solid``'s ``step``): as two halves, each cut again
         where it does not converge, down to Δt / 2^step_cuts, whose last try is kept. A sub-step
-        holds the step's end loads f1 (the FE's loads at the sub-step's end: the same where they
-        are constant over the step, as after a ramp) and its remainders go linearly from G0 to
-        G1. Returns (u1, v1, a1, h1, the Newton iterations taken, whether a sub-step at the
+        holds the step's end loads f1, or with the step's start loads f0 given the loads linearly
+        from f0 to f1 at its own end (the FE's loads are those at the sub-step's end: within a
+        load ramp holding f1 loads a cut step early, and the bunny's traj_14, cut from its 4th step
+        within its 10-step ramp, then leaves the data; docs/accuracy.md session 88), and its
+        remainders go linearly from G0 to G1. Returns (u1, v1, a1, h1, the Newton iterations taken, whether a sub-step at the
         floor had not converged)."""
         u, v, a, h = u0, v0, a0, h0
         pending: List[int] = [1, 1]          # the sub-steps still to take, in order, by level
@@ -1106,7 +1114,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             part = 0.5 ** level
             self.use_level(level)
             Gs, Ge = G0 + done * (G1 - G0), G0 + (done + part) * (G1 - G0)                 # [b, n] N
-            sub_loads = f1 + self.body_force + (1.0 + self.c) * Ge - self.c * Gs
+            fe = f1 if f0 is None else f0 + (done + part) * (f1 - f0)                      # [b, n] N
+            sub_loads = fe + self.body_force + (1.0 + self.c) * Ge - self.c * Gs
             u1, predictor, S_iso0, extra, damping0 = self.fresh_first_iteration(u, v, a, h, sub_loads)
             u1, t, still = self.iterate(u1, u, v, a, predictor, extra, sub_loads + damping0)
             taken += t

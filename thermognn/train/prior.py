@@ -243,10 +243,11 @@ class NewmarkPrior(nn.Module):
         raise RuntimeError("prior: the mass solve did not converge (is /linear's mass matrix a P1 mass matrix?)")
 
     def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
-             G1: Tensor, h0: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+             G1: Tensor, h0: Tensor, f0: Optional[Tensor] = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """(u1, v1, a1, h1) [B, n] (h1 [B, T, n + 6N]) from (u0, v0, a0), the Prony internal
         variables h0 at the step's start ([B, 0, 0] for the unrelaxed prior), the external force f1 at
-        the step's end and the internal-force remainders G0, G1 at its start and end (all [B, n])."""
+        the step's end and the internal-force remainders G0, G1 at its start and end (all [B, n]);
+        f0, the force at the step's start, is for the law prior's cut steps (unused here)."""
         predictor = self.newmark_predictor(u0, v0, a0)
         inertia = self.mass(self.mass_factor * predictor - self.alpha_m * v0
                             - self.alpha_m * self.dt * (1.0 - self.gamma) * a0)
@@ -915,7 +916,7 @@ class CorotatedNewmarkPrior(NewmarkPrior):
 
     # --- the step -------------------------------------------------------------------------------
     def step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor,
-             G1: Tensor, h0: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+             G1: Tensor, h0: Tensor, f0: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
         """(u1, v1, a1, h1) as :meth:`NewmarkPrior.step`, with the corotated internal force:
         M a1 + αM M v1 + c (f(u1) − f(u0)) + f(u1) = f1 + (1 + c) G1 − c G0, f(u1) = K_R u1 +
         Σ_e R_e K_e (R_eᵀ X_e − X_e) with R at the latest iterate of u1 (``sweeps`` solves)."""

@@ -216,12 +216,14 @@ def one_step_errors(model, graph: Graph, trajs: list[TrajectoryTensors], layout:
                     if linear_fe:                                   # the prior alone: G = H = 0
                         G0 = torch.zeros_like(u)
                         f1 = model.prior.gather(f.to(torch.float64))
-                        u, v, _, h = model.prior.step(u, v, accelerations[s0: s0 + k], f1, G0, G0, h)
+                        f0 = (model.prior.gather(t.force[s0: s0 + k].to(torch.float64)) if model.cut_loads_linear
+                              else None)
+                        u, v, _, h = model.prior.step(u, v, accelerations[s0: s0 + k], f1, G0, G0, h, f0)
                         H = torch.zeros_like(H)
                     else:
                         G, _ = model.remainders(seen[s0: s0 + k], t.force[s0: s0 + k], *mesh, False)
                         u, v, _, _, H, h = model.advance(u, v, accelerations[s0: s0 + k], G, H, h, f, *mesh,
-                                                         False)
+                                                         False, None, t.force[s0: s0 + k])
                     z_next = model.state(u, v, H, h).to(z.dtype)
                 else:
                     z_next = model.step(z.reshape(k * N, -1), f.reshape(k * N, -1), many.edge_index,
