@@ -1428,6 +1428,27 @@ def test_law_prior_iterates_past_its_budget_until_the_step_converges():
         make(2, 1)
 
 
+#: a Newton tolerance no update meets: 2 iterations to it never converge, so every step is cut
+NEVER = 1e-300
+
+
+def _bend_cut_once():
+    """The damped 1 N bend's viscous Ogden priors (``_ogden_bend_priors``, 8 steps): (graph,
+    prony, build, its displacements u and velocities v [S, N, 3], remainders G [S, n] that change
+    over the rollout (~1e-3 of the loads), the prior that cuts every step once (2 iterations to
+    NEVER, cuts 1), the prior built for Δt/2 with the same iterations)."""
+    import torch
+
+    graph, prony, build = _ogden_bend_priors(steps=8)
+    layout, traj, dt, X, linear, node_type, edges, z, f = graph
+    u, v = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6]
+    G = 1e-3 * float(f.abs().max()) * torch.randn(len(f), int(linear.free.sum()), dtype=torch.float64,
+                                                   generator=torch.Generator().manual_seed(1))
+    cut = build(dt, max_iterations=2, newton_rtol=NEVER, step_cuts=1)
+    half = build(dt / 2, max_iterations=2, newton_rtol=NEVER)
+    return graph, prony, build, u, v, G, cut, half
+
+
 def test_law_prior_cuts_a_step_that_has_not_converged_into_the_fe_s_half_steps():
     """``model.prior_step_cuts`` (``HyperelasticNewmarkPrior(step_cuts=...)``) on the FE solid's own
     data (the damped 1 N bend, viscous Ogden): a step still not converged after its most
@@ -1447,18 +1468,12 @@ def test_law_prior_cuts_a_step_that_has_not_converged_into_the_fe_s_half_steps()
     from thermognn.train.evaluation import newton_sentence
     from thermognn.train.hybrid import prior_settings
 
-    graph, prony, build = _ogden_bend_priors(steps=8)
+    graph, prony, build, u, v, G, cut, half = _bend_cut_once()
     layout, traj, dt, X, linear, node_type, edges, z, f = graph
     make = lambda step, most, rtol=None, cuts=0: build(  # noqa: E731
         step, max_iterations=most, newton_rtol=rtol, step_cuts=cuts)
     rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
-    u, v = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6]
-    n = int(linear.free.sum())
-    # remainders that change over the rollout, ~1e-3 of the loads
-    G = 1e-3 * float(f.abs().max()) * torch.randn(len(f), n, dtype=torch.float64,
-                                                   generator=torch.Generator().manual_seed(1))
-    never = 1e-300                                      # no update is that small: 2 iterations never converge
-    cut, half = make(dt, 2, never, cuts=1), make(dt / 2, 2, never)
+    never = NEVER
     U, V, _ = _prior_rollout(cut, u, v, f, G, None)
     # (measured 6.0 %: the bend's load ramps over its 8 steps, and every step cut here holds it at its end)
     assert torch.isfinite(U).all() and rel(V, v) < 0.1
@@ -1863,16 +1878,9 @@ def test_law_prior_loads_a_cut_steps_sub_steps_between_the_step_s_loads():
     from thermognn.train.checkpoint import law_phrase, model_step, with_law_rollout
     from thermognn.train.hybrid import prior_settings
 
-    graph, prony, build = _ogden_bend_priors(steps=8)
+    graph, prony, build, u, v, G, cut, half = _bend_cut_once()
     layout, traj, dt, X, linear, node_type, edges, z, f = graph
     rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
-    u, v = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6]
-    n = int(linear.free.sum())
-    G = 1e-3 * float(f.abs().max()) * torch.randn(len(f), n, dtype=torch.float64,
-                                                   generator=torch.Generator().manual_seed(1))
-    never = 1e-300                                      # no update is that small: 2 iterations never converge
-    cut, half = build(dt, max_iterations=2, newton_rtol=never, step_cuts=1), build(dt / 2, max_iterations=2,
-                                                                                   newton_rtol=never)
     uc, vc = cut.gather(u[:1]), cut.gather(v[:1])
     hc = cut.internal_variables(uc)
     ac = cut.initial_acceleration(uc, vc, cut.gather(f[:1]), G[:1])
@@ -1890,7 +1898,7 @@ def test_law_prior_loads_a_cut_steps_sub_steps_between_the_step_s_loads():
         cut.gather(u[:1]), cut.gather(v[:1]), cut.gather(f[:1]), G[:1]), cut.gather(f[1:2]), G[:1], G[1:2],
         cut.internal_variables(cut.gather(u[:1])), cut.gather(f[:1]))
     assert rel(ramped[1], held[1]) > 1e-3                         # (a ramp's loads matter)
-    _carried_steps_follow_rollouts(build(dt, max_iterations=2, newton_rtol=never, step_cuts=1), graph,
+    _carried_steps_follow_rollouts(build(dt, max_iterations=2, newton_rtol=NEVER, step_cuts=1), graph,
                                    width=len(prony) * cut.cell_columns, cut_loads="linear", optimized=False)
 
     cfg = {"prior": "linear", "prior_law": True, "prior_newton": 1, "prior_newton_max": 8, "prior_step_cuts": 4}
