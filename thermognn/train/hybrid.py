@@ -347,7 +347,8 @@ class LinearPriorModel(nn.Module):
         """The carried state [N, D + 6 + 9 T (+ 3)] of one body ([1, ...] inputs): ``state`` with a,
         G and the relaxing prior's internal variables (``pack_internal``; none unless it relaxes),
         and with ``cut_loads_linear`` the load f [1, N, 3] N the state is under."""
-        parts = [self.state(u, v, H, h)[0], self.prior.scatter(a)[0], self.prior.scatter(G)[0], self.pack_internal(h)[0]]
+        parts = [self.state(u, v, H, h)[0], self.prior.scatter(a)[0], self.prior.scatter(G)[0],
+                 self.pack_internal(h)[0]]                                         # [N, D], [N, 3], [N, 3], [N, 9 T]
         if self.cut_loads_linear:
             parts.append(f[0].to(torch.float64))
         return torch.cat(parts, -1)

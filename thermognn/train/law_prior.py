@@ -839,7 +839,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         1/2^line_search that lowers ‖R‖ by at least ``LINE_SEARCH_DECREASE`` s of its value at u
         (per sample; the smallest s where none does), as an undamped update can wander off where
         the step's solution lies beyond a region the tangent does not describe (the bunny's
-        traj_14 at the cut floor, docs/accuracy.md session 88). An update within the step's
+        traj_14 ran away so at the cut floor, and stays finite searched; docs/accuracy.md session
+        88). A kept tangent's chord updates (``kept_iterations``) are not searched: a step they do
+        not converge is taken again with fresh tangents, searched. An update within the step's
         tolerance (``tolerance``: converged, its residual round-off) is never shortened, and one
         taken whole is the plain update, to the bit; whether a step has converged is judged on the
         whole update du, not a shortened one (the search's or ``admissible``'s: plain ``iterate``
@@ -1103,8 +1105,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         from f0 to f1 at its own end (the FE's loads are those at the sub-step's end: within a
         load ramp holding f1 loads a cut step early, and the bunny's traj_14, cut from its 4th step
         within its 10-step ramp, then leaves the data; docs/accuracy.md session 88), and its
-        remainders go linearly from G0 to G1. Returns (u1, v1, a1, h1, the Newton iterations taken, whether a sub-step at the
-        floor had not converged)."""
+        remainders go linearly from G0 to G1. Returns (u1, v1, a1, h1, the Newton iterations
+        taken, whether a sub-step at the floor had not converged)."""
         u, v, a, h = u0, v0, a0, h0
         pending: List[int] = [1, 1]          # the sub-steps still to take, in order, by level
         done = 0.0                           # how much of Δt they have taken
