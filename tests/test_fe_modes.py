@@ -1783,8 +1783,9 @@ def test_law_prior_line_search_converges_a_step_its_undamped_newton_does_not():
     is shortened by ``admissible``, and the next overshoots again), where updates halved until
     they lower the residual norm converge in a few, to a step end whose residual is round-off of
     the load; so too from a start whose predictor inverts a cell. Along the data's rollout no
-    update needs shortening: the same rollout as without the search, to the bit. Scripted (its dense LU) it takes the same step; the config records it, ``rollout.prior_line_search`` steps a trained model so,
-    and both name what they cannot be."""
+    update needs shortening: the same rollout as without the search, to the bit. Scripted (its
+    dense LU) it takes the same step; the config records it, ``rollout.prior_line_search``
+    steps a trained model so, and both name what they cannot be."""
     torch = pytest.importorskip("torch")
     from omegaconf import OmegaConf
 

@@ -98,3 +98,20 @@ def test_static_equilibrium_reactions_balance_the_load():
     applied = s.f_ext.x.array.reshape(-1, 3).sum(axis=0)
     assert np.allclose(applied, [0, 0, -1.0])
     assert np.allclose(support + applied, 0.0, atol=1e-8)
+
+
+def test_the_line_search_backs_off_along_the_last_update():
+    """A non-finite residual's line search (``Solid._back_track``) moves u back towards where the
+    last Newton update started, to 1/2, then 1/4, ... of the update (``du`` holds it as applied),
+    not on along it."""
+    mat = Material("neo_hookean", {"C10": 1.0e4, "D1": 1.0e-5})
+    s = Solid(cases.box_mesh((0.04, 0.04, 0.02), (2, 2, 1)), mat, ("elastic", "inertia"), SolverOptions())
+    rng = np.random.default_rng(0)
+    start = 1e-4 * rng.standard_normal(s.u.x.array.shape)
+    update = 1e-3 * rng.standard_normal(s.u.x.array.shape)
+    s.u.x.array[:] = start + update              # where the update ended
+    s.du.x.array[:] = update                     # ... as newton stores it: the update applied
+    norm = s._back_track(0.5)
+    assert np.allclose(s.u.x.array, start + 0.5 * update, rtol=0, atol=1e-15) and np.isfinite(norm)
+    s._back_track(0.25)
+    assert np.allclose(s.u.x.array, start + 0.25 * update, rtol=0, atol=1e-15)

@@ -303,6 +303,16 @@ class Solid:
         b.destroy()
         return out
 
+    def _back_track(self, fraction: float) -> float:
+        """Move u back towards where the last Newton update started by ``fraction`` of that update
+        (``du`` holds the update as applied; a non-finite residual's line search calls this with
+        1/2, 1/4, ..., so that u stands at 1/2, 1/4, ... of the update) and return the residual
+        norm [N] there. (Before session 88 u moved on along the update instead, so a non-finite
+        residual always failed the attempt and the step was cut.)"""
+        self.u.vector.axpy(-fraction, self.du.vector)
+        self.u.x.scatter_forward()
+        return self._assemble_residual()
+
     def newton(self) -> StepReport:
         """Solve R(u) = 0 from the current u; u is left at the last iterate."""
         o = self.opt
@@ -311,10 +321,7 @@ class Solid:
             norm = self._assemble_residual()
             halvings = 0
             while not math.isfinite(norm) and it > 0 and halvings < o.line_search_halvings:
-                step = 0.5 ** (halvings + 1)       # back-track along the last Newton direction
-                self.u.vector.axpy(step, self.du.vector)
-                self.u.x.scatter_forward()
-                norm = self._assemble_residual()
+                norm = self._back_track(0.5 ** (halvings + 1))
                 halvings += 1
             if not math.isfinite(norm):
                 return StepReport(False, f"non-finite residual at Newton iteration {it} (J <= 0?)", it)
