@@ -18,7 +18,7 @@ from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
 from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint, model_step, torch_dtype, with_rollout
 from thermognn.train.data import check_fingerprint, load_graph
-from thermognn.train.hybrid import CUT_LOADS_CARRIED, carried_layout
+from thermognn.train.hybrid import carried_layout
 
 from .module import ExportedLinearPrior, ExportedTIGNN
 
@@ -29,8 +29,8 @@ DEFAULT_RTOL = {torch.float32: 1e-4, torch.float64: 1e-9}
 
 
 def metadata(ckpt: dict, internal=()) -> str:
-    """The ``thermognn.json`` extra file (keys as in docs/stages.md); ``internal``: the columns of
-    the internal variables a relaxing linear prior carries (``NewmarkPrior.internal_columns``, for
+    """The ``thermognn.json`` extra file (keys as in docs/stages.md); ``internal``: the column
+    groups a linear-prior model carries after a and G (``LinearPriorModel.carried_columns``, for
     ``carried_layout``)."""
     return json.dumps({"format": FORMAT, "scene": ckpt.get("scene", ""), "effects": list(ckpt.get("effects", [])),
                        "state_layout": (carried_layout(ckpt["state_layout"], internal) if ckpt.get("prior")
@@ -71,8 +71,8 @@ def parity(eager: ExportedTIGNN | ExportedLinearPrior, scripted, ds: Dataset, st
     (``torch.jit.optimized_execution``; ``modes``: those of the two to check). Relative: per state
     column, divided by the largest magnitude of that column over all the compared states (a
     linear-prior model's carried remainder G: at least the largest load). Both sides step from
-    the same state: comparing two free rollouts would measure how fast the model amplifies round-off (an undertrained float32 model: 100x
-    per step), not the export. States are made steppable by the eager ``begin`` (a linear-prior
+    the same state: comparing two free rollouts would measure how fast the model amplifies
+    round-off (an undertrained float32 model: 100x per step), not the export. States are made steppable by the eager ``begin`` (a linear-prior
     model's carried state)."""
     dtype = eager.z0.dtype
     names = ds.ok_names or ds.names
@@ -173,9 +173,7 @@ def export(cfg) -> Path:
         raise ConfigError(f"train.export_optimized = {optimized!r}, expected true | false (whether export also checks "
                           f"and times the step with TorchScript's graph-executor optimisation on)")
     out = project_path(cfg.paths.exported)
-    internal = eager.core.prior.internal_columns() if isinstance(eager, ExportedLinearPrior) else []
-    if isinstance(eager, ExportedLinearPrior) and eager.core.cut_loads_linear:   # the last step's load, carried
-        internal = list(internal) + [CUT_LOADS_CARRIED]
+    internal = eager.core.carried_columns() if isinstance(eager, ExportedLinearPrior) else []
     forget = getattr(scripted.core.prior, "forget", None) if isinstance(eager, ExportedLinearPrior) else None
     if forget is not None:              # the law prior's kept step start (its factors): not for the file
         forget()

@@ -261,10 +261,9 @@ def model_step(ckpt: dict) -> dict:
     "material" where its stress is the material's law, "law": the Newton iterations a step of the
     law prior, "law_max": the most it takes where a step has not converged, "law_rtol": to what,
     "law_cuts": how many times a step that still has not is halved, "law_tangent": "kept" where its
-    tangent is kept between iterations and steps, "law_search": the halvings of its line search, "law_cut_loads":
-    "linear" where a cut step's sub-steps are loaded between the step's loads,
-    "law_material": "learned" where the law is a
-    strain energy learned from the data, "remainders": "zero" where the prior steps alone,
+    tangent is kept between iterations and steps, "law_search": the halvings of its line search,
+    "law_cut_loads": "linear" where a cut step's sub-steps are loaded between the step's loads,
+    "law_material": "learned" where the law is a strain energy learned from the data, "remainders": "zero" where the prior steps alone,
     ``rollout.remainders`` or ``train.prior_alone_candidate``)."""
     from .model import step_settings
 

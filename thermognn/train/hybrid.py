@@ -353,6 +353,12 @@ class LinearPriorModel(nn.Module):
             parts.append(f[0].to(torch.float64))
         return torch.cat(parts, -1)
 
+    def carried_columns(self) -> List[Tuple[str, int]]:
+        """(name, width) of the carried state's column groups after a and G, as ``pack`` lays them
+        out: the prior's internal variables (``internal_columns``) and, with ``cut_loads_linear``,
+        the last load (CUT_LOADS_CARRIED); for the exported ``state_layout`` (``carried_layout``)."""
+        return list(self.prior.internal_columns()) + ([CUT_LOADS_CARRIED] if self.cut_loads_linear else [])
+
     def advance(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, h: Tensor, f1: Tensor,
                 edge_index: Tensor, node_type: Tensor, ref_pos: Tensor, create_graph: bool,
                 rest_rates: Optional[Tensor] = None, f0: Optional[Tensor] = None
@@ -378,14 +384,15 @@ class LinearPriorModel(nn.Module):
     # --- the carried state [N, D + 6 (+ 9 T)]: what rollouts, export and serve step -------------
     @torch.jit.export
     def carry(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor) -> Tensor:
-        """The carried state [N, D + 6 + 9 T] of the physical state z [N, D] under the load f [N, 3]."""
+        """The carried state [N, D + 6 + 9 T (+ 3)] (``pack``) of the physical state z [N, D] under
+        the load f [N, 3]."""
         u, v, a, G, H, h = self.begin(z.unsqueeze(0), f.unsqueeze(0), edge_index, node_type, ref_pos, False)
         return self.pack(u, v, a, G, H, h, f.unsqueeze(0))
 
     @torch.jit.export
     def step(self, z: Tensor, f: Tensor, edge_index: Tensor, node_type: Tensor, ref_pos: Tensor,
              dt: Tensor) -> Tensor:
-        """One step of the carried state z [N, D + 6 + 9 T] driven by the load f [N, 3] [N] at the
+        """One step of the carried state z [N, D + 6 + 9 T (+ 3)] driven by the load f [N, 3] [N] at the
         step's end (dt is the prior's own; the argument keeps TIGNN's signature)."""
         D = self.dim
         x = z.to(torch.float64).unsqueeze(0)                                        # [1, N, D + 6 + 9 T (+ 3)]
