@@ -1917,3 +1917,45 @@ def test_law_prior_loads_a_cut_steps_sub_steps_between_the_step_s_loads():
     ckpt, note = with_law_rollout(trained, {"prior_cut_loads": "linear"})
     assert ckpt["prior"]["law_cut_loads"] == "linear" and "its sub-steps loaded between the step's loads" in note
     assert law_phrase(ckpt["prior"]).endswith("cut down to Δt/16, its sub-steps loaded between the step's loads")
+
+
+def test_the_law_priors_energy_balance_conserves_an_elastic_law_and_a_viscous_one_absorbs():
+    """``evaluate``'s energy of a law prior (``law_energy_along``: the law's kinetic + strain energy,
+    the loads' trapezoidal work W and what the body absorbed, W − ΔE) on the FE's bend, stepped to
+    convergence: undamped and elastic (neo-Hookean, the Rayleigh terms taken out) the body holds
+    the loads' work up to Newmark's drift over the law's curvature; with the FE's Rayleigh damping
+    or a Prony term (viscous Ogden, undamped) it absorbs energy at every step and never gives back
+    more than the loads put in (passive); the FE's own data of the damped bend, under its own law,
+    too."""
+    torch = pytest.importorskip("torch")
+    from thermognn.core.hyperelastic import law_from_config
+    from thermognn.train.evaluation import PASSIVE_TOL, law_energy_along
+    from thermognn.train.law_prior import HyperelasticNewmarkPrior
+
+    neo = ("neo_hookean", {"C10": 1.0e4, "D1": 1.0e-5})
+    ogden = ("ogden", {"mu": [2.0e4], "alpha": [8.0], "D": [1.0e-5]})
+    rows = {}
+    for name, law, prony, damped in (("elastic", neo, (), False), ("damped", neo, (), True),
+                                     ("viscous", ogden, ((0.4, 4e-3),), False)):
+        layout, traj, dt, X, linear, _, _, z, f = _bent_block_graph(steps=16, prony=prony, law=law)
+        tets = _bent_block(1.0, "newmark", steps=2, prony=prony, law=law)[0].cells[:, :4]
+        material = {"law": law[0], **law[1], "prony": [{"g": g, "tau": t} for g, t in prony]}
+        if not damped:
+            linear = dataclasses.replace(linear, rayleigh=(0.0, 0.0))
+        prior = HyperelasticNewmarkPrior(linear, len(X), dt, X, tets, *linear.lame(), law_from_config(material)[0],
+                                         iterations=1, max_iterations=12, newton_rtol=1e-12)
+        G0 = torch.zeros(len(f), prior.n_free, dtype=torch.float64)
+        U, V, _ = _prior_rollout(prior, z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], f, G0, None)
+        rows[name] = law_energy_along(prior, torch.as_tensor(X), torch.cat([U + torch.as_tensor(X), V], -1), f)
+        if name == "damped":
+            rows["data"] = law_energy_along(prior, torch.as_tensor(X), z, f)
+    for name, r in rows.items():
+        E, W, absorbed, error = r[:, 0], r[:, 4], r[:, 5], r[:, 3]
+        assert np.isfinite(r[:, [0, 3, 4, 5]]).all() and np.isnan(r[:, 1:3]).all()
+        assert abs(E[0]) < 1e-9 * W.max() and W[0] == 0.0 and W[-1] > 0.0           # from rest, loaded
+        assert np.allclose(error[1:], -np.diff(absorbed), rtol=0.0, atol=1e-12 * W.max())
+        if name == "elastic":
+            assert np.abs(absorbed).max() < 1e-3 * W.max(), np.abs(absorbed).max() / W.max()     # measured 4.3e-4
+        else:
+            assert absorbed.min() >= -PASSIVE_TOL * W.max() and absorbed[-1] > 0.02 * W.max(), (name, absorbed / W.max())
+            # (measured: 0.13 of the work at the end, damped and its data; 0.16 viscous)

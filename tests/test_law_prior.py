@@ -260,3 +260,35 @@ def test_the_learned_laws_fit_picks_the_widest_trajectories_first():
     assert set(picked) - {"traj_13", "traj_7"} == {"traj_0", "traj_19"}       # the others' ends
     assert widest_first(names, extents, 1) == ["traj_13"]
     assert widest_first(names[:3], extents[:3], 8) == names[:3]
+
+
+def test_the_law_priors_strain_energy_is_the_potential_of_its_stresses():
+    """``HyperelasticNewmarkPrior.strain_energy_density`` (what ``evaluate`` reports the law's energy
+    by) is the potential of ``pk2``'s stresses for each law it steps: ∂Ψ_iso/∂F = F S_iso and
+    ∂Ψ_vol/∂F = F S_vol by autograd, to round-off, at random F, F = I and a uniaxial stretch (Ogden
+    through the FE's regularised eigenvalues, two terms, one of negative α); Ψ = 0 at rest (Ogden: to
+    its regularisation's 1e-9 Pa), and
+    Ogden's isochoric energy is the numpy law's."""
+    from types import SimpleNamespace
+
+    F = torch.as_tensor(_gradients())
+    laws = {"neo_hookean": SimpleNamespace(learned=False, ogden=False, c10=1e4, d1=1e-5),
+            "ogden": SimpleNamespace(learned=False, ogden=True, ogden_mu=[2000.0, -500.0], ogden_alpha=[16.19, -3.0],
+                                     ogden_d=[1e-4, 1e-3]),
+            "learned": SimpleNamespace(learned=True, ogden=False, learned_law=_learned())}
+    for name, prior in laws.items():
+        prior.pk2 = lambda F, p=prior: HyperelasticNewmarkPrior.pk2(p, F)
+        G = F.clone().requires_grad_()
+        iso, vol = HyperelasticNewmarkPrior.strain_energy_density(prior, G)
+        S_iso, S_vol = prior.pk2(F)
+        for psi, S in ((iso, S_iso), (vol, S_vol)):
+            (grad,) = torch.autograd.grad(psi.sum(), G, retain_graph=True)
+            P = F @ S
+            assert float((grad - P).abs().max()) < 1e-9 * float(P.abs().max()), name
+        rest = HyperelasticNewmarkPrior.strain_energy_density(prior, torch.eye(3, dtype=torch.float64))
+        assert abs(float(rest[0])) < 1e-8 and abs(float(rest[1])) < 1e-8, name     # (moduli 1e3-1e4 Pa)
+    ogden = Ogden([2000.0, -500.0], [16.19, -3.0], [1e-4, 1e-3])
+    C = (F.transpose(-1, -2) @ F)
+    numpy_iso = ogden.isochoric_energy(C.numpy())
+    iso = HyperelasticNewmarkPrior.strain_energy_density(laws["ogden"], F)[0].numpy()
+    assert np.abs(iso - numpy_iso).max() < 1e-12 * np.abs(numpy_iso).max()

@@ -677,6 +677,17 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
         "error: train.fit_target = budget with model.prior_newton_max = 3"), res.stderr[-2000:]
 
 
+def _law_energy_is_passive(out, figures: dict) -> None:
+    """``evaluate``'s energy of a law along its test rollouts and of the data under the same law
+    (``rrmse.json``'s ``figures``; the block is damped, a viscous one relaxes too): the body never
+    gives back more than the loads put in (passive), and the rollouts' energy is the data's within 2 %."""
+    from thermognn.train.evaluation import PASSIVE_TOL
+
+    assert figures["law_work"] > 0 and 0 <= figures["law_energy_off"] < 0.02, figures
+    assert min(figures["law_absorbed_least"], figures["law_data_absorbed_least"]) >= -PASSIVE_TOL, figures
+    assert "- law energy: along the test rollouts the loads do up to" in (out / "eval" / "summary.md").read_text()
+
+
 def _learned_law_alone_within_2_percent(out, data, zero: bool = True) -> None:
     """``evaluate`` of a learned law alone (``rollout.remainders=zero``; not with ``zero`` false:
     the checkpoint is the law alone): whole-rollout errors within 2 % and below a fifth of the
@@ -688,6 +699,7 @@ def _learned_law_alone_within_2_percent(out, data, zero: bool = True) -> None:
     alone = json.loads((out / "eval" / "rrmse.json").read_text())
     for g in ("q", "v", "sigma"):
         assert 0 < alone[f"whole_{g}"] < min(0.02, 0.2 * alone[f"linear_fe_whole_{g}"]), (g, alone)
+    _law_energy_is_passive(out, alone)
 
 
 def test_learned_law_fits_the_block_and_steps_it(tmp_path, tiny_block):
@@ -828,3 +840,4 @@ def test_learned_law_fits_the_block_and_steps_it(tmp_path, tiny_block):
     alone = json.loads((out / "eval" / "rrmse.json").read_text())
     for g in ("q", "v", "sigma"):
         assert 0 < alone[f"whole_{g}"] < min(0.02, 0.2 * alone[f"linear_fe_whole_{g}"]), (g, alone)
+    _law_energy_is_passive(out, alone)

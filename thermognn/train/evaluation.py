@@ -9,7 +9,8 @@ Files written (all atomically)::
                                     whole-rollout errors); box plots of the per-snapshot ones, train vs test
     one_step_vs_time.csv            one step from each true state: error of its change per step and group
                                     (what the network learned, apart from the rollout's drift)
-    energy_entropy.csv / .png       learned E, S and the degeneracy residual along each test rollout
+    energy_entropy.csv / .png       learned E, S and the degeneracy residual along each test rollout (a law
+                                    prior's: the law's energy, the loads' work and what the body absorbed)
     rest_drift.csv                  the unloaded body left at rest for 10x the horizon: how far it drifts
                                     (the summary adds the growth factor of a disturbance at rest)
     snapshot_<traj>_<step>.vtu      predicted vs ground truth point data (datasets with tets only)
@@ -100,6 +101,84 @@ def energy_entropy_along(model, graph: Graph, pred: torch.Tensor, forces: torch.
                 err = float((e - e_prev - dt * power).detach())
             rows.append([float(e.detach()), float(s_.detach()), float(deg.detach()), err])
     return np.asarray(rows)
+
+
+#: energy_entropy.csv's columns after the step and time (a graph network's E and S, a law's energy)
+ENERGY_COLUMNS = ["energy", "entropy", "degeneracy", "energy_error", "work", "absorbed"]
+#: absorbed energy this far below zero, over the largest work, still reads as passive (the
+#: trapezoidal work's error over a step of a curved law)
+PASSIVE_TOL = 1e-6
+
+
+def law_energy_along(prior, X: torch.Tensor, z: torch.Tensor, forces: torch.Tensor) -> np.ndarray:
+    """[S, 6] in ``ENERGY_COLUMNS``' order along states z [S, N, D] (positions q [m] and velocities
+    v [m/s] first) under nodal loads ``forces`` [S, N, 3] N, for a law prior's rollout or the data
+    it follows (``HyperelasticNewmarkPrior``, X [N, 3] m its reference positions):
+
+    - energy E_s = ½ vᵀ M v + Σ_e V_e (Ψ_vol + g∞ Ψ_iso) − f_body · u [J] (``prior.energy``);
+    - entropy and degeneracy nan: the law has no learned S, L or M;
+    - work W_s = Σ_k≤s ½ (f_k−1 + f_k) · (u_k − u_k−1) [J], the loads' work by the trapezoidal rule
+      (Newmark's average acceleration balances exactly that against ½ vᵀ M v and the internal
+      forces' trapezoidal work, so only the law's curvature over a step is left);
+    - absorbed A_s = W_s − (E_s − E_0) [J]: what the loads put in that the body no longer holds
+      as kinetic or elastic energy, dissipated or held in its Prony terms; ≥ 0 at every step for a
+      passive body (one that never gives back more than it took, the condition for stable haptic
+      rendering), 0 up to the integrator's drift for an elastic, undamped law;
+    - energy_error E_s − E_s−1 − (W_s − W_s−1) (0 at s = 0): −(A_s − A_s−1)."""
+    with torch.no_grad():
+        dtype = prior.cell_volume.dtype
+        zz = z.to(dtype)
+        u = prior.gather(zz[..., 0:3] - torch.as_tensor(X, dtype=dtype))                        # [S, n]
+        v = prior.gather(zz[..., 3:6]) if zz.shape[-1] >= 6 else torch.zeros_like(u)
+        f = prior.gather(forces.to(dtype))                                                      # [S, n]
+        kinetic, potential = prior.energy(u, v)
+        E = (kinetic + potential).numpy()
+        steps = (0.5 * (f[1:] + f[:-1]) * (u[1:] - u[:-1])).sum(-1).numpy()                    # [S - 1]
+    W = np.concatenate([[0.0], np.cumsum(steps)])
+    error = np.concatenate([[0.0], np.diff(E) - steps])
+    nan = np.full_like(E, np.nan)
+    return np.stack([E, nan, nan, error, W, W - (E - E[0])], axis=1)
+
+
+def law_energy_figures(pred_rows: list[np.ndarray], data_rows: list[np.ndarray]) -> dict:
+    """From ``law_energy_along``'s rows of the test rollouts and of their data under the same law,
+    each trajectory's absorbed energy over the largest |work| along it, W_max: ``law_work`` (the
+    largest W_max [J]); ``law_absorbed_least`` and ``law_data_absorbed_least`` (the least absorbed
+    share after the start: ≥ 0 passive); ``law_absorbed_end`` (the share at the end, mean over the
+    trajectories); ``law_drift`` and ``law_data_drift`` (the largest |absorbed| share: an elastic,
+    undamped law's drift) and ``law_energy_off`` (max_s |E_pred − E_data| / max_s |E_data|, mean over
+    the trajectories)."""
+    def shares(r: np.ndarray) -> np.ndarray:                      # A_s / W_max of one trajectory [S]
+        return r[:, 5] / max(float(np.nanmax(np.abs(r[:, 4]))), 1e-300)
+
+    least = lambda rows: min(float(np.nanmin(shares(r)[1:])) for r in rows)  # noqa: E731
+    drift = lambda rows: max(float(np.nanmax(np.abs(shares(r)))) for r in rows)  # noqa: E731
+    off = [float(np.nanmax(np.abs(p[:, 0] - d[:, 0]))) / max(float(np.nanmax(np.abs(d[:, 0]))), 1e-300)
+           for p, d in zip(pred_rows, data_rows)]
+    return {"law_work": max(float(np.nanmax(np.abs(r[:, 4]))) for r in pred_rows),
+            "law_absorbed_least": least(pred_rows), "law_data_absorbed_least": least(data_rows),
+            "law_absorbed_end": float(np.mean([shares(r)[-1] for r in pred_rows])),
+            "law_drift": drift(pred_rows), "law_data_drift": drift(data_rows), "law_energy_off": float(np.mean(off))}
+
+
+def law_energy_sentence(fig: dict, elastic: bool) -> str:
+    """One line of ``law_energy_figures``' ``fig`` (``elastic``: an elastic, undamped law)."""
+    if elastic:
+        held = (f"an elastic, undamped law: its energy changes by the loads' work up to the integrator's drift, "
+                f"at most {_fmt(fig['law_drift'])} of a trajectory's largest work (the data under the same law: "
+                f"{_fmt(fig['law_data_drift'])})")
+    else:
+        held = (f"the energy the body absorbed (W - (E - E_0): dissipated or held in its Prony terms) is at "
+                f"least {_fmt(fig['law_absorbed_least'])} of a trajectory's largest work at every step after the "
+                "start" + (" (passive: it never gives back more than the loads put in)"
+                           if fig["law_absorbed_least"] >= -PASSIVE_TOL else
+                           " (below zero: the model gave back more energy than the loads put in)")
+                + f" and {_fmt(fig['law_absorbed_end'])} at the end (mean); the data under the same law: "
+                f"{_fmt(fig['law_data_absorbed_least'])} at least")
+    return (f"law energy: along the test rollouts the loads do up to {_fmt(fig['law_work'])} J of work; {held}; "
+            f"the rollouts' energy E = kinetic + strain - body force . u is off the data's (under the same law) "
+            f"by {_fmt(fig['law_energy_off'])} of its largest, mean over the trajectories "
+            "(`energy_entropy.csv`: energy, work, absorbed)")
 
 
 def energy_balance(rows: list[np.ndarray]) -> float:
@@ -742,24 +821,38 @@ def evaluate(cfg) -> dict:
              if step_linear else ""))
 
     # energy, entropy and degeneracy along each test rollout
-    rows, along = [], []
+    # (a law prior's: the law's energy, the loads' work and what the body absorbed, ``law_energy_along``)
+    law = prior and isinstance(model.prior, HyperelasticNewmarkPrior)
+    rows, along, along_data = [], [], []
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.5))
     for t, pred in zip(test, preds):
-        ees = (np.full((pred.shape[0], 4), np.nan) if prior
-               else energy_entropy_along(model, data.graph, pred, t.force, data.dt))
+        if law:
+            ees = law_energy_along(model.prior, data.graph.ref_pos, pred, t.force)
+            along_data.append(law_energy_along(model.prior, data.graph.ref_pos, t.z, t.force))
+        elif prior:
+            ees = np.full((pred.shape[0], len(ENERGY_COLUMNS)), np.nan)
+        else:
+            ees = energy_entropy_along(model, data.graph, pred, t.force, data.dt)
+            ees = np.concatenate([ees, np.full((ees.shape[0], 2), np.nan)], axis=1)
         along.append(ees)
         tt = np.arange(pred.shape[0]) * data.dt
         rows += [[t.name, s, tt[s], *ees[s]] for s in range(pred.shape[0])]
-        for k, ax in enumerate(axes):
+        for k, ax in zip((0, 5, 2) if law else (0, 1, 2), axes):
             ax.plot(tt, ees[:, k], label=t.name)
-    for ax, title in zip(axes, ("learned energy E", "learned entropy S", "degeneracy residual")):
+    titles = (("the law's energy E [J]", "absorbed W - (E - E_0) [J]", "degeneracy residual") if law
+              else ("learned energy E", "learned entropy S", "degeneracy residual"))
+    for ax, title in zip(axes, titles):
         ax.set_title(title)
         ax.set_xlabel("time [s]")
     if len(test) <= 10:
         axes[0].legend(fontsize=7)
-    _write_csv(out / "energy_entropy.csv",
-               ["trajectory", "step", "time_s", "energy", "entropy", "degeneracy", "energy_error"], rows)
+    _write_csv(out / "energy_entropy.csv", ["trajectory", "step", "time_s", *ENERGY_COLUMNS], rows)
     balance = energy_balance(along)
+    law_fig = law_energy_figures(along, along_data) if law and along else {}
+    law_line = (law_energy_sentence(law_fig, model.prior.n_terms == 0 and model.prior.alpha_m == 0.0
+                                    and model.prior.c == 0.0) if law_fig else "")
+    if law_line:
+        print(f"evaluate: {law_line}")
     _save_fig(fig, out / "energy_entropy.png")
     files += ["energy_entropy.csv", "energy_entropy.png"]
 
@@ -813,6 +906,7 @@ def evaluate(cfg) -> dict:
 
     mean_test["ms_per_step"] = ms
     mean_test["energy_balance"] = balance
+    mean_test.update(law_fig)
     mean_test["rest_drift"] = drift
     mean_test["rest_growth"] = growth
     mean_test.update({f"one_step_{g}": step_test[g] for g in groups})
@@ -930,17 +1024,18 @@ def evaluate(cfg) -> dict:
                 "(`model.mirror_average`)" if (ckpt.get("hparams") or {}).get("mirror_frames") else "")
              + (f"; `rollout` overrides: {stepped}" if stepped else "") + ")"
              + (f"; {fe_sentence(fe)}" if fe else ""),
-             f"- energy balance: {_fmt(balance)} = sum |E_s - E_(s-1) - dt P| / sum |E_s - E_(s-1)| over the "
-             "test rollouts (the learned energy's change that the port's work P does not explain: the "
-             "integrator's drift, and for GENERIC models also what M changes where the learned "
-             "degeneracy M dE/dz = 0 is not exact; with exact kinematics also dE/dq . (v - the "
-             "network's dq/dt); `energy_error` in `energy_entropy.csv`)", drift_line,
+             (f"- {law_line}" if law_line else
+              f"- energy balance: {_fmt(balance)} = sum |E_s - E_(s-1) - dt P| / sum |E_s - E_(s-1)| over the "
+              "test rollouts (the learned energy's change that the port's work P does not explain: the "
+              "integrator's drift, and for GENERIC models also what M changes where the learned "
+              "degeneracy M dE/dz = 0 is not exact; with exact kinematics also dE/dq . (v - the "
+              "network's dq/dt); `energy_error` in `energy_entropy.csv`)"), drift_line,
              *([gentle_line] if gentle_line else []),
              *([f"- model.prior = linear: the data's Newmark step of the {prior_name} solid "
                 + ("alone, its remainders zero (the network not evaluated: its weights are untrained or "
                    "unused)" if not model.learned else "with the network's remainders G and H")
-                + "; the network's E and S are not the body's energy and entropy (energy "
-                "columns nan); its one step from a true state takes the data's own Newmark acceleration "
+                + "; the network's E and S are not the body's energy and entropy ("
+                + ("the energy columns are the law's" if law else "energy columns nan") + "); its one step from a true state takes the data's own Newmark acceleration "
                 "there, recovered from the velocities"] if prior else []), "",
              "Relative L2 error per snapshot ||z_pred - z_gt|| / ||z_gt|| over all nodes of a group, "
              "averaged over the rollout steps (clamped nodes imposed) and trajectories.", "",

@@ -228,6 +228,31 @@ def ogden_isochoric(C: Tensor, mu: List[float], alpha: List[float], eps: float,
     return S, dS
 
 
+def ogden_isochoric_energy(C: Tensor, mu: List[float], alpha: List[float], eps: float = EIGEN_EPS) -> Tensor:
+    """Ψ_iso = Σ_i 2 μ_i/α_i² (Σ_a λ̄_a^α_i − 3) [...] J/m³ of C [..., 3, 3], with the FE's regularised
+    eigenvalues of C̄ (:func:`ogden_isochoric`'s first lines): the energy whose 2 ∂/∂C is its S_iso."""
+    a = torch.linalg.det(C).pow(-1.0 / 3.0)[..., None, None]                       # J^(-2/3)
+    Cb = a * C
+    m = Cb.diagonal(dim1=-2, dim2=-1).sum(-1) / 3.0
+    B = Cb - m[..., None, None] * _eye(C)
+    p = torch.sqrt((B * B).sum((-2, -1)) / 6.0 + eps * eps)
+    r = torch.clamp((B * cofactor(B)).sum((-2, -1)) / 3.0 / (2.0 * p**3), -1.0, 1.0)
+    phi = torch.acos(r) / 3.0
+    psi = torch.zeros_like(m)
+    for mu_i, alpha_i in zip(mu, alpha):
+        stretches = sum((m + 2.0 * p * torch.cos(phi + 2.0 * math.pi * k / 3.0)).pow(alpha_i / 2.0) for k in range(3))
+        psi = psi + 2.0 * mu_i / alpha_i**2 * (stretches - 3.0)
+    return psi
+
+
+def ogden_volumetric_energy(J: Tensor, d: List[float]) -> Tensor:
+    """U = Σ_i (J − 1)^(2i)/D_i [...] J/m³ (i from 1) of volume ratios J [...]."""
+    U = torch.zeros_like(J)
+    for i, di in enumerate(d):
+        U = U + (J - 1.0).pow(2 * (i + 1)) / di
+    return U
+
+
 def ogden_volumetric_pk2(F: Tensor, C: Tensor, d: List[float]) -> Tensor:
     """S_vol = U'(J) J C⁻¹ [..., 3, 3] Pa of U = Σ_i (J − 1)^(2i)/D_i (i from 1)."""
     J = torch.linalg.det(F)[..., None, None]
@@ -508,6 +533,33 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     def cells(self, u: Tensor) -> Tensor:
         """The cells' deformation gradients F [B, T, 3, 3] at free-DOF displacements u [B, n] m."""
         return self.deformation_gradients(self.positions(u))
+
+    @torch.jit.unused
+    def strain_energy_density(self, F: Tensor) -> Tuple[Tensor, Tensor]:
+        """(Ψ_iso, Ψ_vol) [...] J/m³ of cells' deformation gradients F [..., 3, 3]: the law's strain
+        energy, whose 2 ∂/∂C are ``pk2``'s (S_iso, S_vol) (for reports; a step never needs it)."""
+        C = F.transpose(-1, -2) @ F
+        if self.learned:
+            return self.learned_law.energy_parts(C)
+        J = torch.linalg.det(F)
+        if self.ogden:
+            return (ogden_isochoric_energy(C, self.ogden_mu, self.ogden_alpha),
+                    ogden_volumetric_energy(J, self.ogden_d))
+        I1 = C.diagonal(dim1=-2, dim2=-1).sum(-1)
+        return self.c10 * (J.pow(-2.0 / 3.0) * I1 - 3.0), (J - 1.0).pow(2) / self.d1
+
+    @torch.jit.unused
+    def energy(self, u: Tensor, v: Tensor) -> Tuple[Tensor, Tensor]:
+        """(kinetic ½ vᵀ M v, potential Σ_e V_e (Ψ_vol + g∞ Ψ_iso)(F_e) − f_body · u) [B] J at free-DOF
+        displacements u [B, n] m and velocities v [B, n] m/s: the energy the body holds whatever its
+        Prony history (g∞ = 1 − Σ ḡ_i, 1 for an elastic law). From rest, the work of the loads less
+        this energy's change is what the body has dissipated or holds in its Prony terms, ≥ 0 for a
+        passive body, and 0 for an elastic law up to the integrator's drift (``evaluate``)."""
+        kinetic = 0.5 * (v * self.mass(v)).sum(-1)                                  # [B]
+        iso, vol = self.strain_energy_density(self.cells(u))                          # [B, T] each
+        g_inf = 1.0 - float(self.prony_weight.sum())
+        stored = ((vol + g_inf * iso) * self.cell_volume).sum(-1)                     # [B]
+        return kinetic, stored - (u * self.body_force).sum(-1)
 
     def admissible(self, base: Tensor, du: Tensor) -> Tensor:
         """base − s du [B, n] m with, per sample, the largest s of 1, 1/2, 1/4, ... (``MAX_HALVINGS``)

@@ -132,6 +132,12 @@ class StrainEnergy(nn.Module):
 
     def energy(self, C: Tensor) -> Tensor:
         """Ψ(C) [...] J/m³ (not needed by a step; for tests and reports)."""
+        iso, vol = self.energy_parts(C)
+        return iso + vol
+
+    def energy_parts(self, C: Tensor) -> Tuple[Tensor, Tensor]:
+        """(Ψ_iso, U) [...] J/m³ of C [..., 3, 3]: the isochoric and volumetric parts of ``energy``
+        (their 2 ∂/∂C are ``pk2``'s S_iso and S_vol)."""
         I1b, I2b, J, _ = self.invariants(C)
         s = self.scales
         x = torch.stack([(I1b - 3.0) / s[0], (I2b - 3.0) / s[1]], -1)
@@ -143,7 +149,7 @@ class StrainEnergy(nn.Module):
         vol = 0.5 * (self.vol_quadratic * y * y).squeeze(-1) + (self.vol_out * (
             torch.nn.functional.softplus(z) - torch.nn.functional.softplus(self.vol_bias)
             - torch.sigmoid(self.vol_bias) * self.vol_weight * y)).sum(-1)
-        return self.mu_scale * iso + self.kappa_scale * vol
+        return self.mu_scale * iso, self.kappa_scale * vol
 
     def geometry(self, C: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
         """What the stress takes from C [..., 3, 3] alone, whatever the weights: (Ī1, Ī2, J [...],
