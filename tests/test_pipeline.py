@@ -793,6 +793,17 @@ def test_learned_law_fits_the_block_and_steps_it(tmp_path, tiny_block):
                           *OFF_ONLY], capture_output=True, text=True, timeout=600)      # (the viscous law's below: both ways)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     assert verify(out / "alone.pt")["step"]["remainders"] == "zero"
+    # the exported law's energy_entropy is the law's energy (not the linearised solid's), as eager
+    scripted = torch.jit.load(str(out / "alone.pt"))
+    z = scripted.z0
+    for k in range(1, 6):
+        z = scripted(z, torch.as_tensor(traj.force[k]))
+    E, S = scripted.energy_entropy(z)
+    X = torch.as_tensor(ds.mesh.nodes, dtype=torch.float64)
+    u, v = prior.gather(z[None, :, 0:3] - X), prior.gather(z[None, :, 3:6])
+    assert float(S) == 0.0 and float(E) > 0.0 and abs(float(E) - float(prior.body_energy(u, v))) < 1e-9 * float(E)
+    kinetic, potential = prior.energy(u, v)
+    assert float(kinetic) > 0.0 and float(potential) > 0.0
     # the convex family (model.prior_material_convex=true): the hidden units' outputs and the
     # volumetric stiffness fitted non-negative, so the energy cannot soften beyond the fitted states;
     # it is as near the held-out data

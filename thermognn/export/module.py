@@ -4,7 +4,8 @@ Contract (docs/stages.md, "Exported model"), in the model's dtype::
 
     forward(z [N, D], f [N, 3]) -> z_next [N, D]     one step, SI units, clamped nodes imposed
     energy_entropy(z [N, D]) -> (E, S)               learned energy and entropy (0-dim; S = 0
-                                                     for Hamiltonian models), at zero load
+                                                     for Hamiltonian models), at zero load (a
+                                                     prior model: the body's energy, S = 0)
     buffers: reference_positions [N, 3], z0 [N, D], edge_index [2, E] int64,
              node_type [N] int64, surface_faces [F, 3] int64, dt (0-dim) [s]
 
@@ -106,13 +107,15 @@ class ExportedLinearPrior(nn.Module):
 
     @torch.jit.export
     def energy_entropy(self, z: Tensor) -> Tuple[Tensor, Tensor]:
-        """The linearised solid's elastic and kinetic energy E = u K u / 2 + v M v / 2 [J] of the
-        state z [N, D(+6)] (the network's remainders learn no energy), and S = 0 (0-dim)."""
+        """The body's energy E [J] of the (carried) state z [N, D(+...)], and S = 0 (0-dim; the
+        network's remainders learn no energy): the linearised solid's elastic and kinetic energy
+        u K u / 2 + v M v / 2, or a law prior's ½ vᵀ M v + Σ_e V_e (Ψ_vol + g∞ Ψ_iso) − f_body · u
+        (``prior.body_energy``)."""
         P = self.core.prior
         x = z.to(torch.float64).unsqueeze(0)
         u = P.gather(x[:, :, 0:3] - self.reference_positions.unsqueeze(0))
         v = P.gather(x[:, :, 3:6])
-        energy = 0.5 * (P.stiffness(u) * u).sum() + 0.5 * (P.mass(v) * v).sum()
+        energy = P.body_energy(u, v).sum()
         return energy.detach(), torch.zeros_like(energy)
 
     @torch.jit.export

@@ -239,17 +239,19 @@ def ogden_isochoric_energy(C: Tensor, mu: List[float], alpha: List[float], eps: 
     r = torch.clamp((B * cofactor(B)).sum((-2, -1)) / 3.0 / (2.0 * p**3), -1.0, 1.0)
     phi = torch.acos(r) / 3.0
     psi = torch.zeros_like(m)
-    for mu_i, alpha_i in zip(mu, alpha):
-        stretches = sum((m + 2.0 * p * torch.cos(phi + 2.0 * math.pi * k / 3.0)).pow(alpha_i / 2.0) for k in range(3))
-        psi = psi + 2.0 * mu_i / alpha_i**2 * (stretches - 3.0)
+    for i in range(len(mu)):
+        stretches = torch.zeros_like(m)
+        for k in range(3):
+            stretches = stretches + (m + 2.0 * p * torch.cos(phi + 2.0 * math.pi * k / 3.0)).pow(alpha[i] / 2.0)
+        psi = psi + 2.0 * mu[i] / (alpha[i] * alpha[i]) * (stretches - 3.0)
     return psi
 
 
 def ogden_volumetric_energy(J: Tensor, d: List[float]) -> Tensor:
     """U = Σ_i (J − 1)^(2i)/D_i [...] J/m³ (i from 1) of volume ratios J [...]."""
     U = torch.zeros_like(J)
-    for i, di in enumerate(d):
-        U = U + (J - 1.0).pow(2 * (i + 1)) / di
+    for i in range(len(d)):
+        U = U + (J - 1.0).pow(2 * (i + 1)) / d[i]
     return U
 
 
@@ -534,10 +536,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         """The cells' deformation gradients F [B, T, 3, 3] at free-DOF displacements u [B, n] m."""
         return self.deformation_gradients(self.positions(u))
 
-    @torch.jit.unused
     def strain_energy_density(self, F: Tensor) -> Tuple[Tensor, Tensor]:
         """(Ψ_iso, Ψ_vol) [...] J/m³ of cells' deformation gradients F [..., 3, 3]: the law's strain
-        energy, whose 2 ∂/∂C are ``pk2``'s (S_iso, S_vol) (for reports; a step never needs it)."""
+        energy, whose 2 ∂/∂C are ``pk2``'s (S_iso, S_vol) (for reports and the exported
+        ``energy_entropy``; a step never needs it)."""
         C = F.transpose(-1, -2) @ F
         if self.learned:
             return self.learned_law.energy_parts(C)
@@ -548,7 +550,6 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         I1 = C.diagonal(dim1=-2, dim2=-1).sum(-1)
         return self.c10 * (J.pow(-2.0 / 3.0) * I1 - 3.0), (J - 1.0).pow(2) / self.d1
 
-    @torch.jit.unused
     def energy(self, u: Tensor, v: Tensor) -> Tuple[Tensor, Tensor]:
         """(kinetic ½ vᵀ M v, potential Σ_e V_e (Ψ_vol + g∞ Ψ_iso)(F_e) − f_body · u) [B] J at free-DOF
         displacements u [B, n] m and velocities v [B, n] m/s: the energy the body holds whatever its
@@ -557,9 +558,14 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         passive body, and 0 for an elastic law up to the integrator's drift (``evaluate``)."""
         kinetic = 0.5 * (v * self.mass(v)).sum(-1)                                  # [B]
         iso, vol = self.strain_energy_density(self.cells(u))                          # [B, T] each
-        g_inf = 1.0 - float(self.prony_weight.sum())
+        g_inf = 1.0 - self.prony_weight.sum()
         stored = ((vol + g_inf * iso) * self.cell_volume).sum(-1)                     # [B]
         return kinetic, stored - (u * self.body_force).sum(-1)
+
+    def body_energy(self, u: Tensor, v: Tensor) -> Tensor:
+        """``energy``'s kinetic + potential [B] J (the exported model's ``energy_entropy``)."""
+        kinetic, potential = self.energy(u, v)
+        return kinetic + potential
 
     def admissible(self, base: Tensor, du: Tensor) -> Tensor:
         """base − s du [B, n] m with, per sample, the largest s of 1, 1/2, 1/4, ... (``MAX_HALVINGS``)

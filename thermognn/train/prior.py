@@ -172,6 +172,12 @@ class NewmarkPrior(nn.Module):
         full = rows.new_zeros(B, 3 * self.n_nodes).index_copy(1, self.free_index, rows)  # [B, 3N]
         return full.reshape(B, self.n_nodes, 3)
 
+    def body_energy(self, u: Tensor, v: Tensor) -> Tensor:
+        """The linearised solid's elastic and kinetic energy u K u / 2 + v M v / 2 [B] J at free-DOF
+        displacements u [B, n] m and velocities v [B, n] m/s (a law prior: its law's,
+        ``HyperelasticNewmarkPrior.energy``)."""
+        return 0.5 * (self.stiffness(u) * u).sum(-1) + 0.5 * (self.mass(v) * v).sum(-1)
+
     # --- the step ---------------------------------------------------------------------------
     def elastic_force(self, u: Tensor) -> Tensor:
         """The prior's elastic internal force [B, n] N at free-DOF displacements u [B, n]: K u
