@@ -45,7 +45,10 @@ class Recorder:
 
 
 def run_physics_here(model: Path, steps: int, tool_x, slow=(0, 0.0), **params):
-    """run_physics on the exported model in this process, the tool held at ``tool_x``: (summary, payloads)."""
+    """run_physics on the exported model in this process, the tool held at ``tool_x``, with the graph
+    executor's optimisation off as serve's physics process runs it (``physics_main``; on, the
+    profiling executor's one-off re-optimisation of a law prior's step takes about 40 s here):
+    (summary, payloads)."""
     from thermognn.core.state import StateLayout
     from thermognn.serve.physics import load_exported, run_physics
     module, meta, buffers = load_exported(model)
@@ -58,8 +61,10 @@ def run_physics_here(model: Path, steps: int, tool_x, slow=(0, 0.0), **params):
         VersionedBuffer(shared["tool"], P.TOOL_PAYLOAD).publish(tool)
         recorder = Recorder(module, shared, steps, *slow)
         params = {"stale_ms": 50.0, "model": str(model), **params}
-        summary = run_physics(params, recorder, StateLayout.from_json(meta["state_layout"]).slice("q"), contact,
-                              shared)
+        import torch
+        with torch.jit.optimized_execution(False):           # as serve's physics process steps it
+            summary = run_physics(params, recorder, StateLayout.from_json(meta["state_layout"]).slice("q"), contact,
+                                  shared)
     finally:
         shared.close()
     return summary, np.array(recorder.published)
