@@ -359,6 +359,14 @@ class LinearPriorModel(nn.Module):
         the last load (CUT_LOADS_CARRIED); for the exported ``state_layout`` (``carried_layout``)."""
         return list(self.prior.internal_columns()) + ([CUT_LOADS_CARRIED] if self.cut_loads_linear else [])
 
+    def start_loads(self, f0: Optional[Tensor]) -> Optional[Tensor]:
+        """A step's start loads f0 [B, N, 3] N as the prior's step takes them: free-DOF rows [B, n]
+        with ``cut_loads_linear`` (a cut step's sub-steps loaded between f0 and the end loads),
+        else None (the end loads held)."""
+        if self.cut_loads_linear and f0 is not None:
+            return self.prior.gather(f0.to(torch.float64))
+        return None
+
     def advance(self, u: Tensor, v: Tensor, a: Tensor, G: Tensor, H: Tensor, h: Tensor, f1: Tensor,
                 edge_index: Tensor, node_type: Tensor, ref_pos: Tensor, create_graph: bool,
                 rest_rates: Optional[Tensor] = None, f0: Optional[Tensor] = None
@@ -368,9 +376,7 @@ class LinearPriorModel(nn.Module):
         start, load a cut step's sub-steps with ``cut_loads_linear`` (None: f1 held)."""
         f1 = f1.to(torch.float64)
         f1_rows = self.prior.gather(f1)
-        f0_rows: Optional[Tensor] = None
-        if self.cut_loads_linear and f0 is not None:
-            f0_rows = self.prior.gather(f0.to(torch.float64))
+        f0_rows = self.start_loads(f0)
         G1 = G
         for _ in range(self.sweeps):
             u1, v1, _a1, h1 = self.prior.step(u, v, a, f1_rows, G, G1, h, f0_rows)

@@ -216,9 +216,8 @@ def one_step_errors(model, graph: Graph, trajs: list[TrajectoryTensors], layout:
                     if linear_fe:                                   # the prior alone: G = H = 0
                         G0 = torch.zeros_like(u)
                         f1 = model.prior.gather(f.to(torch.float64))
-                        f0 = (model.prior.gather(t.force[s0: s0 + k].to(torch.float64)) if model.cut_loads_linear
-                              else None)
-                        u, v, _, h = model.prior.step(u, v, accelerations[s0: s0 + k], f1, G0, G0, h, f0)
+                        u, v, _, h = model.prior.step(u, v, accelerations[s0: s0 + k], f1, G0, G0, h,
+                                                      model.start_loads(t.force[s0: s0 + k]))
                         H = torch.zeros_like(H)
                     else:
                         G, _ = model.remainders(seen[s0: s0 + k], t.force[s0: s0 + k], *mesh, False)
