@@ -58,24 +58,28 @@ def test_shipped_beam_model_reproduces_its_figures_and_beats_the_published_one(t
 LAWS = sorted(p.parent.name for p in (ROOT / "models").glob("*_law/model.ckpt"))
 
 
-def law_errors(ckpt: dict, dataset: Path) -> tuple[dict, dict]:
+def law_errors(ckpt: dict, dataset: Path) -> tuple[dict, dict, dict]:
     """A learned law's checkpoint rolled out over every trajectory of ``dataset`` (of its scene)
     with the checkpoint's own Newton settings, from each first state under its stored loads:
     ({trajectory: whole-rollout relative error per group (evaluate's metric)}, the law prior's
-    Newton counts over them all: iterations, steps, unconverged and cut steps)."""
+    Newton counts over them all: iterations, steps, unconverged and cut steps, {trajectory: the
+    law's energy along the rollout and along the data, ``evaluate``'s ``law_energy_along`` rows})."""
     import torch
 
     from thermognn.train.data import load_data
+    from thermognn.train.evaluation import law_energy_along
     from thermognn.train.rollout import rollout, trajectory_error
 
     data = load_data(dataset, [0.8, 0.1, 0.1], 0, torch.float64, parts=(), state_dtype=torch.float64)
     model = model_from_checkpoint(ckpt, data.dataset).eval()
     model.prior.newton_taken.zero_()
-    errors = {}
+    errors, energies = {}, {}
     for name in data.dataset.ok_names:
         t = data.read(name)
-        errors[name] = trajectory_error(rollout(model, data.graph, t.z[0], t.force, data.dt), t.z, data.layout)
-    return errors, dict(zip(("iterations", "steps", "unconverged", "cut"), model.prior.newton_taken.tolist()))
+        pred = rollout(model, data.graph, t.z[0], t.force, data.dt)
+        errors[name] = trajectory_error(pred, t.z, data.layout)
+        energies[name] = tuple(law_energy_along(model.prior, data.graph.ref_pos, z, t.force) for z in (pred, t.z))
+    return errors, dict(zip(("iterations", "steps", "unconverged", "cut"), model.prior.newton_taken.tolist())), energies
 
 
 @pytest.mark.parametrize("law", LAWS)
@@ -113,10 +117,26 @@ def test_shipped_learned_law_follows_fresh_fe_cases_within_2_percent(tmp_path, l
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "generate", f"out={tmp_path}", *fresh["generate"]],
                          capture_output=True, text=True, timeout=1800)
     assert res.returncode == 0, res.stderr[-3000:]
-    errors, newton = law_errors(ckpt, tmp_path / "dataset.h5")
+    errors, newton, energies = law_errors(ckpt, tmp_path / "dataset.h5")
     assert newton["unconverged"] == 0, newton
     assert sorted(errors) == sorted(fresh["whole"])
     for name, err in errors.items():
         for group in ("q", "v", "sigma"):
             assert 0 < err[group] <= 0.02, (name, group, err)
             assert err[group] == pytest.approx(fresh["whole"][name][group], rel=1e-2, abs=1e-8), (name, group, err)
+    # the law's own energy along each case (evaluate's, session 89): within 2 % of the data's under
+    # the same law; a viscous scene's law passive at every step (it never gives back more than the
+    # loads put in), the elastic shell's holding the loads' work up to the trapezoidal drift its
+    # data has too (on its test split at most 4.4 % of the work)
+    import numpy as np
+
+    from thermognn.train.evaluation import PASSIVE_TOL
+    viscous = bool(OmegaConf.create(ckpt["config"]).scene.material.prony)
+    for name, (pred, data) in energies.items():
+        work = float(np.abs(pred[:, 4]).max())
+        assert work > 0 and np.abs(pred[:, 0] - data[:, 0]).max() <= 0.02 * np.abs(data[:, 0]).max(), name
+        if viscous:
+            assert pred[1:, 5].min() >= -PASSIVE_TOL * work and pred[-1, 5] > 0, (name, pred[:, 5] / work)
+        else:
+            assert np.abs(pred[:, 5]).max() <= 0.1 * work, (name, pred[:, 5] / work)
+            assert np.abs(pred[:, 5] - data[:, 5]).max() <= 0.02 * work, name
