@@ -556,7 +556,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         Prony history (g∞ = 1 − Σ ḡ_i, 1 for an elastic law). From rest, the work of the loads less
         this energy's change is what the body has dissipated or holds in its Prony terms, ≥ 0 for a
         passive body, and 0 for an elastic law up to the integrator's drift (``evaluate``)."""
-        kinetic = 0.5 * (v * self.mass(v)).sum(-1)                                  # [B]
+        kinetic = self.kinetic_energy(v)                                               # [B]
         iso, vol = self.strain_energy_density(self.cells(u))                          # [B, T] each
         g_inf = 1.0 - self.prony_weight.sum()
         stored = ((vol + g_inf * iso) * self.cell_volume).sum(-1)                     # [B]

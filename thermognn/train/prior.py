@@ -176,7 +176,11 @@ class NewmarkPrior(nn.Module):
         """The linearised solid's elastic and kinetic energy u K u / 2 + v M v / 2 [B] J at free-DOF
         displacements u [B, n] m and velocities v [B, n] m/s (a law prior: its law's,
         ``HyperelasticNewmarkPrior.energy``)."""
-        return 0.5 * (self.stiffness(u) * u).sum(-1) + 0.5 * (self.mass(v) * v).sum(-1)
+        return 0.5 * (self.stiffness(u) * u).sum(-1) + self.kinetic_energy(v)
+
+    def kinetic_energy(self, v: Tensor) -> Tensor:
+        """½ vᵀ M v [B] J of free-DOF velocities v [B, n] m/s."""
+        return 0.5 * (self.mass(v) * v).sum(-1)
 
     # --- the step ---------------------------------------------------------------------------
     def elastic_force(self, u: Tensor) -> Tensor:
