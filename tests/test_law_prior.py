@@ -246,6 +246,81 @@ def test_the_convex_learned_family_cannot_soften():
     assert bool((lowest >= 0).all()) and bool((det >= -1e-12 * lowest.abs().max() ** 2).all()) and bool((ddU > 0).all())
 
 
+def test_the_learned_laws_guard_is_nothing_within_its_states_and_stiffens_beyond():
+    """``StrainEnergy.settle_guard``: within the fitted box (|x1|, |x2|, |y| <= 1, the training
+    states' largest invariants) the guarded law is the law, to the bit; beyond it the stress is
+    still 2 ∂Ψ/∂C of its (guarded) energy and the tangent autograd's derivative of that stress, to
+    round-off; a law that softens beyond its states (free weights whose energy falls as Ī2 grows)
+    rises there once guarded; and loading a state_dict (which holds no guard) settles it anew."""
+    law = _learned()
+    with torch.no_grad():                              # soften beyond the box: Ψ falls as Ī2 grows
+        law.iso_linear.copy_(torch.tensor([0.4, -3.0], dtype=torch.float64))
+    guarded = _learned()
+    guarded.load_state_dict(law.state_dict())
+    assert "guard" not in law.state_dict() and float(law.guard.abs().max()) == 0.0
+    assert bool((guarded.guard > 0).all())
+    law.settle_guard()
+    assert torch.equal(law.guard, guarded.guard)
+    law.guard.zero_()
+    # within the box (scales 0.2, 0.3, 0.05): small strains
+    within = torch.eye(3, dtype=torch.float64) + 0.004 * torch.randn(20, 3, 3, dtype=torch.float64,
+                                                                      generator=torch.Generator().manual_seed(1))
+    C = within.transpose(-1, -2) @ within
+    I1b, I2b, J, _ = law.invariants(C)
+    assert bool(((I1b - 3) < 0.2).all() & ((I2b - 3) < 0.3).all() & ((J - 1).abs() < 0.05).all())
+    for a, b in zip(law.pk2(C), guarded.pk2(C)):
+        assert torch.equal(a, b)
+    assert torch.equal(law.energy(C), guarded.energy(C))
+    # beyond it: the guarded stress is its energy's derivative, its tangent the stress's
+    F = torch.as_tensor(_gradients()[:50]) + 0.5 * torch.eye(3, dtype=torch.float64) * torch.tensor([1.0, -0.4, 0.0])
+    C = (F.transpose(-1, -2) @ F).requires_grad_()
+    I1b, I2b, J, _ = guarded.invariants(C.detach())
+    assert bool(((I1b - 3) > 0.2).any() & ((I2b - 3) > 0.3).any() & ((J - 1).abs() > 0.05).any())
+    (grad,) = torch.autograd.grad(guarded.energy(C).sum(), C)
+    S_iso, S_vol = guarded.pk2(C.detach())
+    auto = grad + grad.transpose(-1, -2)
+    assert float((S_iso + S_vol - auto).abs().max()) < 1e-9 * float(auto.abs().max())
+
+    def pk1(G):
+        s_iso, s_vol = guarded.pk2(G.transpose(-1, -2) @ G)
+        return G @ (1.3 * s_vol + 0.7 * s_iso)
+    jac = torch.autograd.functional.jacobian(pk1, F)
+    cells = torch.arange(F.shape[0])
+    auto = jac[cells, :, :, cells]
+    A = learned_tangent(guarded, F, 0.7, 1.3, None)
+    assert float((A - auto).abs().max()) < 1e-9 * float(auto.abs().max())
+    # along Ī2 beyond the box the unguarded law's energy falls without bound, the guarded one's rises
+    I1b = torch.full((6,), 3.1, dtype=torch.float64)
+    I2b = 3.0 + 0.3 * torch.tensor([1.0, 2.0, 4.0, 8.0, 16.0, 32.0], dtype=torch.float64)
+    ones = torch.ones(6, dtype=torch.float64)
+    assert bool((law.energy_derivatives(I1b, I2b, ones)[1] < 0).all())
+    psi2 = guarded.energy_derivatives(I1b, I2b, ones)[1]
+    assert float(psi2[-1]) > 0 and bool((psi2[1:] >= psi2[:-1]).all())
+    for y in (-0.9, 0.9):                              # and beyond |J − 1| = s3: U' grows away from 1
+        J = 1.0 + 0.05 * torch.tensor([1.0, 2.0, 4.0, 8.0], dtype=torch.float64) * y / abs(y) * torch.tensor(
+            [1.0, 1.0, 1.0, 1.0 if y > 0 else 2.3], dtype=torch.float64)
+        dU = guarded.energy_derivatives(3.0 * torch.ones(4, dtype=torch.float64),
+                                        3.0 * torch.ones(4, dtype=torch.float64), J)[2]
+        assert bool((dU * y > 0).all()) and bool(((dU[1:] - dU[:-1]) * y > 0).all())
+
+
+def test_a_newton_update_cut_short_to_spare_a_cell_is_not_convergence():
+    """``whole_move``: what a step's convergence is judged by. An update ``admissible`` took whole
+    is judged by what it moved, to the bit (base − du − base, as before session 90); one it
+    shortened, or cut to nothing because every halving still crushed a cell, by the whole update,
+    so the step is not taken as converged where its residual is not small."""
+    gen = torch.Generator().manual_seed(2)
+    base = torch.randn(2, 12, dtype=torch.float64, generator=gen)
+    du = 1e-3 * torch.randn(2, 12, dtype=torch.float64, generator=gen)
+    prior = HyperelasticNewmarkPrior.__new__(HyperelasticNewmarkPrior)
+    taken = torch.stack([base[0] - du[0], base[1]])                # sample 1: cut to nothing
+    move = HyperelasticNewmarkPrior.whole_move(prior, base, du, taken)
+    assert torch.equal(move[0], taken[0] - base[0]) and torch.equal(move[1], du[1])
+    half = torch.stack([base[0] - 0.5 * du[0], base[1] - du[1]])    # sample 0: halved
+    move = HyperelasticNewmarkPrior.whole_move(prior, base, du, half)
+    assert torch.equal(move[0], du[0]) and torch.equal(move[1], half[1] - base[1])
+
+
 def test_the_learned_laws_fit_picks_the_widest_trajectories_first():
     """widest_first (``train.law_fit_pick=widest``): the trajectories reaching the largest
     |Ī1 − 3|, |Ī2 − 3|, |J − 1| are always among the k picked (each once), the rest evenly through

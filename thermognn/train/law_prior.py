@@ -875,19 +875,32 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
         taken = 1
         last = u0.detach() + self.dt * v0.detach()          # where the last update started: the predictor
+        move = u1.detach() - last                            # the last update, whole (see below)
         for it in range(1, self.max_iterations):
-            if it >= self.iterations and not self.moves(u1.detach() - last, u1.detach()):
+            if it >= self.iterations and not self.moves(move, u1.detach()):
                 break
             residual, F = self.step_residual(u1, v0, a0, predictor, extra, fixed)            # [B, n] N
             self.require_finite(residual)
             last = u1.detach()
-            u1 = self.admissible(u1, self.solve(self.tangent_pairs(F.detach(), w_iso, w_vol,
-                                                                   None if extra is None else extra.detach()),
-                                                residual))
+            du = self.solve(self.tangent_pairs(F.detach(), w_iso, w_vol, None if extra is None else extra.detach()),
+                            residual)
+            u1 = self.admissible(u1, du)
+            move = self.whole_move(last, du, u1.detach())
             taken += 1
         if self.max_iterations > self.iterations and taken == self.max_iterations:
-            return u1, taken, self.moving(u1.detach() - last, u1.detach())
+            return u1, taken, self.moving(move, u1.detach())
         return u1, taken, torch.zeros(u1.shape[0], dtype=torch.bool, device=u1.device)
+
+    def whole_move(self, base: Tensor, du: Tensor, taken: Tensor) -> Tensor:
+        """The update [B, n] m a step's convergence is judged by, of a Newton update du [B, n]
+        from base that ``admissible`` took as ``taken``: taken − base where it was taken whole
+        (to the bit what it moved), the whole update du where it was shortened. An update
+        shortened to nothing, where any part of it would crush a cell, is not convergence: the
+        step stands where its residual is not small (the liver law under the sim's press, session
+        90, 'converged' so with 4.6e3 N left and ran away)."""
+        with torch.no_grad():
+            whole = (taken == base - du.detach()).all(1)                                     # [B]
+            return torch.where(whole.unsqueeze(1), taken - base, du.detach())
 
     def searched_iterate(self, u1: Tensor, u0: Tensor, v0: Tensor, a0: Tensor, predictor: Tensor,
                          extra: Optional[Tensor], fixed: Tensor) -> Tuple[Tensor, int, Tensor]:

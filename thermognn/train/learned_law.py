@@ -71,6 +71,10 @@ WEIGHT_NAMES = ("iso_linear", "iso_weight", "iso_bias", "iso_out", "vol_quadrati
 CONVEX = ("iso_out", "vol_quadratic", "vol_out")
 #: ... each starting from its random value's magnitude, at least this (relative to μ_s, κ_s)
 CONVEX_START = 1e-3
+#: the guard beyond the fitted states (``StrainEnergy.settle_guard``): sampled at this many points
+#: a side of the fitted box, and never softer than this (relative to μ_s, κ_s per scaled invariant²)
+GUARD_SAMPLES = 33
+GUARD_FLOOR = 1e-6
 
 
 class StrainEnergy(nn.Module):
@@ -88,6 +92,7 @@ class StrainEnergy(nn.Module):
             raise ValueError(f"the learned law's hidden units: {tuple(hidden)!r}, expected two integers >= 1")
         self.hidden = [k, m]
         self.mu_scale, self.kappa_scale = float(mu), float(kappa)
+        self.placeholder = bool(placeholder)
         g = torch.Generator().manual_seed(int(seed))
         keep = not placeholder
 
@@ -103,6 +108,52 @@ class StrainEnergy(nn.Module):
         buffer("vol_weight", torch.randn(m, generator=g, dtype=torch.float64))              # [m] v
         buffer("vol_bias", torch.randn(m, generator=g, dtype=torch.float64))                # [m] d
         buffer("vol_out", 0.01 * torch.randn(m, generator=g, dtype=torch.float64))          # [m] e
+        # the guard's stiffness (g1, g2, g3) beyond the fitted box |x_i|, |y| <= 1 (``settle_guard``):
+        # derived from the weights, so never stored; zero until they are settled
+        self.register_buffer("guard", torch.zeros(3, dtype=dtype), persistent=False)     # [3]
+
+    @torch.jit.unused
+    def settle_guard(self) -> None:
+        """Set the guard from the weights as they stand. The scales are the training states'
+        largest |Ī1 − 3|, |Ī2 − 3|, |J − 1|, so the data lie within the box |x1|, |x2|, |y| <= 1
+        (Ī >= 3: x >= 0); beyond it the family is only extrapolated, and a free fit may soften
+        there (its softplus units grow linearly, with weights of either sign: the shipped liver
+        law's energy falls as Ī2 grows, and under the sim's press a cell collapsed onto a state
+        beyond its box, a converged step of the law; docs/accuracy.md, session 90). The guard adds
+
+            Ψ_guard = μ_s ½ (g1 e1² + g2 e2²) + κ_s ½ g3 e3²,   e = the excess of x1, x2, y beyond the box,
+
+        nothing within the box (the fit and every state of the data are unchanged), and beyond it
+        stiffens the law at least as fast as the law curves within it, and at an excess of the
+        box's own width adds at least the largest stress the law has within it: g_i is the larger
+        of the largest ∂²(Ψ/μ_s)/∂x_i² and |∂(Ψ/μ_s)/∂x_i| (∂²(U/κ_s)/∂y², |∂(U/κ_s)/∂y|) over the
+        box, sampled at ``GUARD_SAMPLES`` points a side, at least ``GUARD_FLOOR``. The energy is
+        then bounded below (the family grows at most linearly) and C¹: the stress continuous, its
+        tangent jumping by μ_s g_i / s_i² at the box's faces."""
+        with torch.no_grad():
+            t = torch.linspace(0.0, 1.0, GUARD_SAMPLES, dtype=self.iso_weight.dtype)
+            x = torch.stack(torch.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)           # [P, 2] x >= 0
+            sig = torch.sigmoid(x @ self.iso_weight.t() + self.iso_bias)                     # [P, k]
+            slope = self.iso_linear + (sig * self.iso_out) @ self.iso_weight                  # [P, 2] ∂(Ψ/μ_s)/∂x
+            curvature = (sig * (1.0 - sig) * self.iso_out) @ self.iso_weight.pow(2)          # [P, 2] ∂²/∂x_i²
+            y = torch.linspace(-1.0, 1.0, 2 * GUARD_SAMPLES - 1, dtype=self.vol_weight.dtype).unsqueeze(-1)
+            sv = torch.sigmoid(y * self.vol_weight + self.vol_bias)                          # [P, m]
+            dU = self.vol_quadratic * y + (self.vol_out * self.vol_weight * (sv - torch.sigmoid(self.vol_bias))
+                                           ).sum(-1, True)                                     # [P, 1] ∂(U/κ_s)/∂y
+            ddU = self.vol_quadratic + (self.vol_out * self.vol_weight.pow(2) * sv * (1.0 - sv)).sum(-1, True)
+            most = torch.cat([torch.maximum(curvature.amax(0), slope.abs().amax(0)),
+                              torch.maximum(ddU.amax(0), dU.abs().amax(0))])                 # [3]
+            self.guard.copy_(most.clamp(min=GUARD_FLOOR).to(self.guard.dtype))
+
+    def _load_from_state_dict(self, *args, **kwargs) -> None:
+        super()._load_from_state_dict(*args, **kwargs)
+        if not self.placeholder:               # weights loaded: their guard
+            self.settle_guard()
+
+    def excess(self, x: Tensor) -> Tensor:
+        """How far scaled invariants x [...] lie beyond the fitted box, signed: x − 1 above it,
+        x + 1 below it, 0 within."""
+        return x - x.clamp(min=-1.0, max=1.0)
 
     @torch.jit.unused
     def weights(self) -> List[Tensor]:
@@ -122,10 +173,11 @@ class StrainEnergy(nn.Module):
         s = self.scales
         x = torch.stack([(I1b - 3.0) / s[0], (I2b - 3.0) / s[1]], -1)                    # [..., 2]
         sig = torch.sigmoid(x @ self.iso_weight.t() + self.iso_bias)                       # [..., k]
-        dx = self.iso_linear + (sig * self.iso_out) @ self.iso_weight                      # [..., 2] ∂Ψ/∂x / μ_s
+        dx = self.iso_linear + (sig * self.iso_out) @ self.iso_weight \
+            + self.guard[0:2] * self.excess(x)                                             # [..., 2] ∂Ψ/∂x / μ_s
         y = ((J - 1.0) / s[2]).unsqueeze(-1)                                               # [..., 1]
         sv = torch.sigmoid(y * self.vol_weight + self.vol_bias)                            # [..., m]
-        dU = (self.vol_quadratic * y).squeeze(-1) + (
+        dU = ((self.vol_quadratic * y) + self.guard[2] * self.excess(y)).squeeze(-1) + (
             self.vol_out * self.vol_weight * (sv - torch.sigmoid(self.vol_bias))).sum(-1)   # [...] U'/κ_s·s3
         return (self.mu_scale * dx[..., 0] / s[0], self.mu_scale * dx[..., 1] / s[1],
                 self.kappa_scale * dU / s[2])
@@ -143,10 +195,11 @@ class StrainEnergy(nn.Module):
         x = torch.stack([(I1b - 3.0) / s[0], (I2b - 3.0) / s[1]], -1)
         sp = torch.nn.functional.softplus(x @ self.iso_weight.t() + self.iso_bias)
         rest = torch.nn.functional.softplus(self.iso_bias)
-        iso = (x * self.iso_linear).sum(-1) + ((sp - rest) * self.iso_out).sum(-1)
+        iso = (x * self.iso_linear).sum(-1) + ((sp - rest) * self.iso_out).sum(-1) \
+            + 0.5 * (self.guard[0:2] * self.excess(x).pow(2)).sum(-1)
         y = ((J - 1.0) / s[2]).unsqueeze(-1)
         z = y * self.vol_weight + self.vol_bias
-        vol = 0.5 * (self.vol_quadratic * y * y).squeeze(-1) + (self.vol_out * (
+        vol = 0.5 * (self.vol_quadratic * y * y + self.guard[2] * self.excess(y).pow(2)).squeeze(-1) + (self.vol_out * (
             torch.nn.functional.softplus(z) - torch.nn.functional.softplus(self.vol_bias)
             - torch.sigmoid(self.vol_bias) * self.vol_weight * y)).sum(-1)
         return self.mu_scale * iso, self.kappa_scale * vol
@@ -186,9 +239,13 @@ class StrainEnergy(nn.Module):
         mu = self.mu_scale
         y = ((J - 1.0) / s[2]).unsqueeze(-1)
         sv = torch.sigmoid(y * self.vol_weight + self.vol_bias)                            # [..., m]
-        ddU = self.vol_quadratic + (self.vol_out * self.vol_weight * self.vol_weight * sv * (1.0 - sv)).sum(-1, True)
-        return (mu * (curvature * w1 * w1).sum(-1) / (s[0] * s[0]), mu * (curvature * w1 * w2).sum(-1) / (s[0] * s[1]),
-                mu * (curvature * w2 * w2).sum(-1) / (s[1] * s[1]), self.kappa_scale * ddU.squeeze(-1) / (s[2] * s[2]))
+        ddU = self.vol_quadratic + (self.vol_out * self.vol_weight * self.vol_weight * sv * (1.0 - sv)).sum(-1, True) \
+            + self.guard[2] * (self.excess(y) != 0).to(y.dtype)                            # [..., 1]
+        beyond = (self.excess(x) != 0).to(x.dtype) * self.guard[0:2]                       # [..., 2] the guard's
+        return (mu * ((curvature * w1 * w1).sum(-1) + beyond[..., 0]) / (s[0] * s[0]),
+                mu * (curvature * w1 * w2).sum(-1) / (s[0] * s[1]),
+                mu * ((curvature * w2 * w2).sum(-1) + beyond[..., 1]) / (s[1] * s[1]),
+                self.kappa_scale * ddU.squeeze(-1) / (s[2] * s[2]))
 
     @torch.jit.export
     def pk2_differentials(self, C: Tensor, E: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -427,6 +484,7 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
             w.requires_grad_(False)
         with torch.no_grad():
             positive_weights()
+        law.settle_guard()                         # the fitted law's guard beyond its states
         if series is not None:
             with torch.no_grad():
                 prior.prony_weight, prior.prony_decay, prior.prony_increment = series.terms(float(prior.dt))
