@@ -73,6 +73,8 @@ def main() -> None:
     ap.add_argument("--split", default="test", help="comma-separated parts: train, val, test")
     ap.add_argument("--names", default="", help="comma-separated trajectory names (of the split's parts)")
     ap.add_argument("--law", default="", help="a learned law's learned_law.pt (model.prior_material=learned)")
+    ap.add_argument("--search", type=int, default=0,
+                    help="halvings of a Newton update that does not lower the residual (model.prior_line_search)")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -84,13 +86,14 @@ def main() -> None:
                         **(dict(law_max=args.max, law_rtol=args.rtol, law_cuts=args.cuts, law_tangent=args.tangent)
                            if stretch else {}),
                         **(dict(learned_law=learned["key"]["hidden"], prony=learned["report"].get("prony"))
-                           if learned else {}))
+                           if learned else {}), law_search=args.search)
     if learned:
         prior.learned_law.load_state_dict(learned["state"])
     X = torch.as_tensor(data.reference_positions(), dtype=torch.float64)
     names = {n for n in args.names.split(",") if n}
     budget = (f"{args.iterations} to {args.max} iterations to {args.rtol:g}, cuts {args.cuts}, {args.tangent} tangent"
               if stretch else f"{args.iterations} iteration{'s' if args.iterations > 1 else ''}")
+    budget += f", line search {args.search}" if args.search else ""
     print(f"{args.dataset}: the {'learned law of ' + args.law if learned else 'law'} alone, {budget}, "
           f"{args.threads} threads")
     for part in parts:
