@@ -97,6 +97,63 @@ def test_shipped_learned_law_is_a_law_alone(law):
     assert sum(ckpt["state_dict"][k].numel() for k in weights) == figures["law_weights"]
 
 
+def _deformation_paths():
+    """Deformation gradients [400, 3, 3] along six paths from rest, far beyond any scene's data:
+    uniaxial compression to λ = 0.25 and tension to 4, equibiaxial stretch to 3, simple shear to
+    γ = 4, and volumetric compression to J = 0.15 and dilation to 3."""
+    import torch
+
+    t = torch.linspace(0.0, 1.0, 400, dtype=torch.float64)
+    eye = torch.eye(3, dtype=torch.float64)
+
+    def principal(l1, l2, l3):
+        return torch.diag_embed(torch.stack([l1, l2, l3], -1))
+    lam_c, lam_t, lam_b = 0.25 ** t, 4.0 ** t, 3.0 ** t
+    shear = eye.repeat(400, 1, 1)
+    shear[:, 0, 1] = 4.0 * t
+    J_c, J_d = (1.0 - 0.85 * t) ** (1 / 3), (1.0 + 2.0 * t) ** (1 / 3)
+    return {"uniaxial compression": principal(lam_c, lam_c ** -0.5, lam_c ** -0.5),
+            "uniaxial tension": principal(lam_t, lam_t ** -0.5, lam_t ** -0.5),
+            "equibiaxial stretch": principal(lam_b, lam_b, lam_b ** -2), "simple shear": shear,
+            "volumetric compression": principal(J_c, J_c, J_c), "volumetric dilation": principal(J_d, J_d, J_d)}
+
+
+@pytest.mark.parametrize("law", LAWS)
+def test_shipped_learned_law_stiffens_beyond_the_states_it_was_fitted_on(law):
+    """Each shipped law's energy (with its guard, derived from its weights on load:
+    ``StrainEnergy.settle_guard``) rises along every deformation path once it leaves the box of
+    its training states; the liver's free law, unguarded, falls along uniaxial compression and
+    equibiaxial stretch beyond about three times its training states' |Ī1 − 3| (where, under the
+    sim device's press, a cell collapsed onto such a state and the body ran away: session 90)."""
+    import torch
+
+    from thermognn.train.learned_law import StrainEnergy
+
+    ckpt = load_checkpoint(ROOT / "models" / law / "model.ckpt")
+    prefix = "prior.learned_law."
+    energy = StrainEnergy(ckpt["prior"]["law_hidden"])
+    energy.load_state_dict({k[len(prefix):]: v for k, v in ckpt["state_dict"].items() if k.startswith(prefix)})
+    guard = energy.guard.clone()
+    assert bool((guard > 0).all()), guard
+
+    def falling(g):
+        energy.guard.copy_(g)
+        out = []
+        for name, F in _deformation_paths().items():
+            C = F.transpose(-1, -2) @ F
+            iso, vol = energy.energy_parts(C)
+            I1b, I2b, J, _ = energy.invariants(C)
+            s = energy.scales
+            beyond = torch.stack([(I1b - 3) / s[0], (I2b - 3) / s[1], (J - 1).abs() / s[2]], -1).amax(-1) > 1.0
+            falls = ((iso + vol).diff() < 0) & beyond[1:]
+            if bool(falls.any()):
+                out.append(name)
+        return out
+    assert falling(guard) == []
+    if law == "liver_law":
+        assert falling(torch.zeros_like(guard)) == ["uniaxial compression", "equibiaxial stretch"]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("law", LAWS)
 def test_shipped_learned_law_follows_fresh_fe_cases_within_2_percent(tmp_path, law):
