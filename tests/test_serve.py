@@ -588,3 +588,39 @@ def test_period_statistics_and_bare_loop():
     assert set(stats) <= set(floor) and floor["scheduler"] == "other"
     assert floor["ticks"] >= 3 and floor["loop_rate_hz"] > 0 and floor["gaps_over_2ms"] >= 0
     assert floor["worst_gap_ms"] >= floor["period_p50_ms"] > 0
+
+
+def test_the_body_passivity_controller_takes_only_what_the_body_would_give_back():
+    """``PassivityController`` (serve's ``body_passivity``): a step that gives back more energy than
+    the loads put in (beyond its drift tolerance) leaves the excess out of the kinetic energy, so the
+    body's absorbed energy A = W − (E − E_0) is zero again; a passive step is left as it is (the same
+    state); where the excess exceeds the kinetic energy the body stops."""
+    import torch
+
+    from thermognn.serve.passivity import PASSIVITY_RTOL, PassivityController
+
+    class Body:                                  # unit masses and springs: E = ½ |v|² + ½ |q|²
+        def energy_entropy(self, z):
+            return 0.5 * (z[:, 3:6].pow(2).sum() + z[:, 0:3].pow(2).sum()), torch.zeros(())
+    q, v = slice(0, 3), slice(3, 6)
+    z0 = torch.zeros(2, 15, dtype=torch.float64)
+    ctl = PassivityController(Body(), z0, v, q)
+    f = np.zeros((2, 3))
+    f[0, 0] = 2.0
+    z1 = z0.clone()
+    z1[0, 0], z1[0, 3] = 0.5, 1.0                # the load did W = ½ (0 + 2) 0.5 = 0.5 J, E = 0.125 + 0.5
+    out = ctl.step(z0, z1, np.zeros((2, 3)), f)
+    assert out is not z1 and ctl.acted == 1
+    assert ctl.absorbed == pytest.approx(0.0, abs=1e-12) and float(Body().energy_entropy(out)[0]) == pytest.approx(0.5)
+    assert torch.equal(out[:, 0:3], z1[:, 0:3]) and float(out[0, 3]) == pytest.approx(0.75 ** 0.5)
+    z2 = out.clone()
+    z2[0, 3] *= 0.5                              # then it slows under the same load, at rest: passive
+    assert ctl.step(out, z2, f, f) is z2 and ctl.acted == 1 and ctl.absorbed > 0.0
+    drift = z2.clone()                           # a drift within the tolerance is left alone
+    drift[1, 4] = (2.0 * (ctl.absorbed + 0.5 * PASSIVITY_RTOL * ctl.peak)) ** 0.5
+    assert ctl.step(z2, drift, f * 0, f * 0) is drift and ctl.acted == 1
+    kick = drift.clone()
+    kick[1, 1] = 3.0                             # potential energy from nowhere: more than the kinetic
+    out = ctl.step(drift, kick, f * 0, f * 0)
+    assert ctl.acted == 2 and float(out[:, 3:6].abs().max()) == 0.0 and ctl.removed > 0.0
+    assert set(ctl.stats()) == {"passivity_steps", "passivity_removed_J", "passivity_work_J", "passivity_absorbed_J"}

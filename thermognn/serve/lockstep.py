@@ -26,7 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from thermognn.core.errors import DataError
+from thermognn.core.state import StateLayout
 
+from .passivity import PassivityController
 from .physics import body_contact, law_step_counts, load_exported
 
 
@@ -42,15 +44,18 @@ class PressRollout:
     finite: bool              # every state finite (False: the rollout stopped where it was not)
     law_counts: np.ndarray | None = None   # [4] a law prior's Newton iterations, law steps, those not
                                            # converged, cut ones (``physics.law_step_counts``); None: none
+    passivity: dict | None = None          # a law prior's ``PassivityController.stats()``; None: none
 
 
 def press_rollout(model: str | Path, steps: int, path: str = "press", period: float = 2.0,
                   depth: float | None = None, tool_radius: float = 0.003, contact_stiffness: float = 300.0,
-                  load_radius: float = 0.006, threads: int = 1) -> PressRollout:
+                  load_radius: float = 0.006, threads: int = 1, body_passivity: bool = True) -> PressRollout:
     """Step the exported ``model`` ``steps`` times with the tool of the sim device's ``path``
     (its ``period`` [s] and ``depth`` [m] below the surface, None: 20 % of the body's height) read
     at body time k Δt; the contact as ``serve``'s physics process finds it (``tool_radius`` [m],
-    ``contact_stiffness`` [N/m], ``load_radius`` [m]). Steps stop at a state that is not finite."""
+    ``contact_stiffness`` [N/m], ``load_radius`` [m]), a law-prior body kept passive as serve keeps
+    it (``body_passivity``: ``PassivityController``, its ``stats()`` in ``passivity``). Steps stop
+    at a state that is not finite."""
     import torch
 
     from thermognn.devices.sim import SimDevice
@@ -69,14 +74,20 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
     times, tool, force, disp, ms = [], [], [], [], []
     finite = True
     counts0 = law_step_counts(module)
+    passive = (PassivityController(module, z, StateLayout.from_json(meta["state_layout"]).slice("v"), q_slice)
+               if counts0 is not None and body_passivity else None)
+    f_prev = np.zeros_like(contact.loads)
     with torch.jit.optimized_execution(False):                              # as run_physics steps it
         for k in range(steps):
             x = device.position_at(k * dt)
             res = contact(x, z[:, q_slice].numpy())
             f = torch.from_numpy(contact.loads).to(z.dtype)                 # [N, 3] N on the body
             ts = time.perf_counter()
-            z = module(z, f).detach()
-            ms.append((time.perf_counter() - ts) * 1e3)
+            z_prev, z = z, module(z, f).detach()
+            ms.append((time.perf_counter() - ts) * 1e3)                    # the model's step alone
+            if passive is not None:
+                z = passive.step(z_prev, z, f_prev, contact.loads)
+                f_prev = contact.loads.copy()
             if not bool(torch.isfinite(z).all()):
                 finite = False
                 ms.pop()
@@ -88,7 +99,8 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
     n = len(times)
     counts = None if counts0 is None else law_step_counts(module) - counts0
     return PressRollout(np.asarray(times), np.asarray(tool).reshape(n, 3), np.asarray(force).reshape(n, 3),
-                        np.asarray(disp).reshape(n, len(X), 3), np.asarray(ms), finite, counts)
+                        np.asarray(disp).reshape(n, len(X), 3), np.asarray(ms), finite, counts,
+                        None if passive is None else passive.stats())
 
 
 def compare(rollout: PressRollout, reference: PressRollout) -> dict:

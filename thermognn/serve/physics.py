@@ -25,6 +25,7 @@ from thermognn.core.state import StateLayout, describe_step
 
 from . import protocol as P
 from .contact import SurfaceContact, normal_compliance, series_stiffness
+from .passivity import PassivityController
 from .shm import SharedArrays, VersionedBuffer
 
 FORMAT = "thermognn-model/1"
@@ -105,6 +106,9 @@ def physics_main(params: dict, conn) -> None:
         shared.close()
         return
     conn.send(model_geometry(buffers, meta, contact))
+    layout = StateLayout.from_json(meta["state_layout"])
+    if "v" in layout.names:
+        params = {**params, "velocity": layout.slice("v")}
     try:
         # the profiling executor's re-optimisation made scripted steps ~1.7x slower than eager here
         with torch.jit.optimized_execution(False):
@@ -161,6 +165,10 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     at the first check, a one-line warning goes to stderr (prefix 'thermognn serve: warning:')
     and into the summary.
 
+    A law-prior body is kept passive (``body_passivity``, :class:`PassivityController`): where
+    it would give back more energy than the tool put in, the excess leaves its kinetic energy;
+    ``passivity_steps`` and ``passivity_removed_J`` in the summary say how often and how much.
+
     A law-prior model's steps are counted (``law_step_counts``, the FD steps left out):
     ``law_steps``, ``law_unconverged_steps``, ``law_cut_steps`` and ``law_iterations`` in the
     summary; the first law step that has not converged puts a one-line warning on stderr and in
@@ -201,6 +209,12 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     law_now = law_base
     law_fd = None if law_base is None else np.zeros_like(law_base)   # what the FD steps added
     law_warning = ""
+    passive = None                                       # the body kept passive (law priors: passivity.py)
+    if law_base is not None and params.get("body_passivity", True):
+        # the state's v columns (a law prior's layout is q, v, σ, ...: v after q where not given)
+        velocity = params.get("velocity") or slice(q_slice.stop, q_slice.stop + 3)
+        passive = PassivityController(module, z, velocity, q_slice)
+    f_prev = np.zeros_like(contact.loads)
 
     def law_stats() -> dict:
         if law_base is None:
@@ -216,7 +230,8 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
                 "fd_evaluations": n_fd, "fd_rigid": n_rigid,
                 "body_stiffness_mean_N_per_m": k_body_sum / n_k_body if n_k_body else float("nan"),
                 "k_scale_mean": scale_sum / n_scale if n_scale else float("nan"), "warning": warning,
-                "fd_disabled": fd_disabled, "fd_off_checks": fd_off_checks, **law_stats()}
+                "fd_disabled": fd_disabled, "fd_off_checks": fd_off_checks, **law_stats(),
+                **({} if passive is None else passive.stats())}
 
     while control[P.C_STOP] == 0:
         if step % 100 == 0 and os.getppid() != parent:     # main process killed: stop on our own
@@ -255,6 +270,9 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
             P.request_stop(control, "physics_nan")
             return {"steps": step, "nan_at_step": step + 1, "elapsed_s": time.perf_counter() - t0,
                     "model_time_s": step_time, **stats()}
+        if passive is not None:                           # never more energy out than the tool put in
+            z = passive.step(z_prev, z, f_prev, contact.loads)
+            f_prev = contact.loads.copy()
         step += 1
         control[P.C_STEPS] = step
         control[P.C_PHYSICS_T] = time.perf_counter()

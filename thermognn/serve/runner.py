@@ -59,6 +59,7 @@ def _serve_params(cfg: DictConfig) -> dict:
         "threads": int(num("physics_threads")),
         "body_stiffness_every": int(num("body_stiffness_every", positive=False)),
         "realtime": bool(s.realtime_physics),
+        "body_passivity": bool(s.get("body_passivity", True)),
         "realtime_priority": bool(s.realtime_priority),
         "startup_timeout": num("startup_timeout"),
     }
@@ -217,7 +218,8 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
     body_fd_off_checks (step-time checks that held it off),
     physics_warning ("" or the step-time warning), and for a law-prior model law_steps,
     law_unconverged_steps, law_cut_steps, law_iterations and law_warning ("" or the first
-    unconverged step's line), ...).
+    unconverged step's line), and with ``body_passivity`` passivity_steps, passivity_removed_J,
+    passivity_work_J, passivity_absorbed_J (``thermognn.serve.passivity``), ...).
     """
     from thermognn import devices
 
@@ -342,7 +344,9 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
         body_fd_disabled=str(physics_summary.get("fd_disabled", "")),
         body_fd_off_checks=int(physics_summary.get("fd_off_checks", 0)),
         **{k: physics_summary[k] for k in ("law_steps", "law_unconverged_steps", "law_cut_steps",
-                                           "law_iterations", "law_warning") if k in physics_summary},
+                                           "law_iterations", "law_warning", "passivity_steps",
+                                           "passivity_removed_J", "passivity_work_J", "passivity_absorbed_J")
+           if k in physics_summary},
         n_nodes=int(geometry["n_nodes"]),
         model_step=str(geometry.get("step", "")),
         haptic_scheduler=str(haptic_summary.get("scheduler", "")),
