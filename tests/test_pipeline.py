@@ -576,6 +576,9 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     assert converged.tool[0, 2] > 0.02 + 0.003 and np.linalg.norm(converged.force, axis=1).max() > 0.5
     assert np.abs(converged.displacement).max() > 1e-4                    # [m]: the press moved the body
     assert compare(converged, converged)["force"] == 0.0
+    # serve's body passivity (session 90) books every step and leaves the converged law alone
+    assert converged.passivity["passivity_steps"] == 0 and converged.passivity["passivity_work_J"] > 0.0
+    assert converged.passivity["passivity_absorbed_J"] >= -0.05 * converged.passivity["passivity_work_J"]
     off = compare(served, converged)
     assert 0.0 < off["force"] < 0.5 and 0.0 < off["displacement"] < 1.0 and off["steps"] == 40, off
     # what the network adds under the press: the converged law alone against it with the network;
