@@ -71,8 +71,12 @@ WEIGHT_NAMES = ("iso_linear", "iso_weight", "iso_bias", "iso_out", "vol_quadrati
 CONVEX = ("iso_out", "vol_quadratic", "vol_out")
 #: ... each starting from its random value's magnitude, at least this (relative to μ_s, κ_s)
 CONVEX_START = 1e-3
-#: the guard beyond the fitted states (``StrainEnergy.settle_guard``): sampled at this many points
-#: a side of the fitted box, and never softer than this (relative to μ_s, κ_s per scaled invariant²)
+#: the guard beyond the fitted states (``StrainEnergy.settle_guard``): it starts at this many times
+#: the training states' largest invariants (within them the law is its fit's, mildly extrapolated:
+#: a test case's rollout may pass the training split's largest, and a small dataset's test split
+#: does), its stiffness sampled at this many points a side of the fitted box, and never softer than
+#: this (relative to μ_s, κ_s per scaled invariant²)
+GUARD_MARGIN = 2.0
 GUARD_SAMPLES = 33
 GUARD_FLOOR = 1e-6
 
@@ -93,6 +97,7 @@ class StrainEnergy(nn.Module):
         self.hidden = [k, m]
         self.mu_scale, self.kappa_scale = float(mu), float(kappa)
         self.placeholder = bool(placeholder)
+        self.guard_margin = GUARD_MARGIN
         g = torch.Generator().manual_seed(int(seed))
         keep = not placeholder
 
@@ -108,7 +113,7 @@ class StrainEnergy(nn.Module):
         buffer("vol_weight", torch.randn(m, generator=g, dtype=torch.float64))              # [m] v
         buffer("vol_bias", torch.randn(m, generator=g, dtype=torch.float64))                # [m] d
         buffer("vol_out", 0.01 * torch.randn(m, generator=g, dtype=torch.float64))          # [m] e
-        # the guard's stiffness (g1, g2, g3) beyond the fitted box |x_i|, |y| <= 1 (``settle_guard``):
+        # the guard's stiffness (g1, g2, g3) beyond twice the fitted box |x_i|, |y| <= 1 (``settle_guard``):
         # derived from the weights, so never stored; zero until they are settled
         self.register_buffer("guard", torch.zeros(3, dtype=dtype), persistent=False)     # [3]
 
@@ -121,15 +126,18 @@ class StrainEnergy(nn.Module):
         law's energy falls as Ī2 grows, and under the sim's press a cell collapsed onto a state
         beyond its box, a converged step of the law; docs/accuracy.md, session 90). The guard adds
 
-            Ψ_guard = μ_s ½ (g1 e1² + g2 e2²) + κ_s ½ g3 e3²,   e = the excess of x1, x2, y beyond the box,
+            Ψ_guard = μ_s ½ (g1 e1² + g2 e2²) + κ_s ½ g3 e3²,   e = the excess of x1, x2, y beyond ±m,
 
-        nothing within the box (the fit and every state of the data are unchanged), and beyond it
-        stiffens the law at least as fast as the law curves within it, and at an excess of the
-        box's own width adds at least the largest stress the law has within it: g_i is the larger
+        m = ``GUARD_MARGIN`` (2): nothing within twice the box (the fit, every state of the data and
+        a rollout passing its largest states mildly are unchanged: at m = 1 the tiny block's test
+        split, beyond its small training split's states, was stepped 4× further from its data),
+        and beyond it stiffens the law at least as fast as the law curves within the box, and at
+        an excess of the box's own width adds at least the largest stress the law has within it
+        (the liver's law falls beyond about 3 s1): g_i is the larger
         of the largest ∂²(Ψ/μ_s)/∂x_i² and |∂(Ψ/μ_s)/∂x_i| (∂²(U/κ_s)/∂y², |∂(U/κ_s)/∂y|) over the
         box, sampled at ``GUARD_SAMPLES`` points a side, at least ``GUARD_FLOOR``. The energy is
         then bounded below (the family grows at most linearly) and C¹: the stress continuous, its
-        tangent jumping by μ_s g_i / s_i² at the box's faces."""
+        tangent jumping by μ_s g_i / s_i² where the guard starts."""
         with torch.no_grad():
             t = torch.linspace(0.0, 1.0, GUARD_SAMPLES, dtype=self.iso_weight.dtype)
             x = torch.stack(torch.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)           # [P, 2] x >= 0
@@ -151,9 +159,9 @@ class StrainEnergy(nn.Module):
             self.settle_guard()
 
     def excess(self, x: Tensor) -> Tensor:
-        """How far scaled invariants x [...] lie beyond the fitted box, signed: x − 1 above it,
-        x + 1 below it, 0 within."""
-        return x - x.clamp(min=-1.0, max=1.0)
+        """How far scaled invariants x [...] lie beyond the guard's start, ``GUARD_MARGIN`` times the
+        fitted box, signed: x − m above it, x + m below it, 0 within."""
+        return x - x.clamp(min=-self.guard_margin, max=self.guard_margin)
 
     @torch.jit.unused
     def weights(self) -> List[Tensor]:
