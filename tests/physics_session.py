@@ -60,11 +60,13 @@ def run_physics_here(model: Path, steps: int, tool_x, slow=(0, 0.0), **params):
         tool[P.T_X] = tool_x
         VersionedBuffer(shared["tool"], P.TOOL_PAYLOAD).publish(tool)
         recorder = Recorder(module, shared, steps, *slow)
+        layout = StateLayout.from_json(meta["state_layout"])
         params = {"stale_ms": 50.0, "model": str(model), **params}
+        if "v" in layout.names:                              # as physics_main passes them
+            params["velocity"] = layout.slice("v")
         import torch
         with torch.jit.optimized_execution(False):           # as serve's physics process steps it
-            summary = run_physics(params, recorder, StateLayout.from_json(meta["state_layout"]).slice("q"), contact,
-                                  shared)
+            summary = run_physics(params, recorder, layout.slice("q"), contact, shared)
     finally:
         shared.close()
     return summary, np.array(recorder.published)

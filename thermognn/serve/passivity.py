@@ -12,7 +12,8 @@ every step converged).
 
 :class:`PassivityController` is the time-domain passivity observer and controller of haptic
 rendering (Hannaford & Ryu, 2002) on the body itself: after each step it books the step's work,
-and where A has fallen below zero it takes the excess out of the body's kinetic energy, scaling
+and where A has fallen below −``PASSIVITY_RTOL`` of the largest work so far (an elastic law's own
+integrator drift left alone) it takes the excess out of the body's kinetic energy, scaling
 the velocities (v ← s v, s² = (K − excess) / K, K = ½ vᵀ M v) so that A is zero again. Where the
 body is passive (every step of the data) it never acts and the rollout is the model's, to the
 bit. It uses only the exported file's ``energy_entropy`` (no torch model code, no dolfinx).

@@ -107,7 +107,7 @@ def physics_main(params: dict, conn) -> None:
         return
     conn.send(model_geometry(buffers, meta, contact))
     layout = StateLayout.from_json(meta["state_layout"])
-    if "v" in layout.names:
+    if "v" in layout.names:                              # the state's v columns (``body_passivity``)
         params = {**params, "velocity": layout.slice("v")}
     try:
         # the profiling executor's re-optimisation made scripted steps ~1.7x slower than eager here
@@ -165,8 +165,9 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     at the first check, a one-line warning goes to stderr (prefix 'thermognn serve: warning:')
     and into the summary.
 
-    A law-prior body is kept passive (``body_passivity``, :class:`PassivityController`): where
-    it would give back more energy than the tool put in, the excess leaves its kinetic energy;
+    A law-prior body is kept passive (``body_passivity``, :class:`PassivityController`, on the
+    state's v columns ``params["velocity"]``): where it would give back more energy than the tool
+    put in, the excess leaves its kinetic energy;
     ``passivity_steps`` and ``passivity_removed_J`` in the summary say how often and how much.
 
     A law-prior model's steps are counted (``law_step_counts``, the FD steps left out):
@@ -211,9 +212,7 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     law_warning = ""
     passive = None                                       # the body kept passive (law priors: passivity.py)
     if law_base is not None and params.get("body_passivity", True):
-        # the state's v columns (a law prior's layout is q, v, σ, ...: v after q where not given)
-        velocity = params.get("velocity") or slice(q_slice.stop, q_slice.stop + 3)
-        passive = PassivityController(module, z, velocity, q_slice)
+        passive = PassivityController(module, z, params["velocity"], q_slice)
     f_prev = np.zeros_like(contact.loads)
 
     def law_stats() -> dict:

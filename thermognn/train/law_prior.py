@@ -493,8 +493,6 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.register_buffer("shortened", torch.zeros((), dtype=torch.int64), persistent=False)
         # ... and how many the line search has (``line_search``)
         self.register_buffer("searched", torch.zeros((), dtype=torch.int64), persistent=False)
-        # ... and how many of its steps started from u0, not the predictor (``searched_iterate``)
-        self.register_buffer("rest_starts", torch.zeros((), dtype=torch.int64), persistent=False)
         # since they were last zeroed: the Newton iterations taken (a batch's step counts once, its
         # sub-steps' all), the steps taken, the steps that spent ``max_iterations`` > ``iterations``
         # and still moved (cut: at Δt / 2^step_cuts), and the steps cut into sub-steps: what the
@@ -945,7 +943,6 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                                                      r_rest))
             at = rest.unsqueeze(1)
             base, r_base, u1 = torch.where(at, u0, base), torch.where(at, r_rest, r_base), torch.where(at, u1_rest, u1)
-            self.rest_starts.add_(rest.sum())
         u1, residual, F, move = self.back_track(base, base - u1, r_base, u1, v0, a0, predictor, extra, fixed)
         for it in range(1, self.max_iterations):
             if it >= self.iterations and not bool(self.moving(move, u1.detach()).any()):
