@@ -40,9 +40,12 @@ from thermognn.train.rollout import trajectory_error
 GROUPS = ("q", "v", "sigma")
 
 
-def roll_law(prior, X: torch.Tensor, z: torch.Tensor, f: torch.Tensor) -> tuple[torch.Tensor, list[float]]:
+def roll_law(prior, X: torch.Tensor, z: torch.Tensor, f: torch.Tensor, level: int = 0
+             ) -> tuple[torch.Tensor, list[float]]:
     """The law alone from the state z[0] [N, 12] under the loads f [S, N, 3] N: the predicted
-    states [S, N, 12] (q m, v m/s, σ Pa) and each step's wall time [ms]."""
+    states [S, N, 12] (q m, v m/s, σ Pa) and each step's wall time [ms]; with ``level`` > 0 each
+    step as 2^level sub-steps of Δt / 2^level (the loads linear between the step's), each to
+    the prior's tolerance (a finer rollout of the same law: what the time step costs)."""
     u, v = z[..., 0:3] - X, z[..., 3:6]
     G = torch.zeros(1, prior.n_free, dtype=torch.float64)
     uf, vf = prior.gather(u[:1]), prior.gather(v[:1])
@@ -52,7 +55,19 @@ def roll_law(prior, X: torch.Tensor, z: torch.Tensor, f: torch.Tensor) -> tuple[
     with torch.no_grad():
         for k in range(1, f.shape[0]):
             t0 = time.perf_counter()
-            uf, vf, a, h = prior.step(uf, vf, a, prior.gather(f[k:k + 1]), G, G, h)
+            if level == 0:
+                uf, vf, a, h = prior.step(uf, vf, a, prior.gather(f[k:k + 1]), G, G, h)
+            else:
+                for j in range(1, 2 ** level + 1):
+                    prior.use_level(level)
+                    fj = prior.gather(f[k - 1:k] + (j / 2 ** level) * (f[k:k + 1] - f[k - 1:k]))
+                    loads = fj + prior.body_force
+                    u1, predictor, S_iso0, extra, damping0 = prior.fresh_first_iteration(uf, vf, a, h, loads)
+                    u1, _, _ = prior.iterate(u1, uf, vf, a, predictor, extra, loads + damping0)
+                    a, vf = prior.end_rates(u1, vf, a, predictor)
+                    h = prior.relax_from(S_iso0, u1, h)
+                    uf = u1
+                prior.use_level(0)
             times.append(1e3 * (time.perf_counter() - t0))
             us.append(uf)
             vs.append(vf)
@@ -75,6 +90,14 @@ def main() -> None:
     ap.add_argument("--law", default="", help="a learned law's learned_law.pt (model.prior_material=learned)")
     ap.add_argument("--search", type=int, default=0,
                     help="halvings of a Newton update that does not lower the residual (model.prior_line_search)")
+    ap.add_argument("--hht", type=float, default=0.0,
+                    help="HHT's numerical dissipation, α = -hht, 0 to 1/3 (model.prior_hht; 0: the data's Newmark rule)")
+    ap.add_argument("--rule", default="newmark", choices=("newmark", "energy"),
+                    help="the time rule: the data's Newmark, or the trapezoid with the stored energy's discrete "
+                         "gradient (model.prior_rule)")
+    ap.add_argument("--substeps", type=int, default=0,
+                    help="L: each step as 2^L sub-steps (loads linear between), L <= --cuts (a finer reference)")
+    ap.add_argument("--save", default="", help="torch.save the predicted states {name: [S, N, 12]} here")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -86,7 +109,7 @@ def main() -> None:
                         **(dict(law_max=args.max, law_rtol=args.rtol, law_cuts=args.cuts, law_tangent=args.tangent)
                            if stretch else {}),
                         **(dict(learned_law=learned["key"]["hidden"], prony=learned["report"].get("prony"))
-                           if learned else {}), law_search=args.search)
+                           if learned else {}), law_search=args.search, law_hht=args.hht, law_rule=args.rule)
     if learned:
         prior.learned_law.load_state_dict(learned["state"])
     X = torch.as_tensor(data.reference_positions(), dtype=torch.float64)
@@ -94,8 +117,12 @@ def main() -> None:
     budget = (f"{args.iterations} to {args.max} iterations to {args.rtol:g}, cuts {args.cuts}, {args.tangent} tangent"
               if stretch else f"{args.iterations} iteration{'s' if args.iterations > 1 else ''}")
     budget += f", line search {args.search}" if args.search else ""
+    budget += f", HHT α = -{args.hht:g}" if args.hht else ""
+    budget += ", energy rule" if args.rule == "energy" else ""
+    budget += f", {2 ** args.substeps} sub-steps a step" if args.substeps else ""
     print(f"{args.dataset}: the {'learned law of ' + args.law if learned else 'law'} alone, {budget}, "
           f"{args.threads} threads")
+    saved: dict = {}
     for part in parts:
         errors, times = [], []
         prior.newton_taken.zero_()
@@ -106,7 +133,8 @@ def main() -> None:
             z, f = traj.z.double(), traj.force.double()
             prior.forget()                  # each rollout from scratch, as a model's rollout begins
             try:
-                pred, step_ms = roll_law(prior, X, z, f)
+                pred, step_ms = roll_law(prior, X, z, f, args.substeps)
+                saved[traj.name] = pred.float()
             except RuntimeError as exc:
                 print(f"  {part} {traj.name}: {exc}")
                 errors.append({g: math.inf for g in GROUPS})
@@ -126,6 +154,9 @@ def main() -> None:
               f"{unconverged} unconverged, {cut} cut "
               f"| {sum(s) / len(s):.1f} ms/step (median {s[len(s) // 2]:.1f}, p99 {s[int(0.99 * (len(s) - 1))]:.1f}, "
               f"max {s[-1]:.1f})")
+
+    if args.save:
+        torch.save(saved, args.save)
 
 
 if __name__ == "__main__":

@@ -1965,3 +1965,56 @@ def test_the_law_priors_energy_balance_conserves_an_elastic_law_and_a_viscous_on
         else:
             assert absorbed.min() >= -PASSIVE_TOL * W.max() and absorbed[-1] > 0.02 * W.max(), (name, absorbed / W.max())
             # (measured: 0.13 of the work at the end, damped and its data; 0.16 viscous)
+
+
+def test_law_prior_time_rules_keep_or_damp_a_released_bodys_energy():
+    """``model.prior_rule`` / ``model.prior_hht`` (``HyperelasticNewmarkPrior.set_rule``,
+    ``set_hht``) on the bent block's elastic neo-Hookean law without Rayleigh damping, released
+    from its bent state at rest and stepped unloaded: the energy rule keeps the body's energy
+    (``body_energy``, kinetic + stored) to the Newton tolerance at every step; HHT's dissipation takes energy out where the data's Newmark rule does not; set back to
+    Newmark (hht 0) the prior steps as one built so, to the bit; what either cannot be is named."""
+    torch = pytest.importorskip("torch")
+    import dataclasses
+
+    from thermognn.core.hyperelastic import law_from_config
+    from thermognn.train.law_prior import HyperelasticNewmarkPrior
+
+    law = ("neo_hookean", {"C10": 1.0e4, "D1": 1.0e-5})
+    layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph(steps=8, law=law)
+    tets = _bent_block(1.0, "newmark", steps=2, law=law)[0].cells[:, :4]
+    lam, mu = linear.lame()
+    free = dataclasses.replace(linear, rayleigh=(0.0, 0.0))
+
+    def build(**options):
+        return HyperelasticNewmarkPrior(free, len(X), dt, X, tets, lam, mu, law_from_config({"law": law[0], **law[1]})[0],
+                                        iterations=1, max_iterations=20, newton_rtol=1e-13, **options)
+
+    def energies(prior, steps=25):
+        u = prior.gather(z[-1:, :, 0:3] - torch.as_tensor(X))                    # bent, at rest, released
+        v, zero = torch.zeros_like(u), torch.zeros_like(u)
+        h = prior.internal_variables(u)
+        a = prior.initial_acceleration(u, v, zero, zero)
+        out = [float(prior.body_energy(u, v))]
+        with torch.no_grad():
+            for _ in range(steps):
+                u, v, a, h = prior.step(u, v, a, zero, zero, zero, h)
+                out.append(float(prior.body_energy(u, v)))
+        return torch.tensor(out, dtype=torch.float64)
+
+    newmark, energy, hht = energies(build()), energies(build(rule="energy")), energies(build(hht=0.2))
+    E0 = float(newmark[0])
+    assert E0 > 0 and float(energy[0]) == E0 == float(hht[0])
+    assert float((energy - E0).abs().max()) < 1e-9 * E0                            # kept, every step
+    assert float(hht[-1]) < 0.98 * E0 and float(hht[-1]) < float(newmark[-1])      # damped
+    back = build(hht=0.2)
+    back.set_hht(0.0)
+    assert torch.equal(energies(back), newmark)
+    with pytest.raises(ValueError, match="time rule: 'leapfrog', expected one of newmark | energy"):
+        build(rule="leapfrog")
+    with pytest.raises(ValueError, match=r"HHT dissipation: 0.5, expected 0 to 0.3333"):
+        build(hht=0.5)
+    with pytest.raises(ValueError, match=r"energy rule needs .* without Rayleigh damping"):
+        HyperelasticNewmarkPrior(linear, len(X), dt, X, tets, lam, mu, law_from_config({"law": law[0], **law[1]})[0],
+                                 iterations=1, rule="energy")
+    with pytest.raises(ValueError, match="HHT dissipation 0.1 needs"):
+        build(rule="energy").set_hht(0.1)

@@ -127,7 +127,7 @@ def model_from_checkpoint(ckpt: dict, dataset=None):
 ROLLOUT_KEYS = ("integrator", "implicit_iterations", "kinematics")
 #: ... and how a law-prior model's law is stepped (``rollout.<key>``, as ``model.<key>``)
 LAW_ROLLOUT_KEYS = ("prior_newton", "prior_newton_max", "prior_newton_rtol", "prior_step_cuts", "prior_tangent",
-                    "prior_line_search", "prior_cut_loads")
+                    "prior_line_search", "prior_cut_loads", "prior_rule", "prior_hht")
 
 
 def law_phrase(prior: dict) -> str:
@@ -140,8 +140,9 @@ def law_phrase(prior: dict) -> str:
         text += f", cut down to Δt/{2 ** int(prior['law_cuts'])}"
         text += ", its sub-steps loaded between the step's loads" if prior.get("law_cut_loads") == "linear" else ""
     text += ", its tangent kept" if prior.get("law_tangent") == "kept" else ""
-    return text + (f", its updates line-searched ({int(prior['law_search'])} halvings)" if prior.get("law_search")
-                   else "")
+    text += f", its updates line-searched ({int(prior['law_search'])} halvings)" if prior.get("law_search") else ""
+    text += ", the energy rule in time" if prior.get("law_rule") == "energy" else ""
+    return text + (f", HHT's dissipation α = -{float(prior['law_hht']):g}" if prior.get("law_hht") else "")
 
 
 def with_law_rollout(ckpt: dict, want: dict) -> tuple[dict, str]:
@@ -169,13 +170,15 @@ def with_law_rollout(ckpt: dict, want: dict) -> tuple[dict, str]:
     law = {"prior": "linear", "prior_law": True, "prior_newton": prior["law"],
            "prior_newton_max": prior.get("law_max"), "prior_newton_rtol": prior.get("law_rtol"),
            "prior_step_cuts": prior.get("law_cuts", 0), "prior_tangent": prior.get("law_tangent", "fresh"),
-           "prior_line_search": prior.get("law_search", 0), "prior_cut_loads": prior.get("law_cut_loads", "end")}
+           "prior_line_search": prior.get("law_search", 0), "prior_cut_loads": prior.get("law_cut_loads", "end"),
+           "prior_rule": prior.get("law_rule", "newmark"), "prior_hht": prior.get("law_hht", 0.0)}
     law.update({k: v for k, v in want.items() if v is not None})
     try:
         stepped = prior_settings(OmegaConf.create(law))
     except ConfigError as exc:                  # named as they were set
         raise ConfigError(re.sub(r"model\.(" + "|".join(LAW_ROLLOUT_KEYS) + r")\b", r"rollout.\1", str(exc))) from None
-    keys = ("law", "law_max", "law_rtol", "law_cuts", "law_tangent", "law_search", "law_cut_loads")
+    keys = ("law", "law_max", "law_rtol", "law_cuts", "law_tangent", "law_search", "law_cut_loads", "law_rule",
+            "law_hht")
     new = {**{k: v for k, v in prior.items() if k not in keys}, **{k: stepped[k] for k in keys if k in stepped}}
     if law_phrase(new) == law_phrase(prior):
         return ckpt, ""

@@ -558,6 +558,24 @@ def prior_settings(cfg_model) -> dict:
     if search and not law:
         raise ConfigError(f"model.prior_line_search = {search} needs model.prior_law = true (model=law_prior): it "
                           f"searches the law prior's Newton updates")
+    from .law_prior import MAX_HHT, RULES
+
+    rule = str(OmegaConf.select(cfg_model, "prior_rule", default="newmark") or "newmark")
+    if rule not in RULES:
+        raise ConfigError(f"model.prior_rule = '{rule}', expected " + " | ".join(RULES)
+                          + " (the law prior's time rule: the data's Newmark, or the trapezoid with the stored "
+                            "energy's discrete gradient)")
+    hht = OmegaConf.select(cfg_model, "prior_hht", default=0.0)
+    hht = 0.0 if hht is None else hht
+    if isinstance(hht, bool) or not isinstance(hht, (int, float)) or not 0.0 <= float(hht) <= MAX_HHT:
+        raise ConfigError(f"model.prior_hht = {hht!r}, expected a number 0 to 1/3 (HHT's numerical dissipation, "
+                          f"alpha = -prior_hht; 0: the data's Newmark rule)")
+    if (rule != "newmark" or hht) and not law:
+        raise ConfigError("model.prior_rule and model.prior_hht need model.prior_law = true (model=law_prior): they "
+                          "step the law prior's law in time")
+    if rule == "energy" and hht:
+        raise ConfigError(f"model.prior_hht = {hht} with model.prior_rule = energy: the energy rule conserves what "
+                          f"HHT dissipates; set one of them")
     cut_loads = str(OmegaConf.select(cfg_model, "prior_cut_loads", default="end") or "end")
     if cut_loads not in CUT_LOADS:
         raise ConfigError(f"model.prior_cut_loads = '{cut_loads}', expected " + " | ".join(CUT_LOADS)
@@ -615,6 +633,10 @@ def prior_settings(cfg_model) -> dict:
                 settings["law_tangent"] = "kept"
         if search:                                # its Newton updates line-searched (absent otherwise)
             settings["law_search"] = int(search)
+        if rule != "newmark":                     # its time rule (absent: the data's Newmark rule)
+            settings["law_rule"] = rule
+        if hht:                                   # HHT's dissipation (absent: none)
+            settings["law_hht"] = float(hht)
         if material == "learned":                 # its law a strain energy fitted to the data
             settings["law_material"] = "learned"
             settings["law_hidden"] = [int(h) for h in hidden]
@@ -644,7 +666,8 @@ def neo_hookean_of(ds) -> Tuple[float, float]:
 
 def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material: bool = False,
                 law: int = 0, law_max: Optional[int] = None, law_rtol: Optional[float] = None,
-                law_cuts: int = 0, law_tangent: str = "fresh", law_search: int = 0,
+                law_cuts: int = 0, law_tangent: str = "fresh", law_search: int = 0, law_hht: float = 0.0,
+                law_rule: str = "newmark",
                 learned_law: Optional[Sequence[int]] = None,
                 prony: Optional[Sequence[Sequence[float]]] = None) -> NewmarkPrior:
     """The dataset's ``/linear`` as a NewmarkPrior (float64), relaxing as its viscous solid does
@@ -700,7 +723,8 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
             return HyperelasticNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                             solid_law, iterations=int(law), max_iterations=law_max,
                                             newton_rtol=law_rtol, step_cuts=int(law_cuts), tangent=law_tangent,
-                                            line_search=int(law_search))
+                                            line_search=int(law_search), hht=float(law_hht),
+                                            rule=str(law_rule))
         if corotated:
             return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                          sweeps=int(corotated), neo_hookean=neo_hookean_of(ds) if material else None,
@@ -720,6 +744,8 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
                                              settings.get("law_rtol"), int(settings.get("law_cuts", 0)),
                                              str(settings.get("law_tangent", "fresh")),
                                              int(settings.get("law_search", 0)),
+                                             float(settings.get("law_hht", 0.0)),
+                                             str(settings.get("law_rule", "newmark")),
                                              settings.get("law_hidden") if settings.get("law_material") == "learned"
                                              else None,
                                              settings["law_prony"] if isinstance(settings.get("law_prony"), list)

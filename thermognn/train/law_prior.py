@@ -90,6 +90,11 @@ MAX_STEP_CUTS = 4
 #: ``budget_loads``: corrections in a row that do not lower the miss before it gives up (the
 #: shell's snap-through at 2 iterations a step: no load lands the step, docs/accuracy.md session 69)
 BUDGET_STALLED = 3
+#: ``set_hht``: HHT's α at most −1/3 (the range where it is unconditionally stable)
+MAX_HHT = 1.0 / 3.0
+#: ``set_rule`` values: the data's Newmark rule (with ``set_hht``'s dissipation where set), or the
+#: trapezoid with the stored energy's discrete gradient
+RULES = ("newmark", "energy")
 #: ``tangent`` values: a tangent formed at every Newton iteration, or one kept between iterations
 #: and steps (chord iterations) and formed afresh only where it no longer contracts
 TANGENTS = ("fresh", "kept")
@@ -393,8 +398,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
                  lam: float, mu: float, law: NeoHookean | Ogden | StrainEnergy, iterations: int = 1,
                  max_iterations: Optional[int] = None, newton_rtol: Optional[float] = None,
-                 step_cuts: int = 0, tangent: str = "fresh", line_search: int = 0,
-                 dtype: torch.dtype = torch.float64) -> None:
+                 step_cuts: int = 0, tangent: str = "fresh", line_search: int = 0, hht: float = 0.0,
+                 rule: str = "newmark", dtype: torch.dtype = torch.float64) -> None:
         if not isinstance(law, (NeoHookean, Ogden, StrainEnergy)):
             raise ValueError(f"the law prior steps a NeoHookean, Ogden or learned law, not {law!r}")
         if int(iterations) < 1:
@@ -445,14 +450,25 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         # its steps (``thermognn.generate.solid``): per level k (a sub-step Δt / 2^k) the constants
         # that depend on Δt, which ``use_level`` puts in place (level 0: the step's own, to the bit)
         self.step_cuts = int(step_cuts)
-        alpha_m, beta_k = (float(r) for r in linear.rayleigh)
+        self.beta_k = float(linear.rayleigh[1])
+        # the Newmark rule of the data (β = 1/4, γ = 1/2, the FE's) with HHT's numerical
+        # dissipation ``hht`` (``set_hht``; 0: the data's rule, to the bit)
+        self.hht, self.mass_scale = 0.0, 1.0
+        # ``set_rule("energy")``: the trapezoidal rule with the stored energy's discrete gradient
+        # (no carried acceleration), and the step start it needs (``step_origin``: u0 [B, n] m,
+        # the stored energy there [B, 1] J and its equilibrium force [B, n] N)
+        self.energy_rule = False
+        for name in ("rule_u0", "rule_extra", "rule_energy0", "rule_force0"):
+            self.register_buffer(name, torch.zeros(0, dtype=dtype), persistent=False)
+        self.newmark_beta, self.newmark_gamma = self.beta, self.gamma
         # per level [Δt s, c, c0, mass_factor, iso_weight]
         self.level_constants: List[List[float]] = [[self.dt, self.c, self.c0, self.mass_factor, self.iso_weight]]
         decay, increment = [self.prony_decay], [self.prony_increment]                      # [T_p] each
         for k in range(1, self.step_cuts + 1):
             h = self.dt / 2 ** k
             terms = linear.relaxation(h) if self.n_terms else []          # [(ḡ_i, d_i, w_i)]
-            self.level_constants.append([h, beta_k / h, 1.0 / (self.beta * h**2), 1.0 + alpha_m * self.gamma * h,
+            self.level_constants.append([h, self.beta_k / h, 1.0 / (self.beta * h**2),
+                                         1.0 + self.alpha_m * self.gamma * h,
                                          1.0 - sum(g * (1.0 - w) for g, _, w in terms)])
             decay.append(torch.tensor([d for _, d, _ in terms], dtype=torch.float64).to(dtype))
             increment.append(torch.tensor([w for _, _, w in terms], dtype=torch.float64).to(dtype))
@@ -502,6 +518,120 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         # once a Newton iteration with "fresh" tangents (a kept step start's once for both of a
         # model step's prior steps), only where it no longer contracts with "kept"
         self.register_buffer("tangents_formed", torch.zeros((), dtype=torch.int64), persistent=False)
+        if hht:
+            self.set_hht(hht)
+        if rule != "newmark":
+            self.set_rule(rule)
+
+    @torch.jit.unused
+    def set_rule(self, rule: str) -> None:
+        """How a step is integrated in time: ``"newmark"`` (the data's average-acceleration rule,
+        with ``set_hht``'s dissipation where set) or ``"energy"``: the same trapezoidal rule,
+        u1 − u0 = Δt (v0 + v1)/2, M (v1 − v0)/Δt = f̄ − f̄_int, with the equilibrium part of the
+        internal force averaged as the stored energy's discrete gradient (Gonzalez 1996), so that
+        a step's stored-energy change is exactly the work of that force, Ψ(u1) − Ψ(u0) = f̄_eq ·
+        (u1 − u0): with the loads' work and the Prony terms' the only sources, the body's energy
+        (``energy``) cannot ring up. Per sample, with Δu = u1 − u0 and the mass matrix as metric,
+
+            f̄_eq = (f_eq(u0) + f_eq(u1))/2 + e M Δu / (Δuᵀ M Δu),
+            e = Ψ(u1) − Ψ(u0) − (f_eq(u0) + f_eq(u1))/2 · Δu,
+
+        where e is the trapezoid's error on the stored energy: zero for a quadratic energy, of
+        third order in Δu otherwise. So on the data's steps it is the data's rule to a part in
+        10⁵ or less, and it needs no carried acceleration: the start's is taken from its
+        equation of motion, M a0 = f0 − f_int(u0) (the data's is that, converged). Its tangent
+        is the plain one (e's own derivative is left out: Newton's convergence is near
+        quadratic, the converged step exact). The average-acceleration rule conserves a linear
+        body's energy but not a stiffening law's: the liver's learned law rang up after a
+        release under the sim press until sub-steps of Δt/4 (docs/accuracy.md, session 91).
+        Needs the data's β 1/4, γ 1/2, no Rayleigh damping and no HHT dissipation; steps without
+        gradients only (rollouts, export, serve)."""
+        if rule not in RULES:
+            raise ValueError(f"the law prior's time rule: {rule!r}, expected one of {' | '.join(RULES)}")
+        if rule == "energy" and (self.beta_k != 0.0 or self.alpha_m != 0.0 or self.hht != 0.0
+                                 or self.newmark_beta != 0.25 or self.newmark_gamma != 0.5):
+            raise ValueError(f"the law prior's energy rule needs the data's average-acceleration Newmark rule "
+                             f"(β 1/4, γ 1/2, here {self.newmark_beta}, {self.newmark_gamma}) without Rayleigh "
+                             f"damping (αM {self.alpha_m}, βK {self.beta_k}) or HHT dissipation ({self.hht})")
+        self.energy_rule = rule == "energy"
+        self.forget()
+
+    def step_potential(self, F: Tensor, extra: Optional[Tensor]) -> Tensor:
+        """Π [B, 1] J of the cells' F [B, T, 3, 3] within one step: Σ_e V_e (Ψ_vol + w_iso Ψ_iso +
+        extra : E), E = (C − I)/2, whose gradient in the free DOFs is the step's internal force
+        f_int(u; h0) (S = S_vol + w_iso S_iso + extra, ``step_residual``; ``extra`` the Prony
+        history's part, constant within the step, None elastic)."""
+        iso, vol = self.strain_energy_density(F)                                          # [B, T] J/m³
+        density = vol + self.iso_weight * iso
+        if extra is not None:
+            E = 0.5 * (F.transpose(-1, -2) @ F - _eye(F))                                 # [B, T, 3, 3]
+            density = density + (extra * E).sum((-1, -2))
+        return (density * self.cell_volume).sum(-1, keepdim=True)
+
+    def rule_start(self, u0: Tensor, F0: Tensor, extra: Optional[Tensor]) -> None:
+        """Keep a step's start u0 [B, n] m (its cells' F0, the step's history stress ``extra``)
+        for ``discrete_gradient``: Π(u0) and its gradient. Called by ``step_origin``, and again
+        where a step's start is reused from a memo (a sub-step's may have been kept since)."""
+        self.rule_u0 = u0
+        self.rule_extra = extra if extra is not None else u0.new_zeros(0)
+        self.rule_energy0 = self.step_potential(F0, extra)
+        self.rule_force0 = self.assemble(self.pk1(F0, self.iso_weight, 1.0, extra))
+
+    def discrete_gradient(self, u1: Tensor, F: Tensor, force1: Tensor) -> Tensor:
+        """2 e M Δu / (Δuᵀ M Δu) [B, n] N of a step's end u1 [B, n] m (its cells' F, its internal
+        force f_int(u1; h0) [B, n] N), from the start ``rule_start`` kept (``set_rule``'s e, on
+        the step's potential Π): what the energy rule adds to the trapezoid's residual (twice:
+        that residual is the trapezoid's times 2). Zero where the step has not moved."""
+        extra: Optional[Tensor] = None
+        if self.n_terms > 0:
+            extra = self.rule_extra
+        du = u1 - self.rule_u0                                                            # [B, n] m
+        Mdu = self.mass(du)
+        norm = (du * Mdu).sum(1, keepdim=True)                                            # [B, 1] kg m²
+        e = (self.step_potential(F, extra) - self.rule_energy0
+             - 0.5 * ((self.rule_force0 + force1) * du).sum(1, keepdim=True))             # [B, 1] J
+        moved = norm > 1e-300
+        return torch.where(moved, 2.0 * e / torch.where(moved, norm, torch.ones_like(norm)), torch.zeros_like(norm)) * Mdu
+
+    @torch.jit.unused
+    def set_hht(self, hht: float) -> None:
+        """Step with HHT's numerical dissipation (Hilber, Hughes & Taylor 1977) of α = −``hht``
+        (0 to ``MAX_HHT``; 0: the data's average-acceleration Newmark rule, to the bit): the
+        equation of motion is met at t_{n+1+α}, between the step's start and end,
+
+            M a1 + (1 − hht) [f_int(u1; h0) − G1] + hht [f_int(u0) − G0] = f1 + f_body,
+            β = (1 + hht)² / 4,  γ = 1/2 + hht,
+
+        which keeps second order, damps the modes Δt does not resolve (spectral radius
+        (1 − hht)/(1 + hht) as ωΔt → ∞) and leaves the resolved ones almost alone. The loads are
+        the step's end loads (or, with ``cut_loads_linear``'s start loads, weighted as f_int).
+        Divided by 1 − hht the residual is the plain one with M a1 weighted by ``mass_scale`` =
+        1/(1 − hht) and the start's hht/(1 − hht) [f_int(u0) − G0 − f0 − f_body] moved to the
+        fixed side (``step_origin``, ``step``). The average-acceleration rule conserves a linear
+        body's energy but not a stiffening law's: the liver law rang up after a release under the
+        sim press (docs/accuracy.md, session 91), which sub-steps of Δt/4 do not. Stiffness-
+        proportional Rayleigh damping (βK > 0) is not weighted so; refused."""
+        hht = float(hht)
+        if not 0.0 <= hht <= MAX_HHT:
+            raise ValueError(f"the law prior's HHT dissipation: {hht!r}, expected 0 to {MAX_HHT:.4f}")
+        if hht > 0.0 and (self.beta_k != 0.0 or self.newmark_beta != 0.25 or self.newmark_gamma != 0.5
+                          or self.energy_rule):
+            raise ValueError(f"the law prior's HHT dissipation {hht} needs the data's average-acceleration Newmark "
+                             f"rule (β 1/4, γ 1/2, here {self.newmark_beta}, {self.newmark_gamma}) without "
+                             f"stiffness-proportional damping (βK {self.beta_k}), and the Newmark rule "
+                             f"(not the energy rule)")
+        self.hht = hht
+        if hht == 0.0:
+            self.beta, self.gamma, self.mass_scale = self.newmark_beta, self.newmark_gamma, 1.0
+        else:
+            self.beta, self.gamma, self.mass_scale = (1.0 + hht) ** 2 / 4.0, 0.5 + hht, 1.0 / (1.0 - hht)
+        self.c1 = 1.0 / (2.0 * self.beta) - 1.0
+        for k, level in enumerate(self.level_constants):
+            h = level[0]
+            level[2] = 1.0 / (self.beta * h**2)
+            level[3] = self.mass_scale + self.alpha_m * self.gamma * h
+        self.use_level(0)
+        self.forget()
 
     # --- the law per cell -----------------------------------------------------------------------
     def pk2(self, F: Tensor) -> Tuple[Tensor, Tensor]:
@@ -751,7 +881,30 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         extra = self.history_stress(S_iso0, h0)
         u1 = self.admissible(u0, -self.dt * v0)                 # the FE's predictor u0 + Δt v0 (shortened if it crushes)
         damping0 = self.c * self.assemble(F0 @ (S_iso0 + S_vol0))                        # c f_el(u0): [B, n] N
+        if self.hht > 0.0:                  # HHT: − hht/(1 − hht) (f_int(u0) + αM M v0) (``set_hht``)
+            S0 = S_iso0 + S_vol0
+            if self.n_terms > 0:
+                S0 = S0 + self._relaxed_from(S_iso0, h0)
+            damping0 = damping0 - (self.mass_scale - 1.0) * (self.assemble(F0 @ S0) + self.alpha_m * self.mass(v0))
+        if self.energy_rule:                # Π(u0) and its force for ``discrete_gradient`` (``set_rule``)
+            self.rule_start(u0, F0, extra)
         return predictor, S_iso0, extra, damping0, u1
+
+    def end_rates(self, u1: Tensor, v0: Tensor, a0: Tensor, predictor: Tensor) -> Tuple[Tensor, Tensor]:
+        """(a1 [m/s²], v1 [m/s]) [B, n] of a step (or sub-step) ending at u1 [B, n] m: Newmark's
+        (``newmark_rates``); with the energy rule the acceleration carried on is the end's own,
+        M a1 = f1 − f_int(u1), not the trapezoid's 2 ā − a0, which differs from it by the discrete
+        gradient's 2 M⁻¹ e M Δu / (Δuᵀ M Δu): the next step's trapezoid starts from its start's
+        forces (``set_rule``). v1 = 2 Δu / Δt − v0 either way."""
+        a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
+        if self.energy_rule:
+            F = self.cells(u1)
+            extra: Optional[Tensor] = None
+            if self.n_terms > 0:
+                extra = self.rule_extra
+            internal = self.assemble(self.pk1(F, self.iso_weight, 1.0, extra))
+            a1 = a1 + self.mass_solve(self.discrete_gradient(u1, F, internal))
+        return a1, v1
 
     def step_residual(self, u1: Tensor, v0: Tensor, a0: Tensor, predictor: Tensor, extra: Optional[Tensor],
                       fixed: Tensor) -> Tuple[Tensor, Tensor]:
@@ -761,8 +914,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         in one law evaluation, P = F ((1 + c) S_vol + (w_iso + c) S_iso + extra)."""
         a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
         F = self.cells(u1)
-        residual = (self.mass(a1 + self.alpha_m * v1) + self.assemble(self.pk1(F, self.iso_weight + self.c,
-                                                                              1.0 + self.c, extra)) - fixed)
+        internal = self.assemble(self.pk1(F, self.iso_weight + self.c, 1.0 + self.c, extra))          # [B, n] N
+        residual = self.mass(self.mass_scale * a1 + self.alpha_m * v1) + internal - fixed
+        if self.energy_rule:
+            residual = residual + self.discrete_gradient(u1, F, internal)
         return residual, F
 
     def step_start(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor
@@ -796,6 +951,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.require_finite(residual)
         if kept:
             lus = memo[3]
+            if self.energy_rule:
+                self.rule_start(u0, self.cells(u0), start[2])
         else:
             lus = sparse_factors(self.sparse_values(pairs), self.pattern)
             self._start_memo = (key, stamp, start, lus)
@@ -851,6 +1008,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             self.memo_key, self.memo_predictor, self.memo_S_iso0 = key, predictor, S_iso0
             self.memo_extra = extra if extra is not None else key.new_zeros(0)
             self.memo_damping0, self.memo_u1, self.memo_internal = damping0, u1, internal
+        elif self.energy_rule:
+            self.rule_start(u0, self.cells(u0), self.memo_extra if self.n_terms > 0 else None)
         residual = self.memo_internal - loads
         self.require_finite(residual)
         du = self.back_substitute(self.memo_lu, self.memo_pivots, self.memo_band_X, self.memo_band_L,
@@ -1157,6 +1316,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             self.use_level(0)
         # what R takes from outside the step's start: loads and remainders
         loads = f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0                  # [B, n] N
+        if self.hht > 0.0:                  # HHT: + hht/(1 − hht) (f0 + f_body + G0) (``set_hht``)
+            loads = loads + (self.mass_scale - 1.0) * ((f1 if f0 is None else f0) + self.body_force + G0)
         if self.kept_tangent and not (u0.requires_grad or v0.requires_grad or a0.requires_grad
                                       or h0.requires_grad or loads.requires_grad):
             u1, predictor, S_iso0, taken, still, abandoned = self.kept_iterations(u0, v0, a0, h0, loads)
@@ -1168,7 +1329,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                 self.kept_rate = torch.zeros(u1.shape[0], dtype=u1.dtype, device=u1.device)
         else:
             u1, predictor, S_iso0, taken, still = self.fresh_iterations(u0, v0, a0, h0, loads)
-        a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
+        a1, v1 = self.end_rates(u1, v0, a0, predictor)
         h1 = self.relax_from(S_iso0, u1, h0)
         unconverged = bool(still.any())
         if self.step_cuts == 0 or not unconverged:
@@ -1210,12 +1371,15 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             Gs, Ge = G0 + done * (G1 - G0), G0 + (done + part) * (G1 - G0)                 # [b, n] N
             fe = f1 if f0 is None else f0 + (done + part) * (f1 - f0)                      # [b, n] N
             sub_loads = fe + self.body_force + (1.0 + self.c) * Ge - self.c * Gs
+            if self.hht > 0.0:
+                fs = f1 if f0 is None else f0 + done * (f1 - f0)                          # [b, n] N
+                sub_loads = sub_loads + (self.mass_scale - 1.0) * (fs + self.body_force + Gs)
             u1, predictor, S_iso0, extra, damping0 = self.fresh_first_iteration(u, v, a, h, sub_loads)
             u1, t, still = self.iterate(u1, u, v, a, predictor, extra, sub_loads + damping0)
             taken += t
             converged = not bool(still.any())
             if converged or level == self.step_cuts:         # taken: the next sub-step starts here
-                a1, v = self.newmark_rates(u1, v, a, predictor)
+                a1, v = self.end_rates(u1, v, a, predictor)
                 h = self.relax_from(S_iso0, u1, h)
                 u, a = u1, a1
                 done += part
