@@ -93,7 +93,7 @@ BUDGET_STALLED = 3
 #: ``set_hht``: HHT's α at most −1/3 (the range where it is unconditionally stable)
 MAX_HHT = 1.0 / 3.0
 #: ``set_rule`` values: the data's Newmark rule (with ``set_hht``'s dissipation where set), or the
-#: trapezoid with the stored energy's discrete gradient
+#: trapezoid with its step potential's discrete gradient (Simpson's rule)
 RULES = ("newmark", "energy")
 #: ``tangent`` values: a tangent formed at every Newton iteration, or one kept between iterations
 #: and steps (chord iterations) and formed afresh only where it no longer contracts
@@ -454,11 +454,11 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         # the Newmark rule of the data (β = 1/4, γ = 1/2, the FE's) with HHT's numerical
         # dissipation ``hht`` (``set_hht``; 0: the data's rule, to the bit)
         self.hht, self.mass_scale = 0.0, 1.0
-        # ``set_rule("energy")``: the trapezoidal rule with the stored energy's discrete gradient
-        # (no carried acceleration), and the step start it needs (``step_origin``: u0 [B, n] m,
-        # the stored energy there [B, 1] J and its equilibrium force [B, n] N)
+        # ``set_rule("energy")``: the trapezoid with its step potential's discrete gradient, and
+        # the step start that needs (``rule_start``: u0 [B, n] m, the Prony history's stress of
+        # the step [B, T, 3, 3] Pa (empty elastic), the step's internal force at u0 [B, n] N)
         self.energy_rule = False
-        for name in ("rule_u0", "rule_extra", "rule_energy0", "rule_force0"):
+        for name in ("rule_u0", "rule_extra", "rule_force0"):
             self.register_buffer(name, torch.zeros(0, dtype=dtype), persistent=False)
         self.newmark_beta, self.newmark_gamma = self.beta, self.gamma
         # per level [Δt s, c, c0, mass_factor, iso_weight]
@@ -526,26 +526,28 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     @torch.jit.unused
     def set_rule(self, rule: str) -> None:
         """How a step is integrated in time: ``"newmark"`` (the data's average-acceleration rule,
-        with ``set_hht``'s dissipation where set) or ``"energy"``: the same trapezoidal rule,
-        u1 − u0 = Δt (v0 + v1)/2, M (v1 − v0)/Δt = f̄ − f̄_int, with the equilibrium part of the
-        internal force averaged as the stored energy's discrete gradient (Gonzalez 1996), so that
-        a step's stored-energy change is exactly the work of that force, Ψ(u1) − Ψ(u0) = f̄_eq ·
-        (u1 − u0): with the loads' work and the Prony terms' the only sources, the body's energy
-        (``energy``) cannot ring up. Per sample, with Δu = u1 − u0 and the mass matrix as metric,
+        with ``set_hht``'s dissipation where set) or ``"energy"``: the same trapezoid,
+        u1 − u0 = Δt (v0 + v1)/2, M (v1 − v0)/Δt = (f0 + f1)/2 − f̄_int, with the internal force's
+        trapezoid (f_int(u0) + f_int(u1))/2 corrected by a discrete gradient (Gonzalez 1996) of the
+        step's potential Π (the law's energy with the step's S_iso weight and its Prony history's
+        stress, whose gradient is the step's f_int), so that within a step Π(u1) − Π(u0) is the
+        work of the force that moves the body there (to Simpson's rule's fifth order in Δu:
+        ``discrete_gradient``). Per sample, with Δu = u1 − u0 and the mass matrix as metric, the
+        correction is
 
-            f̄_eq = (f_eq(u0) + f_eq(u1))/2 + e M Δu / (Δuᵀ M Δu),
-            e = Ψ(u1) − Ψ(u0) − (f_eq(u0) + f_eq(u1))/2 · Δu,
+            e M Δu / (Δuᵀ M Δu),  e = Π(u1) − Π(u0) − (∇Π(u0) + ∇Π(u1))/2 · Δu,
 
-        where e is the trapezoid's error on the stored energy: zero for a quadratic energy, of
-        third order in Δu otherwise. So on the data's steps it is the data's rule to a part in
-        10⁵ or less, and it needs no carried acceleration: the start's is taken from its
-        equation of motion, M a0 = f0 − f_int(u0) (the data's is that, converged). Its tangent
-        is the plain one (e's own derivative is left out: Newton's convergence is near
-        quadratic, the converged step exact). The average-acceleration rule conserves a linear
-        body's energy but not a stiffening law's: the liver's learned law rang up after a
-        release under the sim press until sub-steps of Δt/4 (docs/accuracy.md, session 91).
-        Needs the data's β 1/4, γ 1/2, no Rayleigh damping and no HHT dissipation; steps without
-        gradients only (rollouts, export, serve)."""
+        e the trapezoid's error on Π (zero for a quadratic energy, of third order in Δu
+        otherwise). The average-acceleration rule conserves a linear body's energy, not a
+        stiffening law's: the liver's learned law rang up after a release of the sim press (its
+        energy 0.032 → 0.071 J in 35 unloaded steps), and does not with this rule (0.030 →
+        0.026 J, as with Newmark sub-steps of Δt/4). It is not the data's rule: the liver's test
+        split moves from whole v 0.563 % to 1.85 % (docs/accuracy.md, session 91). The carried
+        acceleration is the end's own, M a1 = f1 − f_int(u1) (``end_rates``), so the next step's
+        trapezoid starts from its start's forces as the data's does. Its tangent is the plain
+        one (e's own derivative left out: about 15 % more Newton iterations on the liver, the
+        converged step exact). Needs the data's β 1/4, γ 1/2, no Rayleigh damping and no HHT
+        dissipation; steps without gradients only (rollouts, export, serve)."""
         if rule not in RULES:
             raise ValueError(f"the law prior's time rule: {rule!r}, expected one of {' | '.join(RULES)}")
         if rule == "energy" and (self.beta_k != 0.0 or self.alpha_m != 0.0 or self.hht != 0.0
@@ -556,40 +558,32 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.energy_rule = rule == "energy"
         self.forget()
 
-    def step_potential(self, F: Tensor, extra: Optional[Tensor]) -> Tensor:
-        """Π [B, 1] J of the cells' F [B, T, 3, 3] within one step: Σ_e V_e (Ψ_vol + w_iso Ψ_iso +
-        extra : E), E = (C − I)/2, whose gradient in the free DOFs is the step's internal force
-        f_int(u; h0) (S = S_vol + w_iso S_iso + extra, ``step_residual``; ``extra`` the Prony
-        history's part, constant within the step, None elastic)."""
-        iso, vol = self.strain_energy_density(F)                                          # [B, T] J/m³
-        density = vol + self.iso_weight * iso
-        if extra is not None:
-            E = 0.5 * (F.transpose(-1, -2) @ F - _eye(F))                                 # [B, T, 3, 3]
-            density = density + (extra * E).sum((-1, -2))
-        return (density * self.cell_volume).sum(-1, keepdim=True)
-
     def rule_start(self, u0: Tensor, F0: Tensor, extra: Optional[Tensor]) -> None:
-        """Keep a step's start u0 [B, n] m (its cells' F0, the step's history stress ``extra``)
-        for ``discrete_gradient``: Π(u0) and its gradient. Called by ``step_origin``, and again
-        where a step's start is reused from a memo (a sub-step's may have been kept since)."""
+        """Keep a step's start u0 [B, n] m (its cells' F0, the step's history stress ``extra``) for
+        ``discrete_gradient``: u0 and the step's internal force there, ∇Π(u0) [B, n] N. Called by
+        ``step_origin``, and again where a step's start is reused from a memo (a sub-step's may
+        have been kept since)."""
         self.rule_u0 = u0
         self.rule_extra = extra if extra is not None else u0.new_zeros(0)
-        self.rule_energy0 = self.step_potential(F0, extra)
         self.rule_force0 = self.assemble(self.pk1(F0, self.iso_weight, 1.0, extra))
 
     def discrete_gradient(self, u1: Tensor, F: Tensor, force1: Tensor) -> Tensor:
-        """2 e M Δu / (Δuᵀ M Δu) [B, n] N of a step's end u1 [B, n] m (its cells' F, its internal
-        force f_int(u1; h0) [B, n] N), from the start ``rule_start`` kept (``set_rule``'s e, on
-        the step's potential Π): what the energy rule adds to the trapezoid's residual (twice:
-        that residual is the trapezoid's times 2). Zero where the step has not moved."""
+        """2 e M Δu / (Δuᵀ M Δu) [B, n] N of a step's end u1 [B, n] m (its cells' F, the step's
+        internal force there ∇Π(u1) [B, n] N), from the start ``rule_start`` kept: what the energy
+        rule adds to the trapezoid's residual (which is the trapezoid's equation times 2). e is
+        the trapezoid's error on the step potential's change, Π(u1) − Π(u0) − (∇Π(u0) + ∇Π(u1))/2
+        · Δu, with Π's change by Simpson's rule along Δu, (∇Π(u0) + 4 ∇Π(u_mid) + ∇Π(u1))/6 · Δu:
+        e = 2/3 (∇Π(u_mid) − (∇Π(u0) + ∇Π(u1))/2) · Δu, exact for a cubic Π, of fifth order in Δu
+        otherwise, and free of the round-off a difference of energies has (a body near rest: Π
+        1e-13 J, its evaluations 1e-16 J apart). Zero where the step has not moved."""
         extra: Optional[Tensor] = None
         if self.n_terms > 0:
             extra = self.rule_extra
         du = u1 - self.rule_u0                                                            # [B, n] m
+        middle = self.assemble(self.pk1(self.cells(self.rule_u0 + 0.5 * du), self.iso_weight, 1.0, extra))
+        e = (2.0 / 3.0) * ((middle - 0.5 * (self.rule_force0 + force1)) * du).sum(1, keepdim=True)   # [B, 1] J
         Mdu = self.mass(du)
         norm = (du * Mdu).sum(1, keepdim=True)                                            # [B, 1] kg m²
-        e = (self.step_potential(F, extra) - self.rule_energy0
-             - 0.5 * ((self.rule_force0 + force1) * du).sum(1, keepdim=True))             # [B, 1] J
         moved = norm > 1e-300
         return torch.where(moved, 2.0 * e / torch.where(moved, norm, torch.ones_like(norm)), torch.zeros_like(norm)) * Mdu
 
@@ -886,15 +880,15 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             if self.n_terms > 0:
                 S0 = S0 + self._relaxed_from(S_iso0, h0)
             damping0 = damping0 - (self.mass_scale - 1.0) * (self.assemble(F0 @ S0) + self.alpha_m * self.mass(v0))
-        if self.energy_rule:                # Π(u0) and its force for ``discrete_gradient`` (``set_rule``)
+        if self.energy_rule:                # the start ``discrete_gradient`` needs (``set_rule``)
             self.rule_start(u0, F0, extra)
         return predictor, S_iso0, extra, damping0, u1
 
     def end_rates(self, u1: Tensor, v0: Tensor, a0: Tensor, predictor: Tensor) -> Tuple[Tensor, Tensor]:
         """(a1 [m/s²], v1 [m/s]) [B, n] of a step (or sub-step) ending at u1 [B, n] m: Newmark's
         (``newmark_rates``); with the energy rule the acceleration carried on is the end's own,
-        M a1 = f1 − f_int(u1), not the trapezoid's 2 ā − a0, which differs from it by the discrete
-        gradient's 2 M⁻¹ e M Δu / (Δuᵀ M Δu): the next step's trapezoid starts from its start's
+        M a1 = f1 − f_int(u1), not the trapezoid's 2 ā − a0, which differs from it by M⁻¹ of
+        ``discrete_gradient``'s correction: the next step's trapezoid starts from its start's
         forces (``set_rule``). v1 = 2 Δu / Δt − v0 either way."""
         a1, v1 = self.newmark_rates(u1, v0, a0, predictor)
         if self.energy_rule:
