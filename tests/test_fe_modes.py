@@ -1919,6 +1919,66 @@ def test_law_prior_loads_a_cut_steps_sub_steps_between_the_step_s_loads():
     assert law_phrase(ckpt["prior"]).endswith("cut down to Δt/16, its sub-steps loaded between the step's loads")
 
 
+def test_law_prior_substeps_take_every_step_as_the_data_s_fe_sub_steps():
+    """``rollout.prior_substeps`` (``HyperelasticNewmarkPrior(substeps=k)``), for data generated
+    with ``scene.time.substeps=k`` (the FE's steps of Δt/k, loads linear between the stored ones;
+    test_generate checks that FE against the FE at Δt/k): on the viscous Ogden bend every step is
+    taken as k sub-steps, to round-off the prior built for Δt/k stepped k times under the loads
+    and remainders linear between the step's; scripted too. The config records it (and the carried
+    start load it needs), training refuses it, and what it cannot be is named."""
+    torch = pytest.importorskip("torch")
+    from omegaconf import OmegaConf
+
+    from thermognn.core.errors import ConfigError
+    from thermognn.core.state import describe_step
+    from thermognn.train.checkpoint import law_phrase, model_step, with_law_rollout
+    from thermognn.train.hybrid import prior_settings
+
+    from scripted_prior import PriorStep  # tests/scripted_prior.py
+
+    graph, prony, build, u, v, G, cut, half = _bend_cut_once()
+    layout, traj, dt, X, linear, node_type, edges, z, f = graph
+    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
+    for k, fine in ((2, half), (4, build(dt / 4, max_iterations=2, newton_rtol=NEVER))):
+        sub = build(dt, max_iterations=2, newton_rtol=NEVER, substeps=k)
+        us = sub.gather(u[:1])
+        hs = sub.internal_variables(us)
+        vs, as_ = sub.gather(v[:1]), sub.initial_acceleration(us, sub.gather(v[:1]), sub.gather(f[:1]), G[:1])
+        uf, vf, a, h = us, vs, as_, hs
+        for s in range(1, len(f)):
+            f0, f1 = sub.gather(f[s - 1:s]), sub.gather(f[s:s + 1])
+            start = (us, vs, as_, hs)
+            us, vs, as_, hs = sub.step(us, vs, as_, f1, G[s - 1:s], G[s:s + 1], hs, f0)
+            for j in range(1, k + 1):
+                w0, w1 = (j - 1) / k, j / k
+                uf, vf, a, h = fine.step(uf, vf, a, f0 + w1 * (f1 - f0), G[s - 1:s] + w0 * (G[s:s + 1] - G[s - 1:s]),
+                                         G[s - 1:s] + w1 * (G[s:s + 1] - G[s - 1:s]), h)
+            assert rel(us, uf) < 1e-10 and rel(vs, vf) < 1e-9, (k, s)
+        assert sub.newton_taken.tolist()[:2] == [2 * k * (len(f) - 1), len(f) - 1]
+        if k == 2:                                       # scripted, the same step
+            stepper = torch.jit.script(PriorStep(build(dt, max_iterations=2, newton_rtol=NEVER, substeps=2)))
+            with torch.jit.optimized_execution(False), torch.no_grad():
+                got = stepper.prior.step(*start[:3], f1, G[s - 1:s], G[s:s + 1], start[3], f0)
+            assert rel(got[0], us) < 1e-12 and rel(got[1], vs) < 1e-12
+    with pytest.raises(ValueError, match=r"sub-steps: 3, expected one of \[1, 2, 4, 8, 16\]"):
+        build(dt, substeps=3)
+
+    cfg = {"prior": "linear", "prior_law": True, "prior_newton": 1, "prior_newton_max": 8, "prior_step_cuts": 4}
+    settings = prior_settings(OmegaConf.create({**cfg, "prior_substeps": 4}))
+    assert settings["law_substeps"] == 4 and settings["law_cut_loads"] == "linear"
+    assert "(4 sub-steps a step, each with 1 Newton iteration, up to 8" in describe_step(model_step({"prior": settings}))
+    assert "halved down to Δt/64 where not" in describe_step(model_step({"prior": settings}))
+    assert "law_substeps" not in prior_settings(OmegaConf.create(cfg))
+    with pytest.raises(ConfigError, match=r"model.prior_substeps = 3, expected one of \[1, 2, 4, 8, 16\]"):
+        prior_settings(OmegaConf.create({**cfg, "prior_substeps": 3}))
+    with pytest.raises(ConfigError, match=r"model.prior_substeps = 2 needs model.prior_law = true"):
+        prior_settings(OmegaConf.create({"prior": "linear", "prior_substeps": 2}))
+    ckpt, note = with_law_rollout({"prior": prior_settings(OmegaConf.create(cfg))}, {"prior_substeps": 4})
+    assert ckpt["prior"]["law_substeps"] == 4 and note.startswith("the law prior's step 4 sub-steps a step")
+    assert law_phrase(ckpt["prior"]) == ("4 sub-steps a step (loaded between its loads), each 1 to 8 Newton "
+                                         "iterations to 1e-08, cut down to Δt/64")
+
+
 def test_the_law_priors_energy_balance_conserves_an_elastic_law_and_a_viscous_one_absorbs():
     """``evaluate``'s energy of a law prior (``law_energy_along``: the law's kinetic + strain energy,
     the loads' trapezoidal work W and what the body absorbed, W − ΔE) on the FE's bend, stepped to

@@ -75,6 +75,7 @@ def test_effects_decide_state_layout(tmp_path):
 
     d = Dataset(generate(_cfg(tmp_path / "a", "scene.effects=[elastic]", "scene.loads.n_trajectories=1")))
     assert d.layout.names == ["q", "sigma"] and d.read("traj_0").z.shape[2] == 9
+    assert d.time_convergence is None                   # quasi-static elastic: no time error to measure
     d = Dataset(generate(_cfg(tmp_path / "b", "scene.effects=[elastic,viscous]", "scene.store_internal=true",
                               "scene.material.prony=[{g: 0.3, tau: 0.05}]", "scene.loads.n_trajectories=1")))
     assert d.layout.names == ["q", "sigma", "xi1"]
@@ -257,6 +258,38 @@ def test_generate_presses_between_the_nodes(tmp_path):
         assert np.allclose(d.read(name).force[-1].sum(0), [0, 0, -1.0])
 
 
+def test_generate_substeps_solve_finer_in_time_and_measure_the_datas_time_error(tmp_path):
+    """``scene.time.substeps`` k: each stored step solved as k FE steps of dt/k, the loads linear
+    between the stored ones. On the tiny block under a linear ramp (whose loads are linear between
+    the stored steps anyway) the data at dt with 2 sub-steps are the FE at dt/2 with twice the
+    steps, every other state. ``scene.time.convergence_check``: the report's error of data at dt
+    is theirs against that finer solve, and sub-steps shrink it (on the block at dt 2 ms, halved
+    in u and σ, v to a quarter: its stiff modes, damped by βK, the trapezoid does not damp)."""
+    pytest.importorskip("dolfinx")
+    from thermognn.generate import generate
+
+    one = ["scene.loads.n_trajectories=1", "scene.loads.ramp_shape=linear", "scene.time.dt=0.002",
+           "scene.time.steps=8", "scene.loads.ramp_steps=4"]
+    coarse = Dataset(generate(_cfg(tmp_path / "c", *one)))
+    sub = Dataset(generate(_cfg(tmp_path / "s", *one, "scene.time.substeps=2")))
+    half = Dataset(generate(_cfg(tmp_path / "h", *one, "scene.time.dt=0.001", "scene.time.steps=16",
+                                 "scene.loads.ramp_steps=8", "scene.time.convergence_check=0")))
+    zc, zs, zh = (d.read("traj_0").z for d in (coarse, sub, half))
+    assert (coarse.substeps, sub.substeps, half.substeps) == (1, 2, 1) and zs.shape == zc.shape
+    assert np.allclose(zs, zh[::2], rtol=0, atol=1e-9 * np.abs(zh).max(axis=(0, 1)))
+    assert np.array_equal(sub.read("traj_0").force, coarse.read("traj_0").force)
+    assert half.time_convergence is None
+    X = coarse.mesh.nodes
+    report = coarse.time_convergence
+    assert (report["substeps"], report["fine_substeps"], [c["name"] for c in report["cases"]]) == (1, 2, ["traj_0"])
+    fine = zh[::2]
+    for g, sl, base in (("u", slice(0, 3), X), ("v", slice(3, 6), 0.0), ("sigma", slice(6, 12), 0.0)):
+        want = np.linalg.norm(zc[..., sl] - fine[..., sl]) / np.linalg.norm(fine[..., sl] - base)
+        assert report[g] == pytest.approx(want, rel=1e-6) and 0 < want < 1
+        assert sub.time_convergence[g] < 0.6 * report[g]          # (measured: 0.50, 0.26, 0.49)
+    assert sub.time_convergence["fine_substeps"] == 4
+
+
 @pytest.mark.parametrize("value", [[], "hard", [1.0, float("nan")], [[1.0]]])
 def test_bad_load_magnitude_names_the_key(value):
     from thermognn.generate.scene import _magnitudes
@@ -290,6 +323,9 @@ def test_generate_failed_trajectory_is_recorded_without_nan(tmp_path):
     ("scene.loads.magnitude=[]", "scene.loads.magnitude"),
     ("scene.loads.between_nodes=-1", "scene.loads.between_nodes"),
     ("scene.loads.between_nodes=1.5", "scene.loads.between_nodes"),
+    ("scene.time.substeps=0", "scene.time.substeps"),
+    ("scene.time.substeps=1.5", "scene.time.substeps"),
+    ("scene.time.convergence_check=-1", "scene.time.convergence_check"),
 ])
 def test_bad_scene_config_gives_one_line_error(tmp_path, override, needle):
     pytest.importorskip("dolfinx")

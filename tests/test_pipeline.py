@@ -63,6 +63,11 @@ def test_demo_runs_every_stage_end_to_end(tmp_path):
             assert rs and errors[key + g] == pytest.approx(sum(rs) / len(rs), rel=1e-9), (part, g)
     assert "of the linearised FE model's whole-rollout error the model leaves" in res.stdout
     assert "| split | q | v | sigma |" in (tmp_path / "eval" / "summary.md").read_text()
+    # the data's own time error (generate's check against twice the sub-steps), beside the model's
+    checked = ds.time_convergence
+    assert checked["fine_substeps"] == 2 and [errors[f"data_time_error_{g}"] for g in ("u", "v", "sigma")] == [
+        checked["u"], checked["v"], checked["sigma"]] and 0 < checked["u"] < 1
+    assert "The data's own time error (generate's check on traj_0" in (tmp_path / "eval" / "summary.md").read_text()
     summary = json.loads((tmp_path / "serve_summary.json").read_text())
     assert summary["final_force_N"] == 0.0
     assert summary["max_force_N"] > 0.0
@@ -678,6 +683,31 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
                           "train.fit_target=budget", "train.threads=1"], capture_output=True, text=True, timeout=600)
     assert res.returncode != 0 and res.stderr.strip().startswith(
         "error: train.fit_target = budget with model.prior_newton_max = 3"), res.stderr[-2000:]
+    # data solved in sub-steps (scene.time.substeps=2): the law alone, stepped as they were solved
+    # (rollout.prior_substeps=2), follows them to its Newton tolerance; stepped at dt it carries the
+    # data's time error, and evaluate says how to step it; training refuses sub-steps
+    fine = tmp_path / "fine"
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "generate", f"out={fine}", *TINY[:2],
+                          "scene.time.substeps=2", "scene.time.convergence_check=0"], capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    whole = {}
+    for k in (1, 2):
+        res = subprocess.run([sys.executable, "-m", "thermognn.cli", "evaluate", f"out={most}",
+                              f"paths.dataset={fine / 'dataset.h5'}", f"paths.eval_dir={tmp_path / f'fine{k}'}",
+                              "rollout.remainders=zero", f"rollout.prior_substeps={k}", "train.eval_max_train=1",
+                              "train.threads=1"], capture_output=True, text=True, timeout=600)
+        assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+        whole[k] = json.loads((tmp_path / f"fine{k}" / "rrmse.json").read_text())
+        hint = "rollout.prior_substeps=2 steps it as the data were solved" in res.stdout
+        assert hint == (k == 1), res.stdout[-2000:]
+    for g in ("q", "v", "sigma"):
+        assert whole[2][f"whole_{g}"] < 0.01 * whole[1][f"whole_{g}"], (g, whole[1][f"whole_{g}"], whole[2][f"whole_{g}"])
+    res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'sub'}",
+                          f"paths.dataset={fine / 'dataset.h5'}", "model=law_prior", "model.prior_substeps=2",
+                          "train.epochs=1", "train.threads=1"], capture_output=True, text=True, timeout=600)
+    assert res.returncode != 0 and res.stderr.strip().startswith(
+        "error: model.prior_substeps = 2: training fits the law prior's one step of dt"), res.stderr[-2000:]
 
 
 def _law_energy_is_passive(out, figures: dict) -> None:

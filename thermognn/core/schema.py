@@ -11,7 +11,12 @@ Layout (units SI)::
                                    a fixed reference split that training must use),
                                    time_resolution (optional JSON: how well dt resolves the
                                    solid's vibration modes, from ``generate``; see
-                                   thermognn/generate/modes.py ``diagnose``)
+                                   thermognn/generate/modes.py ``diagnose``),
+                                   substeps (optional int: FE steps per stored step, each
+                                   dt / substeps, the loads linear between the stored ones;
+                                   absent: 1), time_convergence (optional JSON: how far the
+                                   data are from the FE at twice the substeps, from
+                                   ``generate``; thermognn/generate/pipeline.py)
     /mesh/nodes             (N, 3) float64  reference positions X [m]
     /mesh/tets              (T, 4) int64    tetrahedra (node indices)
     /mesh/node_type         (N,)   int8     0 free, 1 clamped (Dirichlet), 2 loadable surface
@@ -202,6 +207,14 @@ class DatasetWriter:
         """Store generate's time-resolution diagnostic (JSON) on the root; finalised with the file."""
         self._f.attrs["time_resolution"] = json.dumps(report)
 
+    def set_substeps(self, substeps: int) -> None:
+        """Store how many FE steps the FE took per stored step (``scene.time.substeps``)."""
+        self._f.attrs["substeps"] = int(substeps)
+
+    def set_time_convergence(self, report: dict) -> None:
+        """Store generate's time-convergence check (JSON) on the root; finalised with the file."""
+        self._f.attrs["time_convergence"] = json.dumps(report)
+
     def has(self, name: str) -> bool:
         return name in self._f["trajectories"]
 
@@ -294,6 +307,11 @@ class Dataset:
         #: generate's time-resolution diagnostic (dict), None in files written before it existed
         self.time_resolution = (json.loads(str(attrs["time_resolution"])) if "time_resolution" in attrs
                                 else None)
+        #: FE steps per stored step (``scene.time.substeps``; 1 in files written before it existed)
+        self.substeps = int(attrs.get("substeps", 1))
+        #: generate's time-convergence check (dict), None where it was not run
+        self.time_convergence = (json.loads(str(attrs["time_convergence"])) if "time_convergence" in attrs
+                                 else None)
 
     def linear_solid(self) -> LinearSolid | None:
         """The solid linearised at rest (``/linear``), or None in files written before it existed

@@ -102,10 +102,13 @@ def describe_step(step) -> str:
             iterations = int(step["law"])
             most = int(step.get("law_max", iterations))
             law = "a strain energy learned from the data" if step.get("law_material") == "learned" else "the data's own law"
-            solid = (f"solid of {law} ({iterations} Newton iteration{'s' if iterations > 1 else ''}"
+            sub = int(step.get("law_substeps", 1))
+            solid = (f"solid of {law} ("
+                     + (f"{sub} sub-steps a step, each with " if sub > 1 else "")
+                     + f"{iterations} Newton iteration{'s' if iterations > 1 else ''}"
                      + (f", up to {most} until converged to {float(step['law_rtol']):g}" if most > iterations
                         else "")
-                     + (f", halved down to Δt/{2 ** int(step['law_cuts'])} where not" if step.get("law_cuts") else "")
+                     + (f", halved down to Δt/{2 ** int(step['law_cuts']) * sub} where not" if step.get("law_cuts") else "")
                      + (", its sub-steps loaded linearly between the step's loads"
                         if step.get("law_cut_loads") == "linear" else "")
                      + (", its tangent kept while it contracts" if step.get("law_tangent") == "kept" else "")

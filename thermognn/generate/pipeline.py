@@ -68,27 +68,45 @@ def node_state(solid, layout: StateLayout) -> np.ndarray:
     return z
 
 
+def load_factor(t: float, dt: float, ramp_steps: int, shape: str, substeps: int) -> float:
+    """The load factor at time t [s]: the ramp (``scene.ramp``), or with ``substeps`` > 1 the
+    ramp's values at the stored steps (multiples of dt) linearly between them, so that the loads
+    the dataset stores define the loading within a stored step."""
+    if substeps == 1:
+        return ramp(t, dt, ramp_steps, shape)
+    s = t / dt
+    k = int(np.floor(s + 1e-9))
+    w = min(1.0, max(0.0, s - k))
+    return (1.0 - w) * ramp(k * dt, dt, ramp_steps, shape) + w * ramp((k + 1) * dt, dt, ramp_steps, shape)
+
+
 def simulate(solid, spec: SceneSpec, layout: StateLayout, k: int, ntype: np.ndarray,
-             normals: np.ndarray, between: np.ndarray) -> tuple[Trajectory, TrajectoryCost]:
-    """Simulate load case k from rest (``between``: the load points between the nodes, (B, 3) [m]);
-    a failed step ends the trajectory as 'failed'."""
+             normals: np.ndarray, between: np.ndarray, substeps: int | None = None
+             ) -> tuple[Trajectory, TrajectoryCost]:
+    """Simulate load case k from rest (``between``: the load points between the nodes, (B, 3) [m]),
+    each stored step as ``substeps`` FE steps (default ``spec.substeps``); a failed step ends the
+    trajectory as 'failed'."""
     t0 = time.perf_counter()
     case = load_case(k, solid.nodes, ntype, normals, spec.loads, between)
     point, load_nodes, full_force = case.point, case.load_nodes, case.force
     solid.reset()
     dt, ramp_steps, shape = spec.dt, spec.loads.ramp_steps, spec.loads.ramp_shape
+    n_sub = spec.substeps if substeps is None else int(substeps)
 
     def set_loads(t: float) -> None:
-        solid.set_nodal_force(ramp(t, dt, ramp_steps, shape) * full_force)
+        solid.set_nodal_force(load_factor(t, dt, ramp_steps, shape, n_sub) * full_force)
 
     set_loads(0.0)
     solid.initial_acceleration()
     times, zs, forces = [0.0], [node_state(solid, layout)], [ramp(0.0, dt, ramp_steps, shape) * full_force]
     status, reason, iterations, cuts = "ok", "", 0, 0
     for s in range(1, spec.steps + 1):
-        report = solid.step(dt, set_loads)
-        iterations += report.iterations
-        cuts += report.cuts
+        for _ in range(n_sub):              # (one FE step of dt where n_sub is 1, as always)
+            report = solid.step(dt / n_sub, set_loads)
+            iterations += report.iterations
+            cuts += report.cuts
+            if not report.ok:
+                break
         if not report.ok:
             status, reason = "failed", report.reason
             break
@@ -191,6 +209,80 @@ def _linearised(solid, spec: SceneSpec, layout: StateLayout, writer: DatasetWrit
                       soft_wrap=True)
 
 
+#: ``time_convergence``: above this whole RRMSE (u or v) against twice the substeps, generate hints
+#: at ``scene.time.substeps`` (the learned models' goal is 2 % against the data)
+TIME_HINT = 0.05
+
+
+def time_convergence(solid, spec: SceneSpec, layout: StateLayout, trajectories, ntype: np.ndarray,
+                     normals: np.ndarray, between: np.ndarray) -> dict:
+    """How far the data are from the same FE at twice the substeps (``scene.time.convergence_check``
+    cases, the first ok ones): per case and on their mean, the whole-rollout relative L2 error
+    ‖z_data − z_fine‖ / ‖z_fine‖ of u = q − X [m], v [m/s] and σ [Pa] over all stored steps and
+    nodes, with both solves' FE seconds. The data's own error against the converged motion is of
+    that order: 4/3 of it where the trapezoid converges at its second order, about equal where
+    stiff damped modes it does not damp make it first order (the block). A JSON-ready dict, or
+    {"skipped": why}."""
+    if spec.convergence_check == 0:
+        return {"skipped": "scene.time.convergence_check = 0"}
+    if "inertia" not in spec.effects and "viscous" not in spec.effects:
+        return {"skipped": "quasi-static and elastic: the data do not depend on the time step"}
+    t0 = time.perf_counter()
+    fine_substeps = 2 * spec.substeps
+    X = solid.nodes
+    groups = {"u": layout.slice("q"), **({"v": layout.slice("v")} if "v" in layout.names else {}),
+              "sigma": layout.slice("sigma")}
+    cases = []
+    for traj in trajectories():
+        if len(cases) == spec.convergence_check:
+            break
+        k = int(traj.name.split("_")[-1])
+        fine, cost = simulate(solid, spec, layout, k, ntype, normals, between, substeps=fine_substeps)
+        case: dict = {"name": traj.name, "seconds": round(float(traj.fe_seconds), 3),
+                      "fine_seconds": round(cost.seconds, 3)}
+        if fine.status != "ok" or fine.z.shape != traj.z.shape:
+            case["failed"] = fine.reason or "the finer solve stopped early"
+        else:
+            for g, sl in groups.items():
+                data, ref = traj.z[..., sl], fine.z[..., sl]                     # [S, N, c]
+                if g == "u":
+                    data, ref = data - X, ref - X
+                norm = float(np.linalg.norm(ref))
+                case[g] = float(np.linalg.norm(data - ref) / norm) if norm > 0 else 0.0
+        cases.append(case)
+    done = [c for c in cases if "failed" not in c]
+    out: dict = {"dt": float(spec.dt), "substeps": spec.substeps, "fine_substeps": fine_substeps, "cases": cases}
+    for g in groups:
+        out[g] = float(np.mean([c[g] for c in done])) if done else None
+    out["seconds"] = round(time.perf_counter() - t0, 3)
+    return out
+
+
+def describe_convergence(report: dict, scene: str = "") -> list[str]:
+    """One or two console lines (rich markup) that summarise :func:`time_convergence`."""
+    where = f" ({scene})" if scene else ""
+    if "skipped" in report:
+        return [f"time convergence{where}: not checked, {report['skipped']}"]
+    if not report["cases"]:
+        return [f"time convergence{where}: not checked, no ok trajectory"]
+    if report["u"] is None:
+        return [f"time convergence{where}: the FE at {report['fine_substeps']} sub-steps a step failed: "
+                + "; ".join(f"{c['name']}: {c['failed']}" for c in report["cases"])]
+    parts = ", ".join(f"{'σ' if g == 'sigma' else g} {100 * report[g]:.2g} %" for g in ("u", "v", "sigma")
+                      if report.get(g) is not None)
+    cost = sum(c["seconds"] for c in report["cases"]), sum(c["fine_seconds"] for c in report["cases"])
+    names = ", ".join(c["name"] for c in report["cases"])
+    lines = [f"time convergence{where}: the data (dt {report['dt']:g} s, {report['substeps']} FE step(s) a step) are "
+             f"{parts} from the FE at {report['fine_substeps']} sub-steps a step ({names}: FE {cost[0]:.1f} s "
+             f"against {cost[1]:.1f} s)"]
+    if max(report["u"], report.get("v") or 0.0) > TIME_HINT:
+        lines.append(f"[yellow]hint[/]: the data's own time error is above {100 * TIME_HINT:.0f} %, and every error "
+                     f"against them includes it: solve finer with scene.time.substeps={2 * report['substeps']} "
+                     f"(the error falls with the sub-step, as its square where the motion is resolved; "
+                     f"docs/accuracy.md, session 92)")
+    return lines
+
+
 def generate(cfg) -> Path:
     """Build ``cfg.scene``, solve its load cases, write ``cfg.paths.dataset``; return the path.
 
@@ -243,6 +335,18 @@ def generate(cfg) -> Path:
                     console.print(f"[yellow]{traj.name} failed[/]: {traj.reason}")
                 progress.advance(task)
         _linearised(solid, spec, layout, w, console)
+        if spec.substeps > 1:
+            w.set_substeps(spec.substeps)
+        try:                                   # a diagnostic: never fails generate
+            report = time_convergence(solid, spec, layout, lambda: w.ok_trajectories(), ntype, normals, between)
+            if "skipped" not in report:
+                w.set_time_convergence(report)
+            for line in describe_convergence(report, spec.name):
+                console.print(line, soft_wrap=True)
+        except Exception as exc:
+            msg = str(exc).splitlines()[0] if str(exc) else ""
+            console.print(f"[yellow]warning[/]: time-convergence check failed ({type(exc).__name__}: {msg})",
+                          soft_wrap=True)
     if costs:
         total_steps = sum(c.steps for c in costs)
         secs = sum(c.seconds for c in costs)

@@ -25,6 +25,14 @@ the force ramps over ``ramp_steps`` steps and is then held. ``ramp_shape``: ``li
 ``smooth`` (cubic smoothstep 3s² − 2s³: zero load rate at start and end, so the dynamic response
 is not kicked by a jump in load rate, which the undamped trapezoidal rule would keep ringing in
 the modes faster than the time step).
+
+Time: ``time.dt`` [s] is the step between stored states. ``time.substeps`` k solves each stored
+step as k FE steps of dt/k, the loads linear between the stored steps' loads (the loads the
+dataset stores define its loading, as every later stage reads them): the trapezoidal rule's error
+falls as (dt/k)² where the motion is resolved (about as dt/k where stiff damped modes ring), so a
+scene whose dt does not resolve its motion can be stored at dt and solved finer; the priors of
+``train`` still step at dt. ``time.convergence_check`` n (default 1) re-solves the first n cases at 2k sub-steps and
+stores how far the data are from that (``generate``'s ``time_convergence``).
 """
 
 from __future__ import annotations
@@ -75,8 +83,10 @@ class SceneSpec:
     tets: np.ndarray         # (T, 4)
     mesh_cfg: object
     loads: LoadSpec
-    dt: float                # [s]
+    dt: float                # [s] between stored states
     steps: int
+    substeps: int = 1        # FE steps per stored step (each Δt / substeps), loads linear between
+    convergence_check: int = 1   # cases re-solved at twice the substeps to measure the data's time error
 
 
 def _get(node, key, default=None):
@@ -116,6 +126,10 @@ def scene_from_config(sc) -> SceneSpec:
     t = _get(sc, "time", {})
     dt = _positive(_get(t, "dt"), "time.dt")
     steps = _positive(_get(t, "steps"), "time.steps", int)
+    substeps = _get(t, "substeps", 1)
+    if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
+        raise ConfigError(f"scene.time.substeps = {substeps!r}: expected a whole number >= 1 (FE steps per stored step)")
+    check = _non_negative_int(_get(t, "convergence_check", 1), "scene.time.convergence_check")
     integrator = str(_get(t, "integrator", "newmark"))
     if integrator not in INTEGRATORS:
         raise ConfigError(f"scene.time.integrator = {integrator!r}: expected one of {list(INTEGRATORS)}")
@@ -159,7 +173,7 @@ def scene_from_config(sc) -> SceneSpec:
         raise ConfigError("scene.mesh: missing (expected 'geometry' or 'file')")
     points, tets = load_scene_mesh(mesh_cfg)
     return SceneSpec(str(_get(sc, "name", "scene")), effects, bool(_get(sc, "store_internal", False)), mat,
-                     options, points, tets, mesh_cfg, loads, dt, steps)
+                     options, points, tets, mesh_cfg, loads, dt, steps, substeps, check)
 
 
 # -- node types and surface geometry ---------------------------------------------------------

@@ -127,7 +127,7 @@ def model_from_checkpoint(ckpt: dict, dataset=None):
 ROLLOUT_KEYS = ("integrator", "implicit_iterations", "kinematics")
 #: ... and how a law-prior model's law is stepped (``rollout.<key>``, as ``model.<key>``)
 LAW_ROLLOUT_KEYS = ("prior_newton", "prior_newton_max", "prior_newton_rtol", "prior_step_cuts", "prior_tangent",
-                    "prior_line_search", "prior_cut_loads", "prior_rule", "prior_hht")
+                    "prior_line_search", "prior_cut_loads", "prior_rule", "prior_hht", "prior_substeps")
 
 
 def law_phrase(prior: dict) -> str:
@@ -136,9 +136,12 @@ def law_phrase(prior: dict) -> str:
     k, most = int(prior["law"]), int(prior.get("law_max", prior["law"]))
     text = (f"{k} to {most} Newton iterations to {float(prior['law_rtol']):g}" if most > k
             else f"{k} Newton iteration{'s' if k > 1 else ''}")
+    if int(prior.get("law_substeps", 1)) > 1:
+        text = f"{int(prior['law_substeps'])} sub-steps a step (loaded between its loads), each {text}"
     if prior.get("law_cuts"):
-        text += f", cut down to Δt/{2 ** int(prior['law_cuts'])}"
-        text += ", its sub-steps loaded between the step's loads" if prior.get("law_cut_loads") == "linear" else ""
+        text += f", cut down to Δt/{2 ** int(prior['law_cuts']) * int(prior.get('law_substeps', 1))}"
+        text += (", its sub-steps loaded between the step's loads" if prior.get("law_cut_loads") == "linear"
+                 and int(prior.get("law_substeps", 1)) == 1 else "")
     text += ", its tangent kept" if prior.get("law_tangent") == "kept" else ""
     text += f", its updates line-searched ({int(prior['law_search'])} halvings)" if prior.get("law_search") else ""
     text += ", the energy rule in time" if prior.get("law_rule") == "energy" else ""
@@ -171,14 +174,15 @@ def with_law_rollout(ckpt: dict, want: dict) -> tuple[dict, str]:
            "prior_newton_max": prior.get("law_max"), "prior_newton_rtol": prior.get("law_rtol"),
            "prior_step_cuts": prior.get("law_cuts", 0), "prior_tangent": prior.get("law_tangent", "fresh"),
            "prior_line_search": prior.get("law_search", 0), "prior_cut_loads": prior.get("law_cut_loads", "end"),
-           "prior_rule": prior.get("law_rule", "newmark"), "prior_hht": prior.get("law_hht", 0.0)}
+           "prior_rule": prior.get("law_rule", "newmark"), "prior_hht": prior.get("law_hht", 0.0),
+           "prior_substeps": prior.get("law_substeps", 1)}
     law.update({k: v for k, v in want.items() if v is not None})
     try:
         stepped = prior_settings(OmegaConf.create(law))
     except ConfigError as exc:                  # named as they were set
         raise ConfigError(re.sub(r"model\.(" + "|".join(LAW_ROLLOUT_KEYS) + r")\b", r"rollout.\1", str(exc))) from None
     keys = ("law", "law_max", "law_rtol", "law_cuts", "law_tangent", "law_search", "law_cut_loads", "law_rule",
-            "law_hht")
+            "law_hht", "law_substeps")
     new = {**{k: v for k, v in prior.items() if k not in keys}, **{k: stepped[k] for k in keys if k in stepped}}
     if law_phrase(new) == law_phrase(prior):
         return ckpt, ""
@@ -266,6 +270,7 @@ def model_step(ckpt: dict) -> dict:
     "law_cuts": how many times a step that still has not is halved, "law_tangent": "kept" where its
     tangent is kept between iterations and steps, "law_search": the halvings of its line search,
     "law_cut_loads": "linear" where a cut step's sub-steps are loaded between the step's loads,
+    "law_substeps": how many sub-steps every step is taken as (``rollout.prior_substeps``),
     "law_material": "learned" where the law is a strain energy learned from the data, "remainders": "zero" where the prior steps alone,
     ``rollout.remainders`` or ``train.prior_alone_candidate``)."""
     from .model import step_settings
@@ -285,5 +290,6 @@ def model_step(ckpt: dict) -> dict:
                 **({"law_tangent": str(prior["law_tangent"])} if prior.get("law_tangent") else {}),
                 **({"law_search": int(prior["law_search"])} if prior.get("law_search") else {}),
                 **({"law_cut_loads": "linear"} if prior.get("law_cut_loads") == "linear" else {}),
+                **({"law_substeps": int(prior["law_substeps"])} if int(prior.get("law_substeps", 1)) > 1 else {}),
                 **({"remainders": "zero"} if prior.get("remainders") == "zero" else {})}
     return step_settings(ckpt.get("hparams", {}))

@@ -651,6 +651,29 @@ def _evaluation_split(which: str, stored: dict, data: LoadedData, ckpt_path) -> 
             "val": [], "test": data.split["test"]}
 
 
+def data_time_error(dataset) -> dict:
+    """The data's own time error by generate's check (``Dataset.time_convergence``): whole-rollout
+    relative error {"u", "v", "sigma"} of the data against the FE at twice its sub-steps, over the
+    checked cases; {} where it was not measured (older files, imported data, quasi-static elastic)."""
+    tc = getattr(dataset, "time_convergence", None) or {}
+    if tc.get("u") is None:
+        return {}
+    return {g: float(tc[g]) for g in ("u", "v", "sigma") if tc.get(g) is not None}
+
+
+def data_time_sentence(dataset) -> str:
+    """summary.md's sentence on :func:`data_time_error`."""
+    tc = dataset.time_convergence
+    errors = data_time_error(dataset)
+    names = ", ".join(c["name"] for c in tc["cases"] if "failed" not in c)
+    parts = ", ".join(f"{'σ' if g == 'sigma' else g} {_fmt(e)}" for g, e in errors.items())
+    return (f"The data's own time error (generate's check on {names}: the data, {tc['substeps']} FE step(s) of "
+            f"dt / {tc['substeps']} a stored step, against the FE at {tc['fine_substeps']}): {parts} "
+            "(whole rollout; `data_time_error_*` in `rrmse.json`). A model's error against the data "
+            "below these measures how it follows the data's time stepping, not the converged motion "
+            "(`scene.time.substeps` solves finer).")
+
+
 def evaluate(cfg) -> dict:
     """Roll out the test trajectories with the checkpoint's model; print and write the errors.
 
@@ -696,6 +719,10 @@ def evaluate(cfg) -> dict:
     ckpt, stepped = with_rollout(ckpt, cfg)
     if stepped:
         print(f"evaluate: stepping the trained model with {stepped}")
+    solved = getattr(data.dataset, "substeps", 1)
+    if (ckpt.get("prior") or {}).get("law") and solved > 1 and int(ckpt["prior"].get("law_substeps", 1)) != solved:
+        print(f"evaluate: {ds_path} was solved with {solved} FE steps a stored step; the law prior takes "
+              f"{int(ckpt['prior'].get('law_substeps', 1))}: rollout.prior_substeps={solved} steps it as the data were solved")
     model = model_from_checkpoint(ckpt, data.dataset).eval()
     prior = isinstance(model, LinearPriorModel)      # the network learned remainders, not E and S
     prior_name = ("hyperelastic" if prior and isinstance(model.prior, HyperelasticNewmarkPrior)
@@ -911,6 +938,8 @@ def evaluate(cfg) -> dict:
     mean_test["rest_growth"] = growth
     mean_test.update({f"one_step_{g}": step_test[g] for g in groups})
     mean_test.update({f"whole_{g}": whole[g] for g in groups})
+    data_time = data_time_error(data.dataset)
+    mean_test.update({f"data_time_error_{g}": e for g, e in data_time.items()})
     rows = {"test": {g: mean_test[g] for g in groups}, "train": mean_train}
     if "snapshot" in linear:
         mean_test.update({f"linear_fe_{g}": linear["snapshot"][g] for g in groups})
@@ -1047,6 +1076,7 @@ def evaluate(cfg) -> dict:
              "comes to rest):", "",
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
              "| test | " + " | ".join(_fmt(whole[g]) for g in groups) + " |", *linear_rows("whole"), "",
+             *([data_time_sentence(data.dataset), ""] if data_time else []),
              *(["The test errors at each peak load (the largest sum of the nodal load magnitudes over a "
                 "trajectory; loads within 1 % are one group, labelled by their mean to 3 significant figures; "
                 "`peak_load_N` in `rrmse_per_trajectory.csv`), "

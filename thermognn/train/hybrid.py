@@ -576,13 +576,24 @@ def prior_settings(cfg_model) -> dict:
     if rule == "energy" and hht:
         raise ConfigError(f"model.prior_hht = {hht} with model.prior_rule = energy: the energy rule conserves what "
                           f"HHT dissipates; set one of them")
+    from .law_prior import MAX_SUBSTEP_LEVEL
+
+    substeps = OmegaConf.select(cfg_model, "prior_substeps", default=1)
+    substeps = 1 if substeps is None else substeps
+    allowed = [2 ** k for k in range(MAX_SUBSTEP_LEVEL + 1)]
+    if isinstance(substeps, bool) or substeps not in allowed:
+        raise ConfigError(f"model.prior_substeps = {substeps!r}, expected one of {allowed} (each step of the law "
+                          f"prior as that many sub-steps, as data generated with scene.time.substeps were solved)")
+    if substeps > 1 and not law:
+        raise ConfigError(f"model.prior_substeps = {substeps} needs model.prior_law = true (model=law_prior): it "
+                          f"steps the law prior's law in sub-steps")
     cut_loads = str(OmegaConf.select(cfg_model, "prior_cut_loads", default="end") or "end")
     if cut_loads not in CUT_LOADS:
         raise ConfigError(f"model.prior_cut_loads = '{cut_loads}', expected " + " | ".join(CUT_LOADS)
                           + " (a cut step's sub-steps under its end load, or linearly between its start and end loads)")
-    if cut_loads == "linear" and not (law and cuts):
-        raise ConfigError("model.prior_cut_loads = linear needs model.prior_law = true and model.prior_step_cuts > 0: "
-                          "it loads the sub-steps of a cut step")
+    if cut_loads == "linear" and not (law and (cuts or substeps > 1)):
+        raise ConfigError("model.prior_cut_loads = linear needs model.prior_law = true and model.prior_step_cuts > 0 "
+                          "(or model.prior_substeps > 1): it loads the sub-steps of a cut step")
     material = str(OmegaConf.select(cfg_model, "prior_material", default="data"))
     if material not in LAW_MATERIALS:
         raise ConfigError(f"model.prior_material = '{material}', expected " + " | ".join(LAW_MATERIALS)
@@ -637,6 +648,9 @@ def prior_settings(cfg_model) -> dict:
             settings["law_rule"] = rule
         if hht:                                   # HHT's dissipation (absent: none)
             settings["law_hht"] = float(hht)
+        if substeps > 1:                          # each step as sub-steps, loaded between its loads
+            settings["law_substeps"] = int(substeps)
+            settings["law_cut_loads"] = "linear"
         if material == "learned":                 # its law a strain energy fitted to the data
             settings["law_material"] = "learned"
             settings["law_hidden"] = [int(h) for h in hidden]
@@ -667,7 +681,7 @@ def neo_hookean_of(ds) -> Tuple[float, float]:
 def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material: bool = False,
                 law: int = 0, law_max: Optional[int] = None, law_rtol: Optional[float] = None,
                 law_cuts: int = 0, law_tangent: str = "fresh", law_search: int = 0, law_hht: float = 0.0,
-                law_rule: str = "newmark",
+                law_rule: str = "newmark", law_substeps: int = 1,
                 learned_law: Optional[Sequence[int]] = None,
                 prony: Optional[Sequence[Sequence[float]]] = None) -> NewmarkPrior:
     """The dataset's ``/linear`` as a NewmarkPrior (float64), relaxing as its viscous solid does
@@ -724,7 +738,7 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
                                             solid_law, iterations=int(law), max_iterations=law_max,
                                             newton_rtol=law_rtol, step_cuts=int(law_cuts), tangent=law_tangent,
                                             line_search=int(law_search), hht=float(law_hht),
-                                            rule=str(law_rule))
+                                            rule=str(law_rule), substeps=int(law_substeps))
         if corotated:
             return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                          sweeps=int(corotated), neo_hookean=neo_hookean_of(ds) if material else None,
@@ -746,6 +760,7 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
                                              int(settings.get("law_search", 0)),
                                              float(settings.get("law_hht", 0.0)),
                                              str(settings.get("law_rule", "newmark")),
+                                             int(settings.get("law_substeps", 1)),
                                              settings.get("law_hidden") if settings.get("law_material") == "learned"
                                              else None,
                                              settings["law_prony"] if isinstance(settings.get("law_prony"), list)
@@ -1249,6 +1264,14 @@ def train_linear_prior(cfg, data, hparams: dict, dtype_name: str, structure: str
     roll_end = fit_epochs + roll_epochs
     epochs = roll_end + whole_epochs
     settings = prior_settings(cfg.model)
+    if int(settings.get("law_substeps", 1)) > 1:
+        raise ConfigError(f"model.prior_substeps = {settings['law_substeps']}: training fits the law prior's one step of "
+                          f"dt between stored states; train with 1 and step the trained law in sub-steps with "
+                          f"rollout.prior_substeps at evaluate and export")
+    if "law" in settings and getattr(ds, "substeps", 1) > 1 and dist.main:
+        print(f"train: {ds.path} was solved with {ds.substeps} FE steps a stored step (scene.time.substeps); the law "
+              f"prior fits one step of dt between stored states, its remainders take the difference; "
+              f"rollout.prior_substeps={ds.substeps} steps the law as the data were solved (evaluate, export)")
     torch.manual_seed(seed)
     net = build_model(hparams, dtype)
     model = prior_model(net, settings, ds, ds.dt)

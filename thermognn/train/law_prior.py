@@ -87,6 +87,8 @@ NEWTON_ATOL = 1.0e-14
 #: ``step_cuts``: the FE's own floor of a cut step (``thermognn.generate.solid``'s
 #: ``min_step_fraction`` 1/16): a step is halved at most this many times
 MAX_STEP_CUTS = 4
+#: ``substeps``: a step taken as at most 2^this sub-steps (the data's ``scene.time.substeps``)
+MAX_SUBSTEP_LEVEL = 4
 #: ``budget_loads``: corrections in a row that do not lower the miss before it gives up (the
 #: shell's snap-through at 2 iterations a step: no load lands the step, docs/accuracy.md session 69)
 BUDGET_STALLED = 3
@@ -399,7 +401,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                  lam: float, mu: float, law: NeoHookean | Ogden | StrainEnergy, iterations: int = 1,
                  max_iterations: Optional[int] = None, newton_rtol: Optional[float] = None,
                  step_cuts: int = 0, tangent: str = "fresh", line_search: int = 0, hht: float = 0.0,
-                 rule: str = "newmark", dtype: torch.dtype = torch.float64) -> None:
+                 rule: str = "newmark", substeps: int = 1, dtype: torch.dtype = torch.float64) -> None:
         if not isinstance(law, (NeoHookean, Ogden, StrainEnergy)):
             raise ValueError(f"the law prior steps a NeoHookean, Ogden or learned law, not {law!r}")
         if int(iterations) < 1:
@@ -418,6 +420,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                 max_iterations is not None and int(max_iterations) > int(iterations))):
             raise ValueError(f"the law prior's tangent: {tangent!r}, expected one of {' | '.join(TANGENTS)}, and kept "
                              f"only with max_iterations > iterations (a tolerance ends each step)")
+        if isinstance(substeps, bool) or int(substeps) not in [2 ** k for k in range(MAX_SUBSTEP_LEVEL + 1)]:
+            raise ValueError(f"the law prior's sub-steps: {substeps!r}, expected one of "
+                             f"{[2 ** k for k in range(MAX_SUBSTEP_LEVEL + 1)]} (the data's scene.time.substeps)")
         if isinstance(line_search, bool) or not 0 <= int(line_search) <= MAX_HALVINGS:
             raise ValueError(f"the law prior's line search: {line_search!r}, expected 0 (none) to {MAX_HALVINGS} "
                              f"halvings of a Newton update")
@@ -450,6 +455,11 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         # its steps (``thermognn.generate.solid``): per level k (a sub-step Δt / 2^k) the constants
         # that depend on Δt, which ``use_level`` puts in place (level 0: the step's own, to the bit)
         self.step_cuts = int(step_cuts)
+        # ``substeps`` 2^L: every step taken as that many sub-steps of Δt / 2^L (level L), its loads
+        # and remainders linear between the step's, as the data's FE took it (``scene.time.substeps``:
+        # the FE's own rule, so the law follows data solved finer than their stored Δt); each cut
+        # again down to level L + step_cuts where it does not converge (``cut_step``)
+        self.substeps, self.sub_level = int(substeps), int(substeps).bit_length() - 1
         self.beta_k = float(linear.rayleigh[1])
         # the Newmark rule of the data (β = 1/4, γ = 1/2, the FE's) with HHT's numerical
         # dissipation ``hht`` (``set_hht``; 0: the data's rule, to the bit)
@@ -464,7 +474,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         # per level [Δt s, c, c0, mass_factor, iso_weight]
         self.level_constants: List[List[float]] = [[self.dt, self.c, self.c0, self.mass_factor, self.iso_weight]]
         decay, increment = [self.prony_decay], [self.prony_increment]                      # [T_p] each
-        for k in range(1, self.step_cuts + 1):
+        for k in range(1, self.sub_level + self.step_cuts + 1):
             h = self.dt / 2 ** k
             terms = linear.relaxation(h) if self.n_terms else []          # [(ḡ_i, d_i, w_i)]
             self.level_constants.append([h, self.beta_k / h, 1.0 / (self.beta * h**2),
@@ -1305,9 +1315,16 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         converged are stepped again from their start as the FE steps it (``cut_step``, with
         fresh tangents); the others keep their whole step. A cut step's sub-steps hold its end
         loads f1, or with the step's start loads f0 [B, n] N given, the loads linearly between
-        them at each sub-step's end (``cut_step``)."""
-        if self.step_cuts > 0:              # (a cut an error left mid-way does not leave its constants)
+        them at each sub-step's end (``cut_step``). With ``substeps`` > 1 every step is taken so, as
+        that many sub-steps (``cut_step`` from level ``sub_level``, fresh tangents), as the data's
+        FE took it; give the start loads f0 then (the loads of a ramp are linear between the
+        step's)."""
+        if len(self.level_constants) > 1:   # (a cut an error left mid-way does not leave its constants)
             self.use_level(0)
+        if self.sub_level > 0:              # the data's sub-steps: every step as they were taken
+            u, v, a, h, t, unconverged = self.cut_step(u0, v0, a0, f1, G0, G1, h0, f0, self.sub_level, self.substeps)
+            self.count_step(t, unconverged, 0)
+            return u, v, a, h
         # what R takes from outside the step's start: loads and remainders
         loads = f1 + self.body_force + (1.0 + self.c) * G1 - self.c * G0                  # [B, n] N
         if self.hht > 0.0:                  # HHT: + hht/(1 − hht) (f0 + f_body + G0) (``set_hht``)
@@ -1334,7 +1351,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         u, v, a, h, t, unconverged = self.cut_step(
             self.rows(u0, B, cut), self.rows(v0, B, cut), self.rows(a0, B, cut), self.rows(f1, B, cut),
             self.rows(G0, B, cut), self.rows(G1, B, cut), self.rows(h0, B, cut),
-            None if f0 is None else self.rows(f0, B, cut))
+            None if f0 is None else self.rows(f0, B, cut), 1, 2)
         self.count_step(taken + t, unconverged, 1)
         return u1.index_copy(0, cut, u), v1.index_copy(0, cut, v), a1.index_copy(0, cut, a), h1.index_copy(0, cut, h)
 
@@ -1344,7 +1361,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         return x.expand([batch] + list(x.shape[1:])).index_select(0, rows)
 
     def cut_step(self, u0: Tensor, v0: Tensor, a0: Tensor, f1: Tensor, G0: Tensor, G1: Tensor,
-                 h0: Tensor, f0: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor, Tensor, int, int]:
+                 h0: Tensor, f0: Optional[Tensor] = None, start: int = 1, parts: int = 2
+                 ) -> Tuple[Tensor, Tensor, Tensor, Tensor, int, int]:
         """``step`` from (u0, v0, a0, h0) under f1, G0, G1 [b, ...] as the FE steps it where a
         whole step fails (``thermognn.generate.solid``'s ``step``): as two halves, each cut again
         where it does not converge, down to Δt / 2^step_cuts, whose last try is kept. A sub-step
@@ -1353,9 +1371,14 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         load ramp holding f1 loads a cut step early, and the bunny's traj_14, cut from its 4th step
         within its 10-step ramp, then leaves the data; docs/accuracy.md session 88), and its
         remainders go linearly from G0 to G1. Returns (u1, v1, a1, h1, the Newton iterations
-        taken, whether a sub-step at the floor had not converged)."""
+        taken, whether a sub-step at the floor had not converged). ``start``, ``parts``: the first
+        sub-steps' level and how many (2^start): two halves where a whole step failed, the data's
+        sub-steps (``substeps``) where every step is taken so; the floor is level ``sub_level`` +
+        ``step_cuts``."""
         u, v, a, h = u0, v0, a0, h0
-        pending: List[int] = [1, 1]          # the sub-steps still to take, in order, by level
+        pending: List[int] = []              # the sub-steps still to take, in order, by level
+        for _ in range(parts):
+            pending.append(start)
         done = 0.0                           # how much of Δt they have taken
         taken, unconverged = 0, 0
         while len(pending) > 0:
@@ -1372,7 +1395,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             u1, t, still = self.iterate(u1, u, v, a, predictor, extra, sub_loads + damping0)
             taken += t
             converged = not bool(still.any())
-            if converged or level == self.step_cuts:         # taken: the next sub-step starts here
+            if converged or level == self.sub_level + self.step_cuts:   # taken: the next starts here
                 a1, v = self.end_rates(u1, v, a, predictor)
                 h = self.relax_from(S_iso0, u1, h)
                 u, a = u1, a1
