@@ -288,6 +288,14 @@ def test_generate_substeps_solve_finer_in_time_and_measure_the_datas_time_error(
         assert report[g] == pytest.approx(want, rel=1e-6) and 0 < want < 1
         assert sub.time_convergence[g] < 0.6 * report[g]          # (measured: 0.50, 0.26, 0.49)
     assert sub.time_convergence["fine_substeps"] == 4
+    from thermognn.generate.pipeline import TIME_HINT, describe_convergence
+
+    for d, k in ((coarse, 1), (sub, 2)):
+        lines = describe_convergence(d.time_convergence, "block")
+        assert lines[0].startswith(f"time convergence (block): the data (dt 0.002 s, {k} FE step{'s' if k > 1 else ''} "
+                                   f"a step) are u ") and f"from the FE at {2 * k} sub-steps a step (traj_0: FE" in lines[0]
+        above = max(d.time_convergence["u"], d.time_convergence["v"]) > TIME_HINT
+        assert (len(lines) == 2 and f"scene.time.substeps={2 * k}" in lines[1]) == above
 
 
 @pytest.mark.parametrize("value", [[], "hard", [1.0, float("nan")], [[1.0]]])

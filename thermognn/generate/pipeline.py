@@ -272,7 +272,8 @@ def describe_convergence(report: dict, scene: str = "") -> list[str]:
                       if report.get(g) is not None)
     cost = sum(c["seconds"] for c in report["cases"]), sum(c["fine_seconds"] for c in report["cases"])
     names = ", ".join(c["name"] for c in report["cases"])
-    lines = [f"time convergence{where}: the data (dt {report['dt']:g} s, {report['substeps']} FE step(s) a step) are "
+    k = report["substeps"]
+    lines = [f"time convergence{where}: the data (dt {report['dt']:g} s, {k} FE step{'s' if k > 1 else ''} a step) are "
              f"{parts} from the FE at {report['fine_substeps']} sub-steps a step ({names}: FE {cost[0]:.1f} s "
              f"against {cost[1]:.1f} s)"]
     if max(report["u"], report.get("v") or 0.0) > TIME_HINT:

@@ -667,8 +667,10 @@ def data_time_sentence(dataset) -> str:
     errors = data_time_error(dataset)
     names = ", ".join(c["name"] for c in tc["cases"] if "failed" not in c)
     parts = ", ".join(f"{'σ' if g == 'sigma' else g} {_fmt(e)}" for g, e in errors.items())
-    return (f"The data's own time error (generate's check on {names}: the data, {tc['substeps']} FE step(s) of "
-            f"dt / {tc['substeps']} a stored step, against the FE at {tc['fine_substeps']}): {parts} "
+    k = int(tc["substeps"])
+    solved = f"{k} FE steps of dt / {k} a stored step" if k > 1 else "one FE step a stored step"
+    return (f"The data's own time error (generate's check on {names}: the data, {solved}, against the FE at "
+            f"{tc['fine_substeps']} sub-steps a step): {parts} "
             "(whole rollout; `data_time_error_*` in `rrmse.json`). A model's error against the data "
             "below these measures how it follows the data's time stepping, not the converged motion "
             "(`scene.time.substeps` solves finer).")
