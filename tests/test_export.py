@@ -34,6 +34,12 @@ def test_contract_buffers_methods_and_metadata(exported):
     assert set(meta) >= {"format", "scene", "effects", "state_layout", "dt", "structure", "config", "versions"}
     assert meta["format"] == "thermognn-model/1" and meta["structure"] == "generic"
     assert json.loads(meta["state_layout"]) == [["q", 3], ["v", 3], ["sigma", 6]]
+    from thermognn.core.state import describe_time_error
+
+    assert "data_time_error" not in meta           # (synthetic data: no FE time step to check; test_pipeline's has)
+    assert describe_time_error({"substeps": 4, "fine_substeps": 8, "u": 7.9e-4, "v": 0.0263, "sigma": 3.4e-3}) == (
+        "u 0.079 %, v 2.6 %, σ 0.34 % (the data, 4 FE steps a stored step, against the FE at 8; generate's check)")
+    assert describe_time_error(None) == ""
     dtype = torch.float32 if cfg.model.dtype == "float32" else torch.float64
     n = 27
     assert m.reference_positions.shape == (n, 3) and m.reference_positions.dtype == dtype

@@ -73,6 +73,7 @@ def test_demo_runs_every_stage_end_to_end(tmp_path):
     assert summary["max_force_N"] > 0.0
     assert summary["loop_rate_hz"] > 0.0  # the loop ran; its rate is a benchmark figure, not asserted
     assert summary["model_step"] == "euler, learned kinematics"         # as trained (the defaults)
+    assert summary["data_time_error"].startswith("u ") and "generate's check" in summary["data_time_error"]
     assert "test RRMSE" in res.stdout and "demo summary" in res.stdout
     assert "the linearised FE model's validation error" in res.stdout     # train's opening line
 

@@ -86,6 +86,18 @@ def is_reversible(effects) -> bool:
     return "viscous" not in tuple(effects)
 
 
+def describe_time_error(record) -> str:
+    """An exported file's ``data_time_error`` in words ("" where absent): how far the data behind
+    the body are from the FE at twice their sub-steps, what its force is worth in time."""
+    if not record:
+        return ""
+    k = int(record.get("substeps", 1))
+    parts = ", ".join(f"{'σ' if g == 'sigma' else g} {100 * float(record[g]):.2g} %" for g in ("u", "v", "sigma")
+                      if record.get(g) is not None)
+    return (f"{parts} (the data, {k} FE step{'s' if k > 1 else ''} a stored step, against the FE at "
+            f"{int(record.get('fine_substeps', 2 * k))}; generate's check)")
+
+
 def describe_step(step) -> str:
     """How a model steps, in one phrase used by evaluate, export's metadata readers, serve and the
     benchmarks, from its step settings ({"integrator", "implicit_iterations", "kinematics"}, the

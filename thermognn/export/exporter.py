@@ -28,11 +28,23 @@ META_FILE = "thermognn.json"
 DEFAULT_RTOL = {torch.float32: 1e-4, torch.float64: 1e-9}
 
 
-def metadata(ckpt: dict, internal=()) -> str:
+def data_time_record(ds: Dataset) -> dict | None:
+    """The exported file's ``data_time_error``: how far the dataset's FE is from twice its sub-steps
+    (``generate``'s check: {"substeps", "fine_substeps", "u", "v", "sigma"}), None where unmeasured."""
+    from thermognn.train.evaluation import data_time_error
+
+    errors = data_time_error(ds)
+    if not errors:
+        return None
+    tc = ds.time_convergence
+    return {"substeps": int(tc["substeps"]), "fine_substeps": int(tc["fine_substeps"]), **errors}
+
+
+def metadata(ckpt: dict, internal=(), data_time: dict | None = None) -> str:
     """The ``thermognn.json`` extra file (keys as in docs/stages.md); ``internal``: the column
     groups a linear-prior model carries after a and G (``LinearPriorModel.carried_columns``, for
-    ``carried_layout``)."""
-    return json.dumps({"format": FORMAT, "scene": ckpt.get("scene", ""), "effects": list(ckpt.get("effects", [])),
+    ``carried_layout``); ``data_time``: ``data_time_record`` of the export's dataset (absent: None)."""
+    return json.dumps({**({"data_time_error": data_time} if data_time else {}),"format": FORMAT, "scene": ckpt.get("scene", ""), "effects": list(ckpt.get("effects", [])),
                        "state_layout": (carried_layout(ckpt["state_layout"], internal) if ckpt.get("prior")
                                         else ckpt["state_layout"]), "dt": float(ckpt["dt"]),
                        "structure": ckpt["structure"], "config": ckpt.get("config", ""),
@@ -178,7 +190,7 @@ def export(cfg) -> Path:
     if forget is not None:              # the law prior's kept step start (its factors): not for the file
         forget()
     with atomic_path(out) as tmp:       # written to a temporary file; ``out`` only once all checks pass
-        torch.jit.save(scripted, str(tmp), _extra_files={META_FILE: metadata(ckpt, internal)})
+        torch.jit.save(scripted, str(tmp), _extra_files={META_FILE: metadata(ckpt, internal, data_time_record(ds))})
         verify(tmp)
         # the file as a user loads it against the eager model; with its optimised plan made here,
         # once, and kept for the timing below (the law prior's: 25 s of the tiny block's export)

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from thermognn.core.errors import DataError
-from thermognn.core.state import StateLayout, describe_step
+from thermognn.core.state import StateLayout, describe_step, describe_time_error
 
 from . import protocol as P
 from .contact import SurfaceContact, normal_compliance, series_stiffness
@@ -84,7 +84,8 @@ def model_geometry(buffers: dict, meta: dict, contact: SurfaceContact) -> dict:
     return {"ok": True, "n_nodes": int(X.shape[0]), "lo": X.min(axis=0).tolist(), "hi": X.max(axis=0).tolist(),
             "surface": surface.tolist(), "surface_faces": contact.surface_triangles().tolist(),
             "dt": float(buffers["dt"]), "n_faces": int(len(buffers["surface_faces"])),
-            "scene": meta.get("scene"), "state_layout": meta.get("state_layout"), "step": describe_step(meta.get("step"))}
+            "scene": meta.get("scene"), "state_layout": meta.get("state_layout"), "step": describe_step(meta.get("step")),
+            "data_time_error": describe_time_error(meta.get("data_time_error"))}
 
 
 def physics_main(params: dict, conn) -> None:

@@ -349,6 +349,7 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
            if k in physics_summary},
         n_nodes=int(geometry["n_nodes"]),
         model_step=str(geometry.get("step", "")),
+        data_time_error=str(geometry.get("data_time_error", "")),
         haptic_scheduler=str(haptic_summary.get("scheduler", "")),
         haptic_torch_loaded=bool(haptic_summary.get("torch_loaded", False)),
         wall_s=time.perf_counter() - t_wall,
