@@ -31,20 +31,18 @@ DEFAULT_RTOL = {torch.float32: 1e-4, torch.float64: 1e-9}
 def data_time_record(ds: Dataset) -> dict | None:
     """The exported file's ``data_time_error``: how far the dataset's FE is from twice its sub-steps
     (``generate``'s check: {"substeps", "fine_substeps", "u", "v", "sigma"}), None where unmeasured."""
-    from thermognn.train.evaluation import data_time_error
-
-    errors = data_time_error(ds)
-    if not errors:
+    tc = ds.time_convergence or {}
+    if tc.get("u") is None:
         return None
-    tc = ds.time_convergence
-    return {"substeps": int(tc["substeps"]), "fine_substeps": int(tc["fine_substeps"]), **errors}
+    return {k: tc[k] for k in ("substeps", "fine_substeps", "u", "v", "sigma") if tc.get(k) is not None}
 
 
 def metadata(ckpt: dict, internal=(), data_time: dict | None = None) -> str:
     """The ``thermognn.json`` extra file (keys as in docs/stages.md); ``internal``: the column
     groups a linear-prior model carries after a and G (``LinearPriorModel.carried_columns``, for
     ``carried_layout``); ``data_time``: ``data_time_record`` of the export's dataset (absent: None)."""
-    return json.dumps({**({"data_time_error": data_time} if data_time else {}),"format": FORMAT, "scene": ckpt.get("scene", ""), "effects": list(ckpt.get("effects", [])),
+    return json.dumps({**({"data_time_error": data_time} if data_time else {}),
+                       "format": FORMAT, "scene": ckpt.get("scene", ""), "effects": list(ckpt.get("effects", [])),
                        "state_layout": (carried_layout(ckpt["state_layout"], internal) if ckpt.get("prior")
                                         else ckpt["state_layout"]), "dt": float(ckpt["dt"]),
                        "structure": ckpt["structure"], "config": ckpt.get("config", ""),

@@ -16,7 +16,7 @@ from thermognn.core.config import from_yaml, to_yaml
 from thermognn.core.errors import ConfigError
 from thermognn.core.io import versions_json
 from thermognn.core.schema import NODE_CLAMPED, NODE_SURFACE, DatasetWriter, Trajectory, config_hash
-from thermognn.core.state import StateLayout, state_layout
+from thermognn.core.state import StateLayout, state_layout, time_error_parts
 
 from .scene import SceneSpec, between_node_points, check_load_cases, dataset_mesh, load_case, loadable_faces, \
     node_types, ramp, scene_from_config, boundary_faces_outward, vertex_normals
@@ -268,8 +268,7 @@ def describe_convergence(report: dict, scene: str = "") -> list[str]:
     if report["u"] is None:
         return [f"time convergence{where}: the FE at {report['fine_substeps']} sub-steps a step failed: "
                 + "; ".join(f"{c['name']}: {c['failed']}" for c in report["cases"])]
-    parts = ", ".join(f"{'σ' if g == 'sigma' else g} {100 * report[g]:.2g} %" for g in ("u", "v", "sigma")
-                      if report.get(g) is not None)
+    parts = time_error_parts(report)
     cost = sum(c["seconds"] for c in report["cases"]), sum(c["fine_seconds"] for c in report["cases"])
     names = ", ".join(c["name"] for c in report["cases"])
     k = report["substeps"]
@@ -339,7 +338,7 @@ def generate(cfg) -> Path:
         if spec.substeps > 1:
             w.set_substeps(spec.substeps)
         try:                                   # a diagnostic: never fails generate
-            report = time_convergence(solid, spec, layout, lambda: w.ok_trajectories(), ntype, normals, between)
+            report = time_convergence(solid, spec, layout, w.ok_trajectories, ntype, normals, between)
             if "skipped" not in report:
                 w.set_time_convergence(report)
             for line in describe_convergence(report, spec.name):

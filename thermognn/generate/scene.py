@@ -31,8 +31,8 @@ step as k FE steps of dt/k, the loads linear between the stored steps' loads (th
 dataset stores define its loading, as every later stage reads them): the trapezoidal rule's error
 falls as (dt/k)² where the motion is resolved (about as dt/k where stiff damped modes ring), so a
 scene whose dt does not resolve its motion can be stored at dt and solved finer; the priors of
-``train`` still step at dt. ``time.convergence_check`` n (default 1) re-solves the first n cases at 2k sub-steps and
-stores how far the data are from that (``generate``'s ``time_convergence``).
+``train`` still step at dt. ``time.convergence_check`` n (default 1) re-solves the first n cases
+at 2k sub-steps and stores how far the data are from that (``generate``'s ``time_convergence``).
 """
 
 from __future__ import annotations

@@ -576,13 +576,12 @@ def prior_settings(cfg_model) -> dict:
     if rule == "energy" and hht:
         raise ConfigError(f"model.prior_hht = {hht} with model.prior_rule = energy: the energy rule conserves what "
                           f"HHT dissipates; set one of them")
-    from .law_prior import MAX_SUBSTEP_LEVEL
+    from .law_prior import SUBSTEPS
 
     substeps = OmegaConf.select(cfg_model, "prior_substeps", default=1)
     substeps = 1 if substeps is None else substeps
-    allowed = [2 ** k for k in range(MAX_SUBSTEP_LEVEL + 1)]
-    if isinstance(substeps, bool) or substeps not in allowed:
-        raise ConfigError(f"model.prior_substeps = {substeps!r}, expected one of {allowed} (each step of the law "
+    if isinstance(substeps, bool) or substeps not in SUBSTEPS:
+        raise ConfigError(f"model.prior_substeps = {substeps!r}, expected one of {list(SUBSTEPS)} (each step of the law "
                           f"prior as that many sub-steps, as data generated with scene.time.substeps were solved)")
     if substeps > 1 and not law:
         raise ConfigError(f"model.prior_substeps = {substeps} needs model.prior_law = true (model=law_prior): it "

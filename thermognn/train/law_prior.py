@@ -89,6 +89,8 @@ NEWTON_ATOL = 1.0e-14
 MAX_STEP_CUTS = 4
 #: ``substeps``: a step taken as at most 2^this sub-steps (the data's ``scene.time.substeps``)
 MAX_SUBSTEP_LEVEL = 4
+#: ... so these are the sub-steps a step can be taken as
+SUBSTEPS = tuple(2 ** k for k in range(MAX_SUBSTEP_LEVEL + 1))
 #: ``budget_loads``: corrections in a row that do not lower the miss before it gives up (the
 #: shell's snap-through at 2 iterations a step: no load lands the step, docs/accuracy.md session 69)
 BUDGET_STALLED = 3
@@ -420,9 +422,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                 max_iterations is not None and int(max_iterations) > int(iterations))):
             raise ValueError(f"the law prior's tangent: {tangent!r}, expected one of {' | '.join(TANGENTS)}, and kept "
                              f"only with max_iterations > iterations (a tolerance ends each step)")
-        if isinstance(substeps, bool) or int(substeps) not in [2 ** k for k in range(MAX_SUBSTEP_LEVEL + 1)]:
-            raise ValueError(f"the law prior's sub-steps: {substeps!r}, expected one of "
-                             f"{[2 ** k for k in range(MAX_SUBSTEP_LEVEL + 1)]} (the data's scene.time.substeps)")
+        if isinstance(substeps, bool) or int(substeps) not in SUBSTEPS:
+            raise ValueError(f"the law prior's sub-steps: {substeps!r}, expected one of {list(SUBSTEPS)} (the data's "
+                             f"scene.time.substeps)")
         if isinstance(line_search, bool) or not 0 <= int(line_search) <= MAX_HALVINGS:
             raise ValueError(f"the law prior's line search: {line_search!r}, expected 0 (none) to {MAX_HALVINGS} "
                              f"halvings of a Newton update")
@@ -577,8 +579,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.rule_extra = extra if extra is not None else u0.new_zeros(0)
         self.rule_force0 = self.assemble(self.pk1(F0, self.iso_weight, 1.0, extra))
 
-    def discrete_gradient(self, u1: Tensor, F: Tensor, force1: Tensor) -> Tensor:
-        """2 e M Δu / (Δuᵀ M Δu) [B, n] N of a step's end u1 [B, n] m (its cells' F, the step's
+    def discrete_gradient(self, u1: Tensor, force1: Tensor) -> Tensor:
+        """2 e M Δu / (Δuᵀ M Δu) [B, n] N of a step's end u1 [B, n] m (the step's
         internal force there ∇Π(u1) [B, n] N), from the start ``rule_start`` kept: what the energy
         rule adds to the trapezoid's residual (which is the trapezoid's equation times 2). e is
         the trapezoid's error on the step potential's change, Π(u1) − Π(u0) − (∇Π(u0) + ∇Π(u1))/2
@@ -907,7 +909,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             if self.n_terms > 0:
                 extra = self.rule_extra
             internal = self.assemble(self.pk1(F, self.iso_weight, 1.0, extra))
-            a1 = a1 + self.mass_solve(self.discrete_gradient(u1, F, internal))
+            a1 = a1 + self.mass_solve(self.discrete_gradient(u1, internal))
         return a1, v1
 
     def step_residual(self, u1: Tensor, v0: Tensor, a0: Tensor, predictor: Tensor, extra: Optional[Tensor],
@@ -921,7 +923,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         internal = self.assemble(self.pk1(F, self.iso_weight + self.c, 1.0 + self.c, extra))          # [B, n] N
         residual = self.mass(self.mass_scale * a1 + self.alpha_m * v1) + internal - fixed
         if self.energy_rule:
-            residual = residual + self.discrete_gradient(u1, F, internal)
+            residual = residual + self.discrete_gradient(u1, internal)
         return residual, F
 
     def step_start(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor
