@@ -19,7 +19,9 @@ and its time.
 ``--iterations k`` alone is a fixed budget of k; ``--max m --rtol r`` lets a step that has not
 converged take up to m (``model.prior_newton_max``, ``model.prior_newton_rtol``), ``--cuts c``
 halve it up to c times (``model.prior_step_cuts``), ``--tangent kept`` keep its tangent between
-iterations and steps while it contracts (``model.prior_tangent``). The split is the training default (seed 0,
+iterations and steps while it contracts (``model.prior_tangent``), ``--prior-substeps k`` take
+each step as the prior's k sub-steps, each cut where it has not converged (``rollout.prior_substeps``;
+``--substeps L`` is the older uncut reference). The split is the training default (seed 0,
 0.8/0.1/0.1); ``--names`` picks trajectories instead. A rollout that stops being finite is
 reported as such and counts as an infinite error in the mean. docs/accuracy.md (sessions 71–73)
 quotes its figures (2 threads, the default ``--threads``).
@@ -97,6 +99,9 @@ def main() -> None:
                          "gradient (model.prior_rule)")
     ap.add_argument("--substeps", type=int, default=0,
                     help="L: each step as 2^L sub-steps (loads linear between), L <= --cuts (a finer reference)")
+    ap.add_argument("--prior-substeps", type=int, default=1,
+                    help="k: the prior's own sub-steps (model.prior_substeps / rollout.prior_substeps, 1 2 4 8 16), "
+                         "each cut up to --cuts more times where it has not converged, as evaluate and export step it")
     ap.add_argument("--save", default="", help="torch.save the predicted states {name: [S, N, 12]} here")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
@@ -109,7 +114,8 @@ def main() -> None:
                         **(dict(law_max=args.max, law_rtol=args.rtol, law_cuts=args.cuts, law_tangent=args.tangent)
                            if stretch else {}),
                         **(dict(learned_law=learned["key"]["hidden"], prony=learned["report"].get("prony"))
-                           if learned else {}), law_search=args.search, law_hht=args.hht, law_rule=args.rule)
+                           if learned else {}), law_search=args.search, law_hht=args.hht, law_rule=args.rule,
+                        law_substeps=args.prior_substeps)
     if learned:
         prior.learned_law.load_state_dict(learned["state"])
     X = torch.as_tensor(data.reference_positions(), dtype=torch.float64)
@@ -120,6 +126,7 @@ def main() -> None:
     budget += f", HHT α = -{args.hht:g}" if args.hht else ""
     budget += ", energy rule" if args.rule == "energy" else ""
     budget += f", {2 ** args.substeps} sub-steps a step" if args.substeps else ""
+    budget += f", the prior's {args.prior_substeps} sub-steps a step" if args.prior_substeps > 1 else ""
     print(f"{args.dataset}: the {'learned law of ' + args.law if learned else 'law'} alone, {budget}, "
           f"{args.threads} threads")
     saved: dict = {}

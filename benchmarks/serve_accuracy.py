@@ -6,8 +6,9 @@ path (``thermognn.serve.lockstep``).
 force is: the tool there moves with the wall clock, so every session loads the body differently.
 Here step k reads the tool at k Δt, so every model sees the same path, and each row is the
 whole-path relative error of the force on the user and of the body's displacement against the
-reference, the largest force error beside the largest force, and the model call's median and p99
-time (one process, ``--threads``, the physics process's default 1).
+reference (and the force's over each period of the path, each press, where ``--seconds`` runs
+longer than one), the largest force error beside the largest force, and the model call's median
+and p99 time (one process, ``--threads``, the physics process's default 1).
 
     .venv/bin/python benchmarks/serve_accuracy.py --reference runs/liver/kept.pt \
         runs/liver/model.pt runs/liver/two.pt --path press scene=liver
@@ -63,6 +64,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
         r = reference if model == args.reference else press_rollout(model, **run)
         row = {"model": str(model), **compare(r, reference), "step_ms_median": float(np.median(r.step_ms)),
                "step_ms_p99": float(np.percentile(r.step_ms, 99))}
+        period_steps = max(1, int(round(args.period / dt)))   # the force's error over each period of the path
+        row["force_per_period"] = [period_force_error(r, reference, p, p + period_steps)
+                                   for p in range(0, min(len(r.times), len(reference.times)), period_steps)]
         if r.law_counts is not None:                # a law prior's steps: not converged, cut
             row.update(law_steps=int(r.law_counts[1]), law_unconverged=int(r.law_counts[2]),
                        law_cut=int(r.law_counts[3]))
@@ -72,9 +76,19 @@ def main(argv: list[str] | None = None) -> list[dict]:
               f"{row['step_ms_median']:7.1f} ms (p99 {row['step_ms_p99']:.1f})  {row['steps']} steps"
               + (f"  law steps not converged {row['law_unconverged']}, cut {row['law_cut']}" if "law_steps" in row else "")
               + ("" if row["finite"] else "  NOT FINITE"))
+        if len(row["force_per_period"]) > 1:
+            print("    force per period: " + ", ".join(f"{100 * e:.3g} %" for e in row["force_per_period"]))
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
     return rows
+
+
+def period_force_error(rollout, reference, start: int, stop: int) -> float:
+    """‖f − f_ref‖ / ‖f_ref‖ over steps [start, stop) (one period of the path: one press)."""
+    f, g = rollout.force[start:stop], reference.force[start:stop]          # [n, 3] N
+    n = min(len(f), len(g))
+    norm = float(np.linalg.norm(g[:n]))
+    return float(np.linalg.norm(f[:n] - g[:n])) / norm if norm > 0 else float("nan")
 
 
 if __name__ == "__main__":
