@@ -7,8 +7,10 @@ force is: the tool there moves with the wall clock, so every session loads the b
 Here step k reads the tool at k Δt, so every model sees the same path, and each row is the
 whole-path relative error of the force on the user and of the body's displacement against the
 reference (and the force's over each period of the path, each press, where ``--seconds`` runs
-longer than one), the largest force error beside the largest force, and the model call's median
-and p99 time (one process, ``--threads``, the physics process's default 1).
+longer than one); its magnitude's alone; the force's envelope (``--envelope``, a moving
+average) against the reference's, and each model's own step-to-step jitter about it (``lockstep.compare``); the
+largest force error beside the largest force; and the model call's median and p99 time (one
+process, ``--threads``, the physics process's default 1).
 
     .venv/bin/python benchmarks/serve_accuracy.py --reference runs/liver/kept.pt \
         runs/liver/model.pt runs/liver/two.pt --path press scene=liver
@@ -40,12 +42,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--period", type=float, default=2.0, help="sim path period [s]")
     ap.add_argument("--depth", type=float, default=None, help="press depth below the surface [m] (default: 20 %% of the height)")
     ap.add_argument("--seconds", type=float, default=None, help="body time [s] (default: one period)")
+    ap.add_argument("--envelope", type=float, default=0.1,
+                    help="the force's envelope: a centred moving average over this long [s] (odd steps)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args, overrides = ap.parse_known_args(argv)
 
     from thermognn.core.config import load_config
-    from thermognn.serve.lockstep import compare, press_rollout
+    from thermognn.serve.lockstep import compare, force_envelope, press_rollout
     from thermognn.serve.physics import load_exported
 
     cfg = load_config(list(overrides))
@@ -54,19 +58,23 @@ def main(argv: list[str] | None = None) -> list[dict]:
     dt = float(load_exported(args.reference)[2]["dt"])
     seconds = args.period if args.seconds is None else args.seconds
     steps = max(1, int(round(seconds / dt)))
+    envelope_steps = 2 * int(round(args.envelope / dt / 2)) + 1            # odd, centred
     run = dict(steps=steps, path=args.path, period=args.period, depth=args.depth, threads=args.threads, **contact)
     print(f"serve accuracy: path {args.path}, period {args.period:g} s, {steps} steps of {dt:g} s, "
           f"tool radius {contact['tool_radius']:g} m, contact {contact['contact_stiffness']:g} N/m, "
-          f"load radius {contact['load_radius']:g} m, {args.threads} thread(s)")
+          f"load radius {contact['load_radius']:g} m, {args.threads} thread(s); the force's envelope over "
+          f"{envelope_steps} steps")
     reference = press_rollout(args.reference, **run)
     rows = []
     for model in [args.reference, *args.models]:
         r = reference if model == args.reference else press_rollout(model, **run)
-        row = {"model": str(model), **compare(r, reference), "step_ms_median": float(np.median(r.step_ms)),
+        row = {"model": str(model), **compare(r, reference, envelope_steps), "step_ms_median": float(np.median(r.step_ms)),
                "step_ms_p99": float(np.percentile(r.step_ms, 99))}
         period_steps = max(1, int(round(args.period / dt)))   # the force's error over each period of the path
-        row["force_per_period"] = [period_force_error(r, reference, p, p + period_steps)
-                                   for p in range(0, min(len(r.times), len(reference.times)), period_steps)]
+        periods = range(0, min(len(r.times), len(reference.times)), period_steps)
+        row["force_per_period"] = [period_force_error(r.force, reference.force, p, p + period_steps) for p in periods]
+        env, env_ref = force_envelope(r.force, envelope_steps), force_envelope(reference.force, envelope_steps)
+        row["envelope_per_period"] = [period_force_error(env, env_ref, p, p + period_steps) for p in periods]
         if r.law_counts is not None:                # a law prior's steps: not converged, cut
             row.update(law_steps=int(r.law_counts[1]), law_unconverged=int(r.law_counts[2]),
                        law_cut=int(r.law_counts[3]))
@@ -76,16 +84,20 @@ def main(argv: list[str] | None = None) -> list[dict]:
               f"{row['step_ms_median']:7.1f} ms (p99 {row['step_ms_p99']:.1f})  {row['steps']} steps"
               + (f"  law steps not converged {row['law_unconverged']}, cut {row['law_cut']}" if "law_steps" in row else "")
               + ("" if row["finite"] else "  NOT FINITE"))
+        print(f"    magnitude {100 * row['force_magnitude']:.3g} %, envelope {100 * row['force_envelope']:.3g} %, its own jitter {100 * row['force_jitter']:.3g} % "
+              f"(the reference's {100 * row['reference_jitter']:.3g} %)")
         if len(row["force_per_period"]) > 1:
-            print("    force per period: " + ", ".join(f"{100 * e:.3g} %" for e in row["force_per_period"]))
+            print("    per period: force " + ", ".join(f"{100 * e:.3g} %" for e in row["force_per_period"])
+                  + "; envelope " + ", ".join(f"{100 * e:.3g} %" for e in row["envelope_per_period"]))
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
     return rows
 
 
-def period_force_error(rollout, reference, start: int, stop: int) -> float:
-    """‖f − f_ref‖ / ‖f_ref‖ over steps [start, stop) (one period of the path: one press)."""
-    f, g = rollout.force[start:stop], reference.force[start:stop]          # [n, 3] N
+def period_force_error(force: np.ndarray, reference: np.ndarray, start: int, stop: int) -> float:
+    """‖f − f_ref‖ / ‖f_ref‖ over steps [start, stop) (one period of the path: one press) of two
+    forces [T, 3] N."""
+    f, g = force[start:stop], reference[start:stop]                        # [n, 3] N
     n = min(len(f), len(g))
     norm = float(np.linalg.norm(g[:n]))
     return float(np.linalg.norm(f[:n] - g[:n])) / norm if norm > 0 else float("nan")

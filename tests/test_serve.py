@@ -624,3 +624,40 @@ def test_the_body_passivity_controller_takes_only_what_the_body_would_give_back(
     out = ctl.step(drift, kick, f * 0, f * 0)
     assert ctl.acted == 2 and float(out[:, 3:6].abs().max()) == 0.0 and ctl.removed > 0.0
     assert set(ctl.stats()) == {"passivity_steps", "passivity_removed_J", "passivity_work_J", "passivity_absorbed_J"}
+
+
+def test_lockstep_compare_splits_the_force_into_its_envelope_and_its_jitter():
+    """A served force that buzzes about the reference's (a body ringing under the tool, stepping at
+    Δt) is far from it step by step but not in its envelope; a force 10 % too strong is 10 % off in
+    both; the envelope's window takes out a buzz alternating every step exactly."""
+    from thermognn.serve.lockstep import PressRollout, compare, force_envelope
+
+    T = 200
+    t = 0.02 * np.arange(1, T + 1)                                          # [T] s
+    press = np.zeros((T, 3))
+    press[:, 2] = 2.0 * np.sin(np.pi * t / t[-1]) ** 2                     # [T, 3] N: one press, 0 -> 2 N -> 0
+    buzz = np.zeros((T, 3))
+    buzz[:, 2] = 0.3 * (-1.0) ** np.arange(T)                              # [T, 3] N: at the step rate
+
+    def rollout(force: np.ndarray) -> PressRollout:
+        return PressRollout(t, np.zeros((T, 3)), force, np.zeros((T, 4, 3)), np.ones(T), True)
+
+    reference = rollout(press)
+    interior = slice(2, T - 2)                                              # the window's ends see half of it
+    assert np.allclose(force_envelope(buzz, 5)[interior], 0.0, atol=1e-12)
+    env = force_envelope(press, 5)
+    assert np.abs(env - press).max() < 2e-3 * np.abs(press).max()            # a smooth press keeps its shape
+    same = compare(reference, reference)
+    assert same["force"] == same["force_envelope"] == 0.0 and same["force_jitter"] == same["reference_jitter"]
+    buzzing = compare(rollout(press + buzz), reference)
+    assert buzzing["force"] == pytest.approx(np.linalg.norm(buzz) / np.linalg.norm(press), rel=1e-12)
+    assert buzzing["force_envelope"] < 0.05 * buzzing["force"]                # the path's two ends only
+    assert buzzing["force_jitter"] == pytest.approx(buzzing["force"], rel=0.02)
+    assert buzzing["reference_jitter"] < 0.01 * buzzing["force_jitter"]
+    strong = compare(rollout(1.1 * press), reference)
+    assert strong["force"] == strong["force_magnitude"] == pytest.approx(0.1)
+    assert strong["force_envelope"] == pytest.approx(0.1)
+    turned = press[:, [2, 0, 1]]                                            # [T, 3] N: as hard, another way
+    assert compare(rollout(turned), reference)["force_magnitude"] == pytest.approx(0.0, abs=1e-15)
+    with pytest.raises(DataError, match="steps = 4, expected an odd number >= 3"):
+        force_envelope(press, 4)
