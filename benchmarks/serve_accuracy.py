@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     dt = float(load_exported(args.reference)[2]["dt"])
     seconds = args.period if args.seconds is None else args.seconds
     steps = max(1, int(round(seconds / dt)))
-    envelope_steps = 2 * int(round(args.envelope / dt / 2)) + 1            # odd, centred
+    envelope_steps = max(3, 2 * int(round(args.envelope / dt / 2)) + 1)    # odd, centred, >= 3
     run = dict(steps=steps, path=args.path, period=args.period, depth=args.depth, threads=args.threads, **contact)
     print(f"serve accuracy: path {args.path}, period {args.period:g} s, {steps} steps of {dt:g} s, "
           f"tool radius {contact['tool_radius']:g} m, contact {contact['contact_stiffness']:g} N/m, "
