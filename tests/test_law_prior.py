@@ -246,6 +246,66 @@ def test_the_convex_learned_family_cannot_soften():
     assert bool((lowest >= 0).all()) and bool((det >= -1e-12 * lowest.abs().max() ** 2).all()) and bool((ddU > 0).all())
 
 
+def test_the_learned_laws_acoustic_values_are_its_stress_derivative_and_tell_ellipticity():
+    """``acoustic_values``: (m ⊗ n) : A : (m ⊗ n) is the derivative of P = F S along m ⊗ n, dotted
+    with it (central differences of ``pk2``, to 1e-6); a neo-Hookean law (C10 = μ_s: shear modulus
+    2 μ_s) is 2 μ_s at rest, its smallest value, and elliptic over twice its box; Mooney–Rivlin with
+    C01 = −2 C10 (shear modulus at rest 2 (C10 + C01) < 0) is not, anywhere; the penalty is zero for
+    the first, positive for the second, and L-BFGS on the penalty alone makes the second elliptic."""
+    from thermognn.train.learned_law import (acoustic_values, direction_pairs, ellipticity, ellipticity_penalty,
+                                             principal_deformations)
+
+    law = _learned()
+    F = torch.as_tensor(_gradients())[:8]                                          # [8, 3, 3]
+    m, n = direction_pairs(8, per=12)
+    q = acoustic_values(law, F, m, n)                                              # [8, 12]
+    D = m.unsqueeze(-1) * n.unsqueeze(-2)                                          # [8, 12, 3, 3]
+    h = 1e-6
+
+    def first(G):
+        S_iso, S_vol = law.pk2(G.transpose(-1, -2) @ G)
+        return G @ (S_iso + S_vol)
+
+    Fk = F.unsqueeze(1)
+    fd = ((first(Fk + h * D) - first(Fk - h * D)) / (2 * h) * D).sum((-2, -1))
+    assert float((q - fd).abs().max()) < 1e-6 * float(fd.abs().max())
+
+    neo = StrainEnergy((2, 2), mu=1e4, kappa=3e4, scales=(0.2, 0.3, 0.05))
+    with torch.no_grad():
+        neo.iso_out.zero_()
+        neo.vol_out.zero_()
+        neo.iso_linear.copy_(torch.tensor([0.2, 0.0], dtype=torch.float64))     # Ψ_iso = μ_s (Ī1 − 3)
+        neo.vol_quadratic.fill_(0.05)
+    assert ellipticity(neo, 1e-6, 64)["min"] == pytest.approx(2.0, rel=1e-6)
+    wide = ellipticity(neo, 2.0)
+    assert wide["fraction"] == 0.0 and 0.0 < wide["min"] < 2.0
+    F2 = principal_deformations(neo.scales.tolist(), 2.0, 256)
+    assert F2.shape == (256, 3, 3) and bool((torch.linalg.det(F2) > 0).all())
+    pairs = direction_pairs(256)
+    assert float(ellipticity_penalty(neo, F2, *pairs)) == 0.0
+
+    mooney = StrainEnergy((2, 2), mu=1e4, kappa=3e4, scales=(0.2, 0.3, 0.05))
+    with torch.no_grad():
+        mooney.iso_out.zero_()
+        mooney.vol_out.zero_()
+        mooney.iso_linear.copy_(torch.tensor([0.2, -0.6], dtype=torch.float64))  # C01 = −2 C10
+        mooney.vol_quadratic.fill_(0.05)
+    assert ellipticity(mooney, 1e-6, 64)["min"] < 0 and ellipticity(mooney, 1.0)["fraction"] == 1.0
+    assert float(ellipticity_penalty(mooney, F2, *pairs)) > 0.0
+    mooney.iso_linear.requires_grad_(True)
+    opt = torch.optim.LBFGS([mooney.iso_linear], max_iter=50, line_search_fn="strong_wolfe")
+
+    def closure():
+        opt.zero_grad()
+        loss = ellipticity_penalty(mooney, F2, *pairs)
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    mooney.iso_linear.requires_grad_(False)
+    assert ellipticity(mooney, 2.0)["fraction"] == 0.0
+
+
 def test_the_learned_laws_guard_is_nothing_within_its_states_and_stiffens_beyond():
     """``StrainEnergy.settle_guard``: within twice the fitted box (|x1|, |x2|, |y| <= ``GUARD_MARGIN``
     = 2, the training states' largest invariants) the guarded law is the law, to the bit; beyond it the stress is

@@ -939,6 +939,11 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
         counts[name] = value
     pick = str(_sel(tc, "law_fit_pick", "widest"))
     _choice("law_fit_pick", pick, ("widest", "spread"), "train")
+    elliptic = _sel(tc, "law_fit_elliptic", 0.0)
+    if isinstance(elliptic, bool) or not isinstance(elliptic, (int, float)) or not math.isfinite(elliptic) or elliptic < 0:
+        raise ConfigError(f"train.law_fit_elliptic = {elliptic!r}: expected a number >= 0 (the weight of the "
+                          f"learned law's ellipticity penalty; 0: none)")
+    elliptic = float(elliptic)
     path = out_dir / LAW_FIT_FILE
     key = {"dataset": repr(sorted(fingerprint(ds).items())),
            "hidden": list(law.hidden), "trajectories": sorted(t.name for t in trajs),
@@ -947,6 +952,8 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
         key["convex"] = True
     if pick == "widest":                         # fits kept before session 81 picked by spread
         key["pick"] = pick
+    if elliptic > 0:                             # absent otherwise: fits kept before keep their keys
+        key["elliptic"] = elliptic
     if path.exists():
         kept = torch.load(path, weights_only=True)
         if kept.get("key") == key:
@@ -965,13 +972,14 @@ def learned_law_of(model: LinearPriorModel, trajs, out_dir: Path, ds, tc, init_c
         law.scales.copy_(extents.max(0).values.to(law.scales.dtype))                        # the split's largest
     report = fit_strain_energy(prior, trajs, X, counts["iterations"], counts["trajectories"],
                                log=(lambda m: print(m, flush=True)) if dist.main else (lambda *_: None),
-                               prony=prony, convex=convex, extents=extents if pick == "widest" else None)
+                               prony=prony, convex=convex, extents=extents if pick == "widest" else None,
+                               elliptic=elliptic)
     if dist.main:
         with atomic_path(path) as tmp:
             torch.save({"key": key, "state": law.state_dict(),
                         "report": {"force": report["force"], "stress": report["stress"],
                                    "seconds": report["seconds"], "left_out": [n for n, _ in report["left_out"]],
-                                   "prony": report["prony"]}},
+                                   "prony": report["prony"], "ellipticity": report["ellipticity"]}},
                        tmp)
     return {n for n, _ in report["left_out"]}, report["prony"]
 

@@ -346,6 +346,95 @@ def invariant_scales(C: Tensor) -> Tuple[float, float, float]:
     return tuple(max(float(v.abs().max()), 1e-6) for v in (I1b - 3.0, I2b - 3.0, J - 1.0))
 
 
+#: the ellipticity check (``ellipticity``): deformations sampled within the box, direction pairs
+#: each, the floor the fit's penalty keeps the acoustic values above (relative to μ_s; the liver's
+#: own Ogden law, α = 16.19, comes down to 0.01 μ at twice its data's box)
+ELLIPTIC_SAMPLES = 1024
+ELLIPTIC_DIRECTIONS = 12
+ELLIPTIC_FLOOR = 1e-3
+
+
+def principal_deformations(scales: Sequence[float], bound: float, count: int = ELLIPTIC_SAMPLES,
+                           seed: int = 0) -> Tensor:
+    """``count`` diagonal deformation gradients F [count, 3, 3] (principal stretches; an isotropic
+    law needs no other) whose scaled invariants |Ī1 − 3|/s1, |Ī2 − 3|/s2, |J − 1|/s3 are within
+    ``bound`` (J at least 0.05): J uniform over its range, the isochoric stretches
+    exp(a), exp(b), exp(−a−b) with a, b uniform over ±√(bound·max(s1, s2)), drawn until enough fall in."""
+    s1, s2, s3 = (float(v) for v in scales)
+    g = torch.Generator().manual_seed(int(seed))
+    spread = math.sqrt(bound * max(s1, s2))
+    kept: List[Tensor] = []
+    have = 0
+    for _ in range(200):
+        J = (1.0 - bound * s3) + 2.0 * bound * s3 * torch.rand(4 * count, generator=g, dtype=torch.float64)
+        J = J.clamp(min=0.05)
+        ab = spread * (2.0 * torch.rand(4 * count, 2, generator=g, dtype=torch.float64) - 1.0)
+        iso = torch.exp(torch.stack([ab[:, 0], ab[:, 1], -ab[:, 0] - ab[:, 1]], -1))      # [4 count, 3] λ̄
+        I1b = iso.pow(2).sum(-1)
+        I2b = iso.pow(-2).sum(-1)                                                          # λ̄1 λ̄2 λ̄3 = 1
+        inside = ((I1b - 3.0).abs() <= bound * s1) & ((I2b - 3.0).abs() <= bound * s2)
+        lam = iso[inside] * J[inside].pow(1.0 / 3.0).unsqueeze(-1)                          # [n, 3] λ
+        kept.append(lam)
+        have += lam.shape[0]
+        if have >= count:
+            break
+    lam = torch.cat(kept)[:count]
+    return torch.diag_embed(lam)                                                           # [count, 3, 3]
+
+
+def direction_pairs(count: int, per: int = ELLIPTIC_DIRECTIONS, seed: int = 0) -> Tuple[Tensor, Tensor]:
+    """Unit vectors (m, n) [count, per, 3] each: the nine pairs of principal axes, then random pairs."""
+    g = torch.Generator().manual_seed(int(seed) + 1)
+    eye = torch.eye(3, dtype=torch.float64)
+    axes_m = eye.repeat_interleave(3, 0)                                                   # [9, 3]
+    axes_n = eye.repeat(3, 1)                                                              # [9, 3]
+    m = torch.nn.functional.normalize(torch.randn(count, per, 3, generator=g, dtype=torch.float64), dim=-1)
+    n = torch.nn.functional.normalize(torch.randn(count, per, 3, generator=g, dtype=torch.float64), dim=-1)
+    k = min(per, 9)
+    m[:, :k], n[:, :k] = axes_m[:k], axes_n[:k]
+    return m, n
+
+
+def acoustic_values(law: StrainEnergy, F: Tensor, m: Tensor, n: Tensor, create_graph: bool = False) -> Tensor:
+    """(m ⊗ n) : A : (m ⊗ n) [P, K] Pa, A = ∂P/∂F the law's first elasticity tensor (P = F S the first
+    Piola–Kirchhoff stress) at F [P, 3, 3], for the unit direction pairs m, n [P, K, 3]. The law is
+    strongly elliptic at F (its waves travel, its strain cannot localise) where every value is
+    positive; ``create_graph`` keeps them differentiable in the law's weights (the fit's penalty)."""
+    P_, K = m.shape[0], m.shape[1]
+    D = m.unsqueeze(-1) * n.unsqueeze(-2)                                                  # [P, K, 3, 3] m ⊗ n
+    Fk = F.unsqueeze(1).expand(P_, K, 3, 3).reshape(-1, 3, 3).detach().requires_grad_(True)  # [P K, 3, 3]
+    S_iso, S_vol = law.pk2(Fk.transpose(-1, -2) @ Fk)
+    first = Fk @ (S_iso + S_vol)                                                           # [P K, 3, 3] P
+    D = D.reshape(-1, 3, 3)
+    (AD,) = torch.autograd.grad((first * D).sum(), Fk, create_graph=True)                  # [P K, 3, 3] A : D
+    q = (AD * D).sum((-2, -1)).reshape(P_, K)
+    return q if create_graph else q.detach()
+
+
+def ellipticity_penalty(law: StrainEnergy, F: Tensor, m: Tensor, n: Tensor) -> Tensor:
+    """The mean square of the acoustic values (``acoustic_values`` at F [P, 3, 3], directions m, n
+    [P, K, 3]) below ``ELLIPTIC_FLOOR`` μ_s, each relative to μ_s: zero where the law is strongly
+    elliptic by that margin, differentiable in its weights (the fit's ``elliptic`` term)."""
+    q = acoustic_values(law, F, m, n, create_graph=True) / law.mu_scale                   # [P, K]
+    return torch.relu(ELLIPTIC_FLOOR - q).pow(2).mean()
+
+
+def ellipticity(law: StrainEnergy, bound: float = 1.0, count: int = ELLIPTIC_SAMPLES, seed: int = 0) -> dict:
+    """How far the law is from losing strong ellipticity over deformations within ``bound`` times its
+    fitted box (``principal_deformations``): {"min": the smallest acoustic value over them relative to
+    μ_s (1 for a neo-Hookean law at rest, negative: not elliptic there), "fraction": the share of
+    deformations with a non-positive value, "where": (λ1, λ2, λ3) of the worst}. A law fitted to
+    data can lose it between the states it saw: there a body's strain localises (the shipped liver
+    law's smallest cells under a long press: docs/accuracy.md, session 94)."""
+    F = principal_deformations(law.scales.tolist(), bound, count, seed)
+    m, n = direction_pairs(F.shape[0], seed=seed)
+    with torch.enable_grad():
+        q = acoustic_values(law, F, m, n).amin(-1) / law.mu_scale                          # [P]
+    worst = int(torch.argmin(q))
+    return {"min": float(q[worst]), "fraction": float((q <= 0).to(q.dtype).mean()),
+            "where": [float(v) for v in F[worst].diagonal()]}
+
+
 class PronySeries(nn.Module):
     """Learned Prony terms (ḡ_i, τ_i) of a viscous law, as many as the scene declares: the weights
     (g∞, ḡ_1, ..) = softmax(logits), so each is positive and g∞ = 1 − Σ ḡ_i > 0, and τ_i = exp(log τ_i)
@@ -403,7 +492,7 @@ def widest_first(trajs: list, extents: Tensor, k: int) -> list:
 
 def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
                       max_trajectories: int = FIT_TRAJECTORIES, log=print, prony: bool = False,
-                      convex: bool = False, extents: Optional[Tensor] = None) -> dict:
+                      convex: bool = False, extents: Optional[Tensor] = None, elliptic: float = 0.0) -> dict:
     """Fit the law prior's learned law ``prior.learned_law`` (a :class:`StrainEnergy`) to the
     training trajectories ``trajs`` (``z`` [S, N, 12], ``force`` [S, N, 3], ``name``) by
     equation error (module docstring), X [N, 3] m the reference positions: at most
@@ -414,9 +503,16 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
     fit goes on without it. With ``prony`` (a viscous prior) its Prony terms are fitted too
     (:class:`PronySeries`, as many as it has) and left in its ``prony_*`` buffers. With ``convex``
     the fit keeps the energy convex in x and in y (``CONVEX``: the hidden units' output weights and
-    k0 fitted by their square roots, so never negative), so it cannot soften beyond the states it saw. Returns a report
+    k0 fitted by their square roots, so never negative), so it cannot soften beyond the states it saw.
+    With ``elliptic`` > 0 the loss adds that weight times the mean square of the acoustic values
+    below ``ELLIPTIC_FLOOR`` μ_s (each relative to μ_s) over ``ELLIPTIC_SAMPLES`` deformations within the
+    guard's start (``GUARD_MARGIN`` times the box) and ``ELLIPTIC_DIRECTIONS`` direction pairs each
+    (``ellipticity``): the fitted law stays strongly elliptic where the data's does (a free fit of the
+    liver's Ogden data lost it over a fifth of its own box, and a long press localised strain in its
+    smallest cells; docs/accuracy.md, session 94). Returns a report
     {"seconds", "iterations", "force", "stress" (the final RMS remainders relative to the loads'
-    and the stresses' RMS), "left_out" [(name, ratio)], "prony" [(ḡ_i, τ_i)] (None: not fitted)}."""
+    and the stresses' RMS), "left_out" [(name, ratio)], "prony" [(ḡ_i, τ_i)] (None: not fitted),
+    "ellipticity" (``ellipticity`` over the box and over twice it)}."""
     law = prior.learned_law
     free = prior.free_nodes()
     trajs = spread(trajs, max_trajectories) if extents is None else widest_first(trajs, extents, max_trajectories)
@@ -443,6 +539,16 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
         series = PronySeries(prior.n_terms, duration)
     t0, calls = time.perf_counter(), [0]
     shown = [t0]
+    if elliptic < 0.0 or not math.isfinite(elliptic):
+        raise ValueError(f"the learned law's ellipticity weight: {elliptic!r}, expected a number >= 0")
+    if elliptic > 0.0:                         # the penalty's deformations and directions, fixed (L-BFGS)
+        sampled = principal_deformations(law.scales.tolist(), GUARD_MARGIN, ELLIPTIC_SAMPLES)   # [P, 3, 3]
+        pairs = direction_pairs(sampled.shape[0])                                          # [P, K, 3] each
+
+    def softening() -> Tensor:                 # the ellipticity penalty (0 without one)
+        if elliptic <= 0.0:
+            return torch.zeros((), dtype=torch.float64)
+        return elliptic * ellipticity_penalty(law, sampled, *pairs)
 
     def residuals(chosen):
         terms = (None, None, None) if series is None else series.terms(float(prior.dt))
@@ -461,7 +567,7 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
         def closure():
             opt.zero_grad()
             parts = residuals(chosen)
-            loss = sum(g + h for g, h in parts) / len(parts)
+            loss = sum(g + h for g, h in parts) / len(parts) + softening()
             loss.backward()
             calls[0] += 1
             if time.perf_counter() - shown[0] > PROGRESS_SECONDS:   # a fit of some minutes says where it is
@@ -502,15 +608,23 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
         raise RuntimeError("prior: a non-finite state while fitting the learned law")
     report = {"seconds": time.perf_counter() - t0, "iterations": calls[0], "force": force, "stress": stress,
               "left_out": left_out, "trajectories": len(keep),
-              "prony": None if series is None else series.values()}
+              "prony": None if series is None else series.values(),
+              "ellipticity": {"box": ellipticity(law, 1.0), "guard": ellipticity(law, GUARD_MARGIN)}}
     log(f"train: the learned law{' (convex)' if convex else ''} fitted to {len(keep)} training trajectories in {report['seconds']:.0f} s "
         f"({calls[0]} evaluations): RMS force remainder {force:.3e} of the loads, stress {stress:.3e} of σ"
         + ("; Prony terms (g, tau [s]) " + ", ".join(f"({g:.4g}, {t:.4g})" for g, t in report["prony"])
            if report["prony"] else "")
         + (f"; {len(left_out)} left out (the FE cut its steps there?): " + ", ".join(n for n, _ in left_out)
            if left_out else ""))
+    box, guard = report["ellipticity"]["box"], report["ellipticity"]["guard"]
+    verdict = "strongly elliptic" if guard["min"] > 0 else (
+        f"not elliptic on {guard['fraction']:.1%} of the deformations sampled"
+        + ("" if elliptic > 0 else "; train.law_fit_elliptic keeps it elliptic"))
+    log(f"train: the learned law's smallest acoustic value {box['min']:.3g} μ_s over its training states' box, "
+        f"{guard['min']:.3g} over twice it ({verdict})")
     return report
 
 
-__all__ = ["CONVEX", "HIDDEN", "EquationError", "PronySeries", "StrainEnergy", "convex_roots", "fit_strain_energy",
-           "invariant_scales", "widest_first"]
+__all__ = ["CONVEX", "HIDDEN", "EquationError", "PronySeries", "StrainEnergy", "acoustic_values", "convex_roots",
+           "direction_pairs", "ellipticity", "ellipticity_penalty", "fit_strain_energy", "invariant_scales", "principal_deformations",
+           "widest_first"]
