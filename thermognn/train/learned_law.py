@@ -424,8 +424,8 @@ def ellipticity(law: StrainEnergy, bound: float = 1.0, count: int = ELLIPTIC_SAM
     fitted box (``principal_deformations``): {"min": the smallest acoustic value over them relative to
     μ_s (1 for a neo-Hookean law at rest, negative: not elliptic there), "fraction": the share of
     deformations with a non-positive value, "where": (λ1, λ2, λ3) of the worst}. A law fitted to
-    data can lose it between the states it saw: there a body's strain localises (the shipped liver
-    law's smallest cells under a long press: docs/accuracy.md, session 94)."""
+    data can lose it between the states it saw, where its own data's law keeps it (the liver's
+    free fit, shipped in session 86: docs/accuracy.md, session 94)."""
     F = principal_deformations(law.scales.tolist(), bound, count, seed)
     m, n = direction_pairs(F.shape[0], seed=seed)
     with torch.enable_grad():
@@ -508,8 +508,7 @@ def fit_strain_energy(prior, trajs, X: Tensor, iterations: int = FIT_ITERATIONS,
     below ``ELLIPTIC_FLOOR`` μ_s (each relative to μ_s) over ``ELLIPTIC_SAMPLES`` deformations within the
     guard's start (``GUARD_MARGIN`` times the box) and ``ELLIPTIC_DIRECTIONS`` direction pairs each
     (``ellipticity``): the fitted law stays strongly elliptic where the data's does (a free fit of the
-    liver's Ogden data lost it over a fifth of its own box, and a long press localised strain in its
-    smallest cells; docs/accuracy.md, session 94). Returns a report
+    liver's Ogden data lost it over a fifth of its own box; docs/accuracy.md, session 94). Returns a report
     {"seconds", "iterations", "force", "stress" (the final RMS remainders relative to the loads'
     and the stresses' RMS), "left_out" [(name, ratio)], "prony" [(ḡ_i, τ_i)] (None: not fitted),
     "ellipticity" (``ellipticity`` over the box and over twice it)}."""
