@@ -585,6 +585,11 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     # serve's body passivity (session 90) books every step and leaves the converged law alone
     assert converged.passivity["passivity_steps"] == 0 and converged.passivity["passivity_work_J"] > 0.0
     assert converged.passivity["passivity_absorbed_J"] >= -0.05 * converged.passivity["passivity_work_J"]
+    # and its health after every step (thermognn.serve.health): every cell still a cell, none
+    # inverted, no reset; the scene's own law has no fitted box (its invariants nan)
+    assert converged.healthy and served.healthy and converged.resets == 0
+    assert len(converged.health["inverted_cells"]) == 40 and 0.5 < converged.health["smallest_volume_ratio"].min() < 1.0
+    assert np.isnan(converged.health["largest_invariant"]).all() and converged.first_step("cells_beyond_states") is None
     off = compare(served, converged)
     assert 0.0 < off["force"] < 0.5 and 0.0 < off["displacement"] < 1.0 and off["steps"] == 40, off
     # what the network adds under the press: the converged law alone against it with the network;
@@ -623,6 +628,8 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     assert res.returncode == 0 and "export: note:" not in res.stdout, res.stdout[-2000:] + res.stderr[-3000:]
     quiet, _ = run_physics_here(out / "kept_cut.pt", 12, [0.0, 0.0, 0.02 + 0.003 - 0.002])
     assert quiet["law_unconverged_steps"] == 0 and quiet["law_warning"] == "" and quiet["law_steps"] == 24, quiet
+    assert quiet["body_destroyed_steps"] == quiet["body_resets"] == quiet["body_steps_beyond_states"] == 0, quiet
+    assert quiet["body_warning"] == "" and 0.5 < quiet["body_smallest_volume_ratio"] < 1.0, quiet
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={out}", f"paths.dataset={tiny_block}",
                           f"paths.exported={out / 'kept_cut_linear.pt'}", "train.threads=1", *kept,
                           "rollout.prior_step_cuts=4", "rollout.prior_cut_loads=linear", "rollout.prior_line_search=6",
@@ -827,6 +834,19 @@ def test_learned_law_fits_the_block_and_steps_it(tmp_path, tiny_block):
                           *OFF_ONLY], capture_output=True, text=True, timeout=600)      # (the viscous law's below: both ways)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     assert verify(out / "alone.pt")["step"]["remainders"] == "zero"
+    # served, its health reads the learned law's box from the exported file: pressed as the data
+    # loads it, the block's cells stay cells, and its scaled invariants are the checkpoint's scales'
+    from thermognn.serve.health import BodyHealth
+    from thermognn.serve.lockstep import press_rollout
+    from thermognn.serve.physics import load_exported
+
+    module, _, buffers = load_exported(out / "alone.pt")
+    health = BodyHealth.of_module(module, buffers["reference_positions"])
+    assert np.allclose(health.scales, ckpt["state_dict"]["prior.learned_law.scales"].double().numpy(), rtol=1e-6)
+    assert health.guard_margin == 2.0 and len(health.cells) == len(module.core.prior.cell_nodes)
+    pressed = press_rollout(out / "alone.pt", steps=20, period=0.4, load_radius=0.008)
+    assert pressed.healthy and pressed.resets == 0 and np.isfinite(pressed.health["largest_invariant"]).all()
+    assert pressed.health["largest_invariant"].max() > 0.0, pressed.health
     # the exported law's energy_entropy is the law's energy (not the linearised solid's), as eager
     scripted = torch.jit.load(str(out / "alone.pt"))
     z = scripted.z0

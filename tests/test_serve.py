@@ -661,3 +661,101 @@ def test_lockstep_compare_splits_the_force_into_its_envelope_and_its_jitter():
     assert compare(rollout(turned), reference)["force_magnitude"] == pytest.approx(0.0, abs=1e-15)
     with pytest.raises(DataError, match="steps = 4, expected an odd number >= 3"):
         force_envelope(press, 4)
+
+
+def test_body_health_reads_volume_ratios_law_invariants_and_inverted_cells():
+    """``BodyHealth`` on one unit tetrahedron: at rest every figure is the rest's; a uniaxial
+    stretch λ gives J = λ and the learned law's scaled invariants Ī1 = λ^(−2/3) (λ² + 2),
+    Ī2 = λ^(−4/3) (2λ² + 1), J over its scales; the same tetrahedron turned inside out (its apex
+    through its base) is destroyed; a rigid rotation is not deformed at all."""
+    from thermognn.serve.health import BodyHealth
+
+    X = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])   # [4, 3] m
+    s = np.array([0.5, 0.25, 0.1])
+    health = BodyHealth(X, [[0, 1, 2, 3]], s)
+    rest = health(X)
+    assert rest.inverted_cells == 0 and rest.smallest_volume_ratio == pytest.approx(1.0)
+    assert rest.largest_invariant == pytest.approx(0.0, abs=1e-12) and rest.cells_beyond_states == 0
+    assert rest.largest_displacement_m == 0.0 and not rest.destroyed
+    lam = 1.05
+    stretched = health(X * [lam, 1.0, 1.0])
+    expected = np.abs([(lam ** (-2 / 3) * (lam ** 2 + 2) - 3) / s[0], (lam ** (-4 / 3) * (2 * lam ** 2 + 1) - 3) / s[1],
+                       (lam - 1) / s[2]])
+    assert stretched.smallest_volume_ratio == pytest.approx(lam, rel=1e-12)
+    assert stretched.largest_invariant == pytest.approx(expected.max(), rel=1e-9)
+    assert stretched.cells_beyond_states == 0 and stretched.largest_displacement_m == pytest.approx(0.05)
+    assert health(X * [1.2, 1.0, 1.0]).cells_beyond_states == 1                # J − 1 = 2 s3
+    c, t = np.cos(0.7), np.sin(0.7)
+    turned = health(X @ np.array([[c, -t, 0.0], [t, c, 0.0], [0.0, 0.0, 1.0]]).T)
+    assert turned.largest_invariant == pytest.approx(0.0, abs=1e-12) and turned.smallest_volume_ratio == pytest.approx(1.0)
+    inside_out = health(X * [1.0, 1.0, -1.0])
+    assert inside_out.inverted_cells == 1 and inside_out.smallest_volume_ratio == pytest.approx(-1.0)
+    assert inside_out.destroyed and BodyHealth(X, [[0, 1, 2, 3]])(X).largest_invariant != 0.0   # nan: no scales
+    with pytest.raises(ValueError, match=r"cell_nodes has shape \(1, 3\)"):
+        BodyHealth(X, [[0, 1, 2]])
+
+
+def test_physics_warns_as_cells_leave_the_law_states_and_resets_a_destroyed_body(capsys):
+    """serve's physics process checks a meshed body after every step: a body whose one cell is
+    squashed a little more at every step (its apex 0.3 of the way down to its base) warns once as
+    it leaves the law's states and once as it turns inside out, and goes back to rest then (it
+    squashes again from there); with ``body_reset=false`` it is served as it is. A model without
+    cells (the spring network) has no body figures."""
+    import torch
+    from torch import nn
+
+    from physics_session import Recorder
+    from thermognn.serve.physics import run_physics
+
+    X = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+
+    class Squash(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.reference_positions, self.z0, self.dt = X, X.clone(), torch.tensor(0.01)
+            self.core = nn.Module()
+            self.core.prior = nn.Module()
+            self.core.prior.cell_nodes, self.core.prior.learned = torch.tensor([[0, 1, 2, 3]]), True
+            self.core.prior.learned_law = nn.Module()
+            self.core.prior.learned_law.scales = torch.tensor([0.5, 0.5, 0.2], dtype=torch.float64)
+
+        def forward(self, z, f):
+            z = z.clone()
+            z[3, 2] -= 0.3                                    # 1 -> 0.7 (J − 1 = −1.5 s3) -> 0.4 -> 0.1 -> −0.2
+            return z
+
+    def session(steps: int, **params) -> dict:
+        module = Squash()
+        contact = SurfaceContact(X.numpy(), np.array([1, 2, 2, 2]), np.array([[1, 2, 3]]), 0.003, 300.0, 0.006)
+        shared = P.make_shared(16)
+        try:
+            tool = np.zeros(P.TOOL_PAYLOAD)
+            tool[P.T_X] = [5.0, 5.0, 5.0]                     # far away: no contact
+            VersionedBuffer(shared["tool"], P.TOOL_PAYLOAD).publish(tool)
+            with torch.jit.optimized_execution(False):
+                return run_physics({"stale_ms": 1e9, **params}, Recorder(module, shared, steps), slice(0, 3),
+                                   contact, shared)
+        finally:
+            shared.close()
+
+    summary = session(9)                                      # squashed, inverted at 4, reset, again at 8
+    assert summary["steps"] == 9 and summary["body_destroyed_steps"] == 2 and summary["body_resets"] == 2, summary
+    assert summary["body_steps_beyond_states"] == 9 and summary["body_smallest_volume_ratio"] == pytest.approx(-0.2)
+    lam = 0.1                                                 # the largest: Ī2's at J = 0.1, a uniaxial squash
+    assert summary["body_largest_invariant"] == pytest.approx((lam ** (-4 / 3) * (2 * lam ** 2 + 1) - 3) / 0.5)
+    warning = summary["body_warning"]
+    assert "at model step 1 1 cell(s) of the body left the states its law was fitted on" in warning
+    assert "rollout.prior_hht=0.05" in warning and "at model step 4 1 cell(s) of the body are inverted" in warning
+    assert "reset to rest (serve.body_reset)" in warning
+    err = capsys.readouterr().err
+    assert err.count("thermognn serve: warning: at model step") == 2, err
+    kept = session(6, body_reset=False)
+    assert kept["body_destroyed_steps"] == 3 and kept["body_resets"] == 0 and "served as it is" in kept["body_warning"]
+    assert kept["body_smallest_volume_ratio"] == pytest.approx(-0.8)
+
+
+def test_serve_checks_body_flags(exported_model, tmp_path):
+    """serve.body_reset and serve.body_passivity take true or false only (a one-line ConfigError)."""
+    for key in ("body_reset", "body_passivity"):
+        with pytest.raises(ConfigError, match=f"serve.{key} = 'maybe', expected true or false"):
+            serve(make_cfg(exported_model, tmp_path, f"serve.{key}=maybe"))

@@ -28,6 +28,7 @@ import numpy as np
 from thermognn.core.errors import DataError
 from thermognn.core.state import StateLayout
 
+from .health import BodyHealth
 from .passivity import PassivityController
 from .physics import body_contact, law_step_counts, load_exported
 
@@ -45,17 +46,39 @@ class PressRollout:
     law_counts: np.ndarray | None = None   # [4] a law prior's Newton iterations, law steps, those not
                                            # converged, cut ones (``physics.law_step_counts``); None: none
     passivity: dict | None = None          # a law prior's ``PassivityController.stats()``; None: none
+    health: dict | None = None             # a meshed body's ``BodyHealth`` after each step, each [T]:
+                                           # inverted_cells, smallest_volume_ratio, largest_invariant,
+                                           # cells_beyond_states; None: a model without cells
+    resets: int = 0                        # steps that left inverted cells, the body reset to rest after
+                                           # (``body_reset``, as serve does)
+
+    @property
+    def healthy(self) -> bool:
+        """Finite throughout and never an inverted cell (``thermognn.serve.health``): a body's
+        rollout, not only a finite one (session 94: a destroyed liver stayed finite for 600 steps)."""
+        return self.finite and (self.health is None or not np.any(self.health["inverted_cells"] > 0))
+
+    def first_step(self, key: str, above: float = 0.0) -> int | None:
+        """The first step (1-based) whose ``health[key]`` exceeds ``above``; None: none did, or no health."""
+        if self.health is None:
+            return None
+        hit = np.flatnonzero(np.asarray(self.health[key]) > above)
+        return int(hit[0]) + 1 if len(hit) else None
 
 
 def press_rollout(model: str | Path, steps: int, path: str = "press", period: float = 2.0,
                   depth: float | None = None, tool_radius: float = 0.003, contact_stiffness: float = 300.0,
-                  load_radius: float = 0.006, threads: int = 1, body_passivity: bool = True) -> PressRollout:
+                  load_radius: float = 0.006, threads: int = 1, body_passivity: bool = True,
+                  body_reset: bool = True) -> PressRollout:
     """Step the exported ``model`` ``steps`` times with the tool of the sim device's ``path``
     (its ``period`` [s] and ``depth`` [m] below the surface, None: 20 % of the body's height) read
     at body time k Δt; the contact as ``serve``'s physics process finds it (``tool_radius`` [m],
     ``contact_stiffness`` [N/m], ``load_radius`` [m]), a law-prior body kept passive as serve keeps
-    it (``body_passivity``: ``PassivityController``, its ``stats()`` in ``passivity``). Steps stop
-    at a state that is not finite."""
+    it (``body_passivity``: ``PassivityController``, its ``stats()`` in ``passivity``). A meshed
+    body's health (``thermognn.serve.health.BodyHealth``) is recorded after every step (``health``)
+    and, as serve does (``body_reset``), a step that leaves inverted cells sends the body back to
+    rest (counted in ``resets``; its health is recorded before the reset). Steps stop at a state
+    that is not finite."""
     import torch
 
     from thermognn.devices.sim import SimDevice
@@ -76,6 +99,10 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
     counts0 = law_step_counts(module)
     passive = (PassivityController(module, z, StateLayout.from_json(meta["state_layout"]).slice("v"), q_slice)
                if counts0 is not None and body_passivity else None)
+    health = BodyHealth.of_module(module, X)
+    record: dict[str, list] = {k: [] for k in ("inverted_cells", "smallest_volume_ratio", "largest_invariant",
+                                               "cells_beyond_states")}
+    resets = 0
     f_prev = np.zeros_like(contact.loads)
     with torch.jit.optimized_execution(False):                              # as run_physics steps it
         for k in range(steps):
@@ -96,11 +123,19 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
             tool.append(x.copy())
             force.append(res.force.copy())
             disp.append(z[:, q_slice].numpy().astype(float) - X)
+            if health is not None:
+                h = health(z[:, q_slice].numpy())
+                for key, values in record.items():
+                    values.append(getattr(h, key))
+                if h.destroyed and body_reset:                               # as serve's physics process
+                    z = module.z0.detach().clone()                          # passive: E falls to E_0
+                    resets += 1
     n = len(times)
     counts = None if counts0 is None else law_step_counts(module) - counts0
     return PressRollout(np.asarray(times), np.asarray(tool).reshape(n, 3), np.asarray(force).reshape(n, 3),
                         np.asarray(disp).reshape(n, len(X), 3), np.asarray(ms), finite, counts,
-                        None if passive is None else passive.stats())
+                        None if passive is None else passive.stats(),
+                        None if health is None else {k: np.asarray(v) for k, v in record.items()}, resets)
 
 
 def force_envelope(force: np.ndarray, steps: int) -> np.ndarray:
@@ -127,8 +162,10 @@ def compare(rollout: PressRollout, reference: PressRollout, envelope_steps: int 
     """Errors of ``rollout`` against ``reference`` over the steps both took (whole-rollout ratios,
     as ``evaluate``'s): ``force`` ‖f − f_ref‖ / ‖f_ref‖ over all steps, ``peak_force`` the largest
     |f − f_ref| [N] with the reference's largest |f_ref| [N] beside it, ``displacement``
-    ‖u − u_ref‖ / ‖u_ref‖ over all steps and nodes; ``steps`` compared, and whether ``rollout``
-    stopped early (``finite``). ``force_magnitude`` is ``force``'s ratio for |f| alone: how hard,
+    ‖u − u_ref‖ / ‖u_ref‖ over all steps and nodes; ``steps`` compared, whether ``rollout``
+    stopped early (``finite``), and its body's health (``PressRollout.healthy``: never an inverted
+    cell; ``resets``; ``first_beyond_states``, the first step a cell left its law's training
+    states, None: none did or no law box). ``force_magnitude`` is ``force``'s ratio for |f| alone: how hard,
     not which way (the contact's normal turns from facet to facet of a coarse surface).
 
     The force also split in two (:func:`force_envelope`, a centred average over ``envelope_steps``
@@ -148,6 +185,8 @@ def compare(rollout: PressRollout, reference: PressRollout, envelope_steps: int 
 
     env, env_ref = (force_envelope(r.force[:n], envelope_steps) for r in (rollout, reference))    # [n, 3] N
     return {"steps": n, "finite": bool(rollout.finite and n == len(reference.times)),
+            "healthy": rollout.healthy, "resets": rollout.resets,
+            "first_beyond_states": rollout.first_step("cells_beyond_states"),
             "force": ratio(float(np.linalg.norm(df)), f_ref),
             "peak_force_error_N": float(np.linalg.norm(df, axis=1).max()) if n else float("nan"),
             "peak_force_N": float(np.linalg.norm(reference.force[:n], axis=1).max()) if n else float("nan"),

@@ -25,6 +25,7 @@ from thermognn.core.state import StateLayout, describe_step, describe_time_error
 
 from . import protocol as P
 from .contact import SurfaceContact, normal_compliance, series_stiffness
+from .health import BodyHealth, beyond_states_warning, destroyed_warning
 from .passivity import PassivityController
 from .shm import SharedArrays, VersionedBuffer
 
@@ -175,6 +176,15 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     ``law_steps``, ``law_unconverged_steps``, ``law_cut_steps`` and ``law_iterations`` in the
     summary; the first law step that has not converged puts a one-line warning on stderr and in
     ``law_warning``.
+
+    A body that carries its mesh (a law prior) has its health checked after every step
+    (``thermognn.serve.health.BodyHealth``, ~2 ms on the liver's 1493 cells): the first step that
+    takes a cell beyond its learned law's training states puts a one-line warning on stderr and in
+    ``body_warning``; a step that leaves inverted cells (a destroyed body, though finite) sends the
+    body back to rest where ``body_reset`` (on by default; the first such step warns), else is
+    served as it is with the warning. The summary's ``body_largest_invariant`` (the largest scaled
+    invariant of any cell, 1 at the edge of the law's states), ``body_steps_beyond_states``,
+    ``body_destroyed_steps``, ``body_resets`` and ``body_smallest_volume_ratio`` say how it went.
     """
     import torch
 
@@ -215,6 +225,20 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     if law_base is not None and params.get("body_passivity", True):
         passive = PassivityController(module, z, params["velocity"], q_slice)
     f_prev = np.zeros_like(contact.loads)
+    health = BodyHealth.of_module(module, module.reference_positions.detach().cpu().numpy())   # None: no cells
+    reset = bool(params.get("body_reset", True))
+    body = {"largest": 0.0, "smallest_j": 1.0, "beyond": 0, "destroyed": 0, "resets": 0, "warning": ""}
+
+    def body_stats() -> dict:
+        if health is None:
+            return {}
+        return {"body_largest_invariant": body["largest"], "body_smallest_volume_ratio": body["smallest_j"],
+                "body_steps_beyond_states": body["beyond"], "body_destroyed_steps": body["destroyed"],
+                "body_resets": body["resets"], "body_warning": body["warning"]}
+
+    def body_warn(line: str) -> None:
+        body["warning"] = f"{body['warning']}; {line}" if body["warning"] else line
+        print(f"thermognn serve: warning: {line}", file=sys.stderr, flush=True)
 
     def law_stats() -> dict:
         if law_base is None:
@@ -230,7 +254,7 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
                 "fd_evaluations": n_fd, "fd_rigid": n_rigid,
                 "body_stiffness_mean_N_per_m": k_body_sum / n_k_body if n_k_body else float("nan"),
                 "k_scale_mean": scale_sum / n_scale if n_scale else float("nan"), "warning": warning,
-                "fd_disabled": fd_disabled, "fd_off_checks": fd_off_checks, **law_stats(),
+                "fd_disabled": fd_disabled, "fd_off_checks": fd_off_checks, **law_stats(), **body_stats(),
                 **({} if passive is None else passive.stats())}
 
     while control[P.C_STOP] == 0:
@@ -274,6 +298,22 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
             z = passive.step(z_prev, z, f_prev, contact.loads)
             f_prev = contact.loads.copy()
         step += 1
+        if health is not None:                            # cells still cells, within the law's states
+            h = health(z[:, q_slice].numpy())
+            if np.isfinite(h.largest_invariant):
+                body["largest"] = max(body["largest"], h.largest_invariant)
+            body["smallest_j"] = min(body["smallest_j"], h.smallest_volume_ratio)
+            if h.cells_beyond_states:
+                if not body["beyond"]:
+                    body_warn(beyond_states_warning(h, step, health.guard_margin))
+                body["beyond"] += 1
+            if h.destroyed:
+                if not body["destroyed"]:
+                    body_warn(destroyed_warning(h, step, reset))
+                body["destroyed"] += 1
+                if reset:                                 # passive: the body's energy falls to E_0
+                    z = module.z0.detach().clone()
+                    body["resets"] += 1
         control[P.C_STEPS] = step
         control[P.C_PHYSICS_T] = time.perf_counter()
         if law_base is not None:

@@ -41,6 +41,12 @@ def _serve_params(cfg: DictConfig) -> dict:
         if positive and value <= 0:
             raise ConfigError(f"serve.{key} = {value!r}, expected > 0")
         return float(value)
+
+    def flag(key: str, default: bool) -> bool:
+        value = OmegaConf.select(s, key, default=default)
+        if not isinstance(value, bool):
+            raise ConfigError(f"serve.{key} = {value!r}, expected true or false")
+        return value
     params = {
         "device": str(s.device),
         "duration": num("duration", positive=False),
@@ -59,7 +65,8 @@ def _serve_params(cfg: DictConfig) -> dict:
         "threads": int(num("physics_threads")),
         "body_stiffness_every": int(num("body_stiffness_every", positive=False)),
         "realtime": bool(s.realtime_physics),
-        "body_passivity": bool(s.get("body_passivity", True)),
+        "body_passivity": flag("body_passivity", True),
+        "body_reset": flag("body_reset", True),
         "realtime_priority": bool(s.realtime_priority),
         "startup_timeout": num("startup_timeout"),
     }
@@ -219,7 +226,9 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
     physics_warning ("" or the step-time warning), and for a law-prior model law_steps,
     law_unconverged_steps, law_cut_steps, law_iterations and law_warning ("" or the first
     unconverged step's line), and with ``body_passivity`` passivity_steps, passivity_removed_J,
-    passivity_work_J, passivity_absorbed_J (``thermognn.serve.passivity``), ...).
+    passivity_work_J, passivity_absorbed_J (``thermognn.serve.passivity``), and for a body that
+    carries its mesh body_largest_invariant, body_smallest_volume_ratio, body_steps_beyond_states,
+    body_destroyed_steps, body_resets and body_warning (``thermognn.serve.health``), ...).
     """
     from thermognn import devices
 

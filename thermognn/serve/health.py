@@ -1,0 +1,141 @@
+"""The served body's health: are its cells still cells, and still within the states its law knows?
+
+A served rollout can stay finite long after the body it carries is gone. The shipped liver law,
+pressed by the sim device for 30 s at the data's 20 ms (docs/accuracy.md, session 94), rang up in
+its smallest cells: from the sixth press they left the states its law was fitted on, from the
+seventh the tool felt 6 N instead of 2.4 N, from the ninth cells were inverted and the body
+428 mm out of shape, every number still finite. Finiteness says nothing a user can feel; the
+cells do. For a body that carries its mesh (a law prior: its cells' nodes ``cell_nodes`` [C, 4])
+:class:`BodyHealth` reads, from the carried positions q [N, 3] m alone:
+
+- each cell's volume ratio J = det F (F = ∂q/∂X, constant over a linear tetrahedron): J ≤ 0 is an
+  inverted cell, a body no law can step back from;
+- for a learned law (its ``scales`` s [3], the largest |Ī1 − 3|, |Ī2 − 3|, |J − 1| of its
+  training states), each cell's scaled invariants x = ((Ī1 − 3)/s1, (Ī2 − 3)/s2, (J − 1)/s3) with
+  Ī1 = J^(−2/3) I1, Ī2 = J^(−4/3) I2 of C = FᵀF and J = √det C, as the law reads them: the largest
+  |x| over the cells is 1 at the edge of the law's training states, and beyond it the law
+  extrapolates (its guard starts at twice it);
+- the largest displacement |q − X| [m].
+
+``serve``'s physics process checks every step (``thermognn.serve.physics.run_physics``); the
+sim press (``thermognn.serve.lockstep.press_rollout``) records the figures step by step. Numpy
+only: no torch, no training code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+#: the learned law's guard starts at this multiple of its training states' box (``GUARD_MARGIN``
+#: of ``thermognn.train.learned_law``, read from the exported module where it has it)
+GUARD_MARGIN = 2.0
+
+
+@dataclass(frozen=True)
+class Health:
+    """One carried state's health (module docstring)."""
+
+    inverted_cells: int             # cells with J = det F <= 0
+    smallest_volume_ratio: float    # the smallest J over the cells (1 at rest)
+    largest_invariant: float        # the largest |scaled invariant| of any cell (1: the edge of the
+                                    # law's training states); nan without a learned law's scales
+    cells_beyond_states: int        # cells with some |scaled invariant| > 1 (0 without scales)
+    largest_displacement_m: float   # the largest |q − X| over the nodes [m]
+
+    @property
+    def destroyed(self) -> bool:
+        """True where a cell is inverted (or a figure is not finite): no law steps back from it."""
+        return self.inverted_cells > 0 or not np.isfinite(self.smallest_volume_ratio)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+class BodyHealth:
+    """Health of a meshed body's carried states (module docstring): ``reference_positions`` X
+    [N, 3] m, its linear tetrahedra ``cell_nodes`` [C, 4] (indices into X), a learned law's
+    invariant ``scales`` [3] (None: no law box to check) and where its guard starts
+    (``guard_margin`` times the box)."""
+
+    def __init__(self, reference_positions: np.ndarray, cell_nodes: np.ndarray,
+                 scales: np.ndarray | None = None, guard_margin: float = GUARD_MARGIN) -> None:
+        X = np.asarray(reference_positions, dtype=float)
+        cells = np.asarray(cell_nodes, dtype=np.int64)
+        if X.ndim != 2 or X.shape[1] != 3:
+            raise ValueError(f"BodyHealth: reference_positions has shape {X.shape}, expected [N, 3]")
+        if cells.ndim != 2 or cells.shape[1] != 4 or (cells.size and (cells.min() < 0 or cells.max() >= len(X))):
+            raise ValueError(f"BodyHealth: cell_nodes has shape {cells.shape} (or indices outside the {len(X)} "
+                             f"nodes), expected [C, 4] tetrahedra")
+        self.X, self.cells = X, cells
+        edges = X[cells[:, 1:]] - X[cells[:, :1]]                          # [C, 3, 3] rows: edges
+        self.inverse_reference = np.linalg.inv(np.swapaxes(edges, 1, 2))  # [C, 3, 3] (∂X/∂ξ)⁻¹
+        self.scales = None if scales is None else np.asarray(scales, dtype=float).reshape(3)
+        self.guard_margin = float(guard_margin)
+
+    @classmethod
+    def of_module(cls, module, reference_positions: np.ndarray) -> "BodyHealth | None":
+        """The health check of an exported model ``module`` (TorchScript) that carries its mesh (a
+        law prior's ``core.prior.cell_nodes``; a learned law (``learned``) adds its ``scales``); None for a model
+        without cells (a graph network alone)."""
+        prior = getattr(getattr(module, "core", None), "prior", None)
+        cells = getattr(prior, "cell_nodes", None)
+        if cells is None:
+            return None
+        law = getattr(prior, "learned_law", None) if bool(getattr(prior, "learned", False)) else None
+        scales = getattr(law, "scales", None)                               # the scene's own law: no box
+        margin = getattr(law, "guard_margin", GUARD_MARGIN)
+        return cls(reference_positions, cells.detach().cpu().numpy(),
+                   None if scales is None else scales.detach().cpu().numpy(), float(margin))
+
+    def deformation_gradients(self, q: np.ndarray) -> np.ndarray:
+        """F [..., C, 3, 3] of carried positions q [..., N, 3] m (one per linear tetrahedron)."""
+        q = np.asarray(q, dtype=float)
+        edges = q[..., self.cells[:, 1:], :] - q[..., self.cells[:, :1], :]   # [..., C, 3, 3] rows: edges
+        return np.swapaxes(edges, -1, -2) @ self.inverse_reference          # [..., C, 3, 3]
+
+    def scaled_invariants(self, F: np.ndarray) -> np.ndarray:
+        """x [..., C, 3] of deformation gradients F [..., C, 3, 3] (module docstring); needs ``scales``."""
+        C = np.swapaxes(F, -1, -2) @ F
+        J = np.sqrt(np.abs(np.linalg.det(C)))
+        I1 = np.trace(C, axis1=-2, axis2=-1)
+        I2 = 0.5 * (I1 * I1 - np.sum(C * C, axis=(-2, -1)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            a = J ** (-2.0 / 3.0)
+            return np.stack([(a * I1 - 3.0) / self.scales[0], (a * a * I2 - 3.0) / self.scales[1],
+                             (J - 1.0) / self.scales[2]], axis=-1)
+
+    def __call__(self, q: np.ndarray) -> Health:
+        """The health of carried positions q [N, 3] m."""
+        q = np.asarray(q, dtype=float)
+        F = self.deformation_gradients(q)                                   # [C, 3, 3]
+        J = np.linalg.det(F)                                                # [C]
+        largest, beyond = float("nan"), 0
+        if self.scales is not None:
+            x = np.abs(self.scaled_invariants(F)).max(axis=-1)              # [C]
+            largest = float(x.max()) if np.isfinite(x).all() else float("inf")
+            beyond = int(np.count_nonzero(~(x <= 1.0)))
+        return Health(int(np.count_nonzero(~(J > 0.0))), float(J.min()), largest, beyond,
+                      float(np.linalg.norm(q - self.X, axis=1).max()))
+
+
+def beyond_states_warning(health: Health, step: int, margin: float) -> str:
+    """One line for the first step where cells leave the law's training states."""
+    return (f"at model step {step} {health.cells_beyond_states} cell(s) of the body left the states its "
+            f"law was fitted on (largest scaled invariant {health.largest_invariant:.2f}, 1 at their edge; "
+            f"the law's guard starts at {margin:g}): its force there is extrapolated, and a body ringing "
+            f"up this way collapsed within a few presses (docs/accuracy.md, session 94); for long sessions "
+            f"export with rollout.prior_hht=0.05")
+
+
+def destroyed_warning(health: Health, step: int, reset: bool) -> str:
+    """One line for a step that left inverted cells."""
+    then = ("the body was reset to rest (serve.body_reset)" if reset
+            else "it is served as it is (serve.body_reset=false): its force is not a body's")
+    return (f"at model step {step} {health.inverted_cells} cell(s) of the body are inverted (smallest volume "
+            f"ratio {health.smallest_volume_ratio:.3g}, largest displacement "
+            f"{health.largest_displacement_m * 1e3:.1f} mm): {then}")
+
+
+__all__ = ["BodyHealth", "GUARD_MARGIN", "Health", "beyond_states_warning", "destroyed_warning"]
