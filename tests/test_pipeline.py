@@ -630,6 +630,7 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     assert quiet["law_unconverged_steps"] == 0 and quiet["law_warning"] == "" and quiet["law_steps"] == 24, quiet
     assert quiet["body_destroyed_steps"] == quiet["body_resets"] == quiet["body_steps_beyond_states"] == 0, quiet
     assert quiet["body_warning"] == "" and 0.5 < quiet["body_smallest_volume_ratio"] < 1.0, quiet
+    assert np.isnan(quiet["body_largest_invariant"]), quiet                     # the scene's law: no box
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={out}", f"paths.dataset={tiny_block}",
                           f"paths.exported={out / 'kept_cut_linear.pt'}", "train.threads=1", *kept,
                           "rollout.prior_step_cuts=4", "rollout.prior_cut_loads=linear", "rollout.prior_line_search=6",

@@ -183,7 +183,7 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     ``body_warning``; a step that leaves inverted cells (a destroyed body, though finite) sends the
     body back to rest where ``body_reset`` (on by default; the first such step warns), else is
     served as it is with the warning. The summary's ``body_largest_invariant`` (the largest scaled
-    invariant of any cell, 1 at the edge of the law's states), ``body_steps_beyond_states``,
+    invariant of any cell, 1 at the edge of the law's states; nan for the scene's own law), ``body_steps_beyond_states``,
     ``body_destroyed_steps``, ``body_resets`` and ``body_smallest_volume_ratio`` say how it went.
     """
     import torch
@@ -232,7 +232,8 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     def body_stats() -> dict:
         if health is None:
             return {}
-        return {"body_largest_invariant": body["largest"], "body_smallest_volume_ratio": body["smallest_j"],
+        return {"body_largest_invariant": body["largest"] if health.scales is not None else float("nan"),
+                "body_smallest_volume_ratio": body["smallest_j"],
                 "body_steps_beyond_states": body["beyond"], "body_destroyed_steps": body["destroyed"],
                 "body_resets": body["resets"], "body_warning": body["warning"]}
 
