@@ -745,7 +745,7 @@ def test_physics_warns_as_cells_leave_the_law_states_and_resets_a_destroyed_body
     assert summary["body_largest_invariant"] == pytest.approx((lam ** (-4 / 3) * (2 * lam ** 2 + 1) - 3) / 0.5)
     warning = summary["body_warning"]
     assert "at model step 1 1 cell(s) of the body left the states its law was fitted on" in warning
-    assert "rollout.prior_hht=0.05" in warning and "at model step 4 1 cell(s) of the body are inverted" in warning
+    assert "rollout.prior_hht=0.02" in warning and "at model step 4 1 cell(s) of the body are inverted" in warning
     assert "reset to rest (serve.body_reset)" in warning
     err = capsys.readouterr().err
     assert err.count("thermognn serve: warning: at model step") == 2, err

@@ -126,7 +126,7 @@ def beyond_states_warning(health: Health, step: int, margin: float) -> str:
             f"law was fitted on (largest scaled invariant {health.largest_invariant:.2f}, 1 at their edge; "
             f"the law's guard starts at {margin:g}): its force there is extrapolated, and a body ringing "
             f"up this way collapsed within a few presses (docs/accuracy.md, session 94); for long sessions "
-            f"export with rollout.prior_hht=0.05")
+            f"export with rollout.prior_hht=0.02")
 
 
 def destroyed_warning(health: Health, step: int, reset: bool) -> str:
