@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
               f"{row['step_ms_median']:7.1f} ms (p99 {row['step_ms_p99']:.1f})  {row['steps']} steps"
               + (f"  law steps not converged {row['law_unconverged']}, cut {row['law_cut']}" if "law_steps" in row else "")
               + ("" if row["finite"] else "  NOT FINITE")
-              + ("" if row["healthy"] else f"  CELLS INVERTED (body reset {row['resets']}x)")
+              + ("" if row["healthy"] else f"  CELLS CRUSHED OR INVERTED (body reset {row['resets']}x)")
               + ("" if row["first_beyond_states"] is None
                  else f"  cells beyond the law's states from step {row['first_beyond_states']}"))
         print(f"    magnitude {100 * row['force_magnitude']:.3g} %, envelope {100 * row['force_envelope']:.3g} %, its own jitter {100 * row['force_jitter']:.3g} % "

@@ -667,7 +667,8 @@ def test_body_health_reads_volume_ratios_law_invariants_and_inverted_cells():
     """``BodyHealth`` on one unit tetrahedron: at rest every figure is the rest's; a uniaxial
     stretch λ gives J = λ and the learned law's scaled invariants Ī1 = λ^(−2/3) (λ² + 2),
     Ī2 = λ^(−4/3) (2λ² + 1), J over its scales; the same tetrahedron turned inside out (its apex
-    through its base) is destroyed; a rigid rotation is not deformed at all."""
+    through its base) is destroyed, and so is one crushed to 1 % of its volume; a rigid rotation is
+    not deformed at all."""
     from thermognn.serve.health import BodyHealth
 
     X = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])   # [4, 3] m
@@ -688,8 +689,12 @@ def test_body_health_reads_volume_ratios_law_invariants_and_inverted_cells():
     c, t = np.cos(0.7), np.sin(0.7)
     turned = health(X @ np.array([[c, -t, 0.0], [t, c, 0.0], [0.0, 0.0, 1.0]]).T)
     assert turned.largest_invariant == pytest.approx(0.0, abs=1e-12) and turned.smallest_volume_ratio == pytest.approx(1.0)
+    crushed = health(X * [1.0, 1.0, 0.005])                                   # 0.5 % of its volume
+    assert crushed.crushed_cells == 1 and crushed.inverted_cells == 0 and crushed.destroyed
+    assert not health(X * [1.0, 1.0, 0.02]).destroyed
     inside_out = health(X * [1.0, 1.0, -1.0])
-    assert inside_out.inverted_cells == 1 and inside_out.smallest_volume_ratio == pytest.approx(-1.0)
+    assert inside_out.inverted_cells == inside_out.crushed_cells == 1
+    assert inside_out.smallest_volume_ratio == pytest.approx(-1.0)
     assert inside_out.destroyed and BodyHealth(X, [[0, 1, 2, 3]])(X).largest_invariant != 0.0   # nan: no scales
     with pytest.raises(ValueError, match=r"cell_nodes has shape \(1, 3\)"):
         BodyHealth(X, [[0, 1, 2]])
@@ -745,7 +750,8 @@ def test_physics_warns_as_cells_leave_the_law_states_and_resets_a_destroyed_body
     assert summary["body_largest_invariant"] == pytest.approx((lam ** (-4 / 3) * (2 * lam ** 2 + 1) - 3) / 0.5)
     warning = summary["body_warning"]
     assert "at model step 1 1 cell(s) of the body left the states its law was fitted on" in warning
-    assert "rollout.prior_hht=0.02" in warning and "at model step 4 1 cell(s) of the body are inverted" in warning
+    assert "rollout.prior_hht=0.02" in warning and "at model step 4 1 cell(s) of the body are crushed or inverted (1 " \
+        "inverted" in warning
     assert "reset to rest (serve.body_reset)" in warning
     err = capsys.readouterr().err
     assert err.count("thermognn serve: warning: at model step") == 2, err

@@ -9,7 +9,9 @@ cells do. For a body that carries its mesh (a law prior: its cells' nodes ``cell
 :class:`BodyHealth` reads, from the carried positions q [N, 3] m alone:
 
 - each cell's volume ratio J = det F (F = ∂q/∂X, constant over a linear tetrahedron): J ≤ 0 is an
-  inverted cell, a body no law can step back from;
+  inverted cell, J ≤ ``CRUSHED`` (1 %) a crushed one, which no solid's law holds either; a body
+  with either is destroyed (the liver's law's cells went 0.47 → 0.019 → 8e-5 in eight steps
+  before one inverted, session 95);
 - for a learned law (its ``scales`` s [3], the largest |Ī1 − 3|, |Ī2 − 3|, |J − 1| of its
   training states), each cell's scaled invariants x = ((Ī1 − 3)/s1, (Ī2 − 3)/s2, (J − 1)/s3) with
   Ī1 = J^(−2/3) I1, Ī2 = J^(−4/3) I2 of C = FᵀF and J = √det C, as the law reads them: the largest
@@ -32,12 +34,17 @@ import numpy as np
 #: of ``thermognn.train.learned_law``, read from the exported module where it has it)
 GUARD_MARGIN = 2.0
 
+#: a cell whose volume ratio J = det F is at most this is crushed (the body destroyed); the data's
+#: cells keep J within 0.66–1.34 (the liver's law's box), a foam's within a few tens of per cent
+CRUSHED = 0.01
+
 
 @dataclass(frozen=True)
 class Health:
     """One carried state's health (module docstring)."""
 
     inverted_cells: int             # cells with J = det F <= 0
+    crushed_cells: int              # cells with J <= CRUSHED (the inverted ones too)
     smallest_volume_ratio: float    # the smallest J over the cells (1 at rest)
     largest_invariant: float        # the largest |scaled invariant| of any cell (1: the edge of the
                                     # law's training states); nan without a learned law's scales
@@ -46,8 +53,8 @@ class Health:
 
     @property
     def destroyed(self) -> bool:
-        """True where a cell is inverted (or a figure is not finite): no law steps back from it."""
-        return self.inverted_cells > 0 or not np.isfinite(self.smallest_volume_ratio)
+        """True where a cell is crushed or inverted (or a figure is not finite): no law steps back from it."""
+        return self.crushed_cells > 0 or not np.isfinite(self.smallest_volume_ratio)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -116,7 +123,8 @@ class BodyHealth:
             x = np.abs(self.scaled_invariants(F)).max(axis=-1)              # [C]
             largest = float(x.max()) if np.isfinite(x).all() else float("inf")
             beyond = int(np.count_nonzero(~(x <= 1.0)))
-        return Health(int(np.count_nonzero(~(J > 0.0))), float(J.min()), largest, beyond,
+        return Health(int(np.count_nonzero(~(J > 0.0))), int(np.count_nonzero(~(J > CRUSHED))), float(J.min()),
+                      largest, beyond,
                       float(np.linalg.norm(q - self.X, axis=1).max()))
 
 
@@ -130,12 +138,12 @@ def beyond_states_warning(health: Health, step: int, margin: float) -> str:
 
 
 def destroyed_warning(health: Health, step: int, reset: bool) -> str:
-    """One line for a step that left inverted cells."""
+    """One line for a step that left crushed or inverted cells."""
     then = ("the body was reset to rest (serve.body_reset)" if reset
             else "it is served as it is (serve.body_reset=false): its force is not a body's")
-    return (f"at model step {step} {health.inverted_cells} cell(s) of the body are inverted (smallest volume "
-            f"ratio {health.smallest_volume_ratio:.3g}, largest displacement "
+    return (f"at model step {step} {health.crushed_cells} cell(s) of the body are crushed or inverted ("
+            f"{health.inverted_cells} inverted; smallest volume ratio {health.smallest_volume_ratio:.3g}, largest displacement "
             f"{health.largest_displacement_m * 1e3:.1f} mm): {then}")
 
 
-__all__ = ["BodyHealth", "GUARD_MARGIN", "Health", "beyond_states_warning", "destroyed_warning"]
+__all__ = ["BodyHealth", "CRUSHED", "GUARD_MARGIN", "Health", "beyond_states_warning", "destroyed_warning"]

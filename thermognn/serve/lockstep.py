@@ -47,16 +47,16 @@ class PressRollout:
                                            # converged, cut ones (``physics.law_step_counts``); None: none
     passivity: dict | None = None          # a law prior's ``PassivityController.stats()``; None: none
     health: dict | None = None             # a meshed body's ``BodyHealth`` after each step, each [T]:
-                                           # inverted_cells, smallest_volume_ratio, largest_invariant,
+                                           # inverted_cells, crushed_cells, smallest_volume_ratio, largest_invariant,
                                            # cells_beyond_states; None: a model without cells
-    resets: int = 0                        # steps that left inverted cells, the body reset to rest after
+    resets: int = 0                        # steps that left crushed cells, the body reset to rest after
                                            # (``body_reset``, as serve does)
 
     @property
     def healthy(self) -> bool:
-        """Finite throughout and never an inverted cell (``thermognn.serve.health``): a body's
-        rollout, not only a finite one (session 94: a destroyed liver stayed finite for 600 steps)."""
-        return self.finite and (self.health is None or not np.any(self.health["inverted_cells"] > 0))
+        """Finite throughout and never a crushed or inverted cell (``thermognn.serve.health``): a
+        body's rollout, not only a finite one (session 94: a destroyed liver stayed finite for 600 steps)."""
+        return self.finite and (self.health is None or not np.any(self.health["crushed_cells"] > 0))
 
     def first_step(self, key: str, above: float = 0.0) -> int | None:
         """The first step (1-based) whose ``health[key]`` exceeds ``above``; None: none did, or no health."""
@@ -76,7 +76,7 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
     ``contact_stiffness`` [N/m], ``load_radius`` [m]), a law-prior body kept passive as serve keeps
     it (``body_passivity``: ``PassivityController``, its ``stats()`` in ``passivity``). A meshed
     body's health (``thermognn.serve.health.BodyHealth``) is recorded after every step (``health``)
-    and, as serve does (``body_reset``), a step that leaves inverted cells sends the body back to
+    and, as serve does (``body_reset``), a step that leaves crushed or inverted cells sends the body back to
     rest (counted in ``resets``; its health is recorded before the reset). Steps stop at a state
     that is not finite."""
     import torch
@@ -100,7 +100,7 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
     passive = (PassivityController(module, z, StateLayout.from_json(meta["state_layout"]).slice("v"), q_slice)
                if counts0 is not None and body_passivity else None)
     health = BodyHealth.of_module(module, X)
-    record: dict[str, list] = {k: [] for k in ("inverted_cells", "smallest_volume_ratio", "largest_invariant",
+    record: dict[str, list] = {k: [] for k in ("inverted_cells", "crushed_cells", "smallest_volume_ratio", "largest_invariant",
                                                "cells_beyond_states")}
     resets = 0
     f_prev = np.zeros_like(contact.loads)
@@ -163,8 +163,8 @@ def compare(rollout: PressRollout, reference: PressRollout, envelope_steps: int 
     as ``evaluate``'s): ``force`` ‖f − f_ref‖ / ‖f_ref‖ over all steps, ``peak_force`` the largest
     |f − f_ref| [N] with the reference's largest |f_ref| [N] beside it, ``displacement``
     ‖u − u_ref‖ / ‖u_ref‖ over all steps and nodes; ``steps`` compared, whether ``rollout``
-    stopped early (``finite``), and its body's health (``PressRollout.healthy``: never an inverted
-    cell; ``resets``; ``first_beyond_states``, the first step a cell left its law's training
+    stopped early (``finite``), and its body's health (``PressRollout.healthy``: never a crushed or
+    inverted cell; ``resets``; ``first_beyond_states``, the first step a cell left its law's training
     states, None: none did or no law box). ``force_magnitude`` is ``force``'s ratio for |f| alone: how hard,
     not which way (the contact's normal turns from facet to facet of a coarse surface).
 
