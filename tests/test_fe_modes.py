@@ -1837,6 +1837,7 @@ def test_law_prior_line_search_converges_a_step_its_undamped_newton_does_not():
         prior.newton_taken.zero_()
         end = prior.step(uf, fast, a_fast, searched.gather(f[s0 + 1:s0 + 2]), G0[:1], G0[:1], h)[0]
         assert bool(torch.isfinite(end).all()) and (prior.newton_taken.tolist()[2] == 0) == converges
+        assert float(torch.linalg.det(searched.cells(end)).amin()) > 0.0             # no cell inverted
 
     cfg = {"prior": "linear", "prior_law": True, "prior_newton": 1, "prior_newton_max": 8}
     settings = prior_settings(OmegaConf.create({**cfg, "prior_line_search": 6}))

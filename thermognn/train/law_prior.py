@@ -1093,7 +1093,12 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         the predictor it was cut twice; session 90)."""
         w_iso, w_vol = self.iso_weight + self.c, 1.0 + self.c
         taken = 1
-        base = u0 + self.dt * v0                             # where the first update started: the predictor
+        # where the first update started: the FE's predictor u0 + Δt v0, shortened by ``admissible``
+        # where it crushes a cell (as ``step_origin`` shortened it; whole, it is u0 + Δt v0 to the
+        # bit). Searched from the whole predictor instead, an update from a crushing one ran back
+        # through inverted cells, which ``admissible`` lets pass from an inverted base: the liver's
+        # law under 17 s of the sim press inverted 519 cells in one step (docs/accuracy.md, session 95)
+        base = self.admissible(u0, -self.dt * v0)
         r_base, _ = self.step_residual(base, v0, a0, predictor, extra, fixed)
         # where the predictor is far worse than the step's start (a node whose Δt v0 crushes a cell,
         # its residual 1e2-1e3 N where the start's is the inertia's 0.1 N), the first update is
