@@ -1863,6 +1863,47 @@ def test_law_prior_line_search_converges_a_step_its_undamped_newton_does_not():
         with_law_rollout(trained, {"prior_line_search": 20})
 
 
+
+def test_law_prior_line_search_starts_where_the_crushing_predictor_was_shortened():
+    """A step whose FE predictor u0 + Δt v0 inverts a cell (one node moved through its opposite
+    face) starts from that predictor shortened (``step_origin``, ``admissible``); the line search
+    searches the first update from there, so no trial passes through inverted cells. Searched from
+    the predictor as it stands (before session 95), a first iterate far worse than it (every other
+    node kicked outwards, so the search halves back towards the base) came out inverted after 40
+    iterations; from the shortened one the step converges with every cell sound. (The rest start,
+    which takes the first update from u0 where the predictor's residual dwarfs u0's, is switched
+    off here so that the search is what is tested.)"""
+    torch = pytest.importorskip("torch")
+
+    graph, _, build = _ogden_bend_priors(steps=8)
+    _, _, dt, X, linear, _, _, z, f = graph
+    prior = build(iterations=1, max_iterations=40, newton_rtol=1e-10, line_search=6)
+    prior.rest_start_ratio = 0.0
+    s0 = 3
+    u = z[..., 0:3] - torch.as_tensor(X)
+    u0 = prior.gather(u[s0:s0 + 1])
+    h = prior.internal_variables(u0)
+    P = torch.as_tensor(X) + u[s0]                                         # [N, 3] m: the start's positions
+    a, b, c, d = (int(i) for i in prior.cell_nodes[8])
+    normal = torch.linalg.cross(P[c] - P[b], P[d] - P[b])
+    normal = normal / normal.norm()
+    velocity = torch.zeros(1, len(X), 3, dtype=torch.float64)
+    velocity[0, a] = -2.0 * torch.dot(P[a] - P[b], normal) * normal / dt   # Δt v0: node a mirrored through bcd
+    v0 = prior.gather(velocity)
+    G0 = torch.zeros(1, len(v0[0]), dtype=torch.float64)
+    a0 = prior.initial_acceleration(u0, v0, prior.gather(f[s0:s0 + 1]), G0)
+    cells_J = lambda w: float(torch.linalg.det(prior.cells(w)).amin())     # noqa: E731
+    predictor, _, extra, damping0, shortened = prior.step_origin(u0, v0, a0, h)
+    assert cells_J(u0 + dt * v0) < 0.0 < cells_J(shortened)
+    kick = torch.zeros(1, len(X), 3, dtype=torch.float64)
+    free = prior.free_nodes()
+    kick[0, free] = 2.0 * (P[free] - P.mean(0))
+    kick[0, a] = 0.0
+    worse = shortened + prior.gather(kick)                                 # a first iterate far worse
+    fixed = prior.gather(f[s0 + 1:s0 + 2]) + prior.body_force + damping0
+    end, taken, unconverged = prior.searched_iterate(worse, u0, v0, a0, predictor, extra, fixed)
+    assert cells_J(end) > 0.5 and not bool(unconverged.any()) and taken < 40, (cells_J(end), taken)
+
 def test_law_prior_loads_a_cut_steps_sub_steps_between_the_step_s_loads():
     """``model.prior_cut_loads = linear`` (``HyperelasticNewmarkPrior.step(..., f0)``) on the FE
     solid's own data (the damped 1 N bend, viscous Ogden, its load ramping over its 8 steps): a cut
