@@ -76,9 +76,9 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
     ``contact_stiffness`` [N/m], ``load_radius`` [m]), a law-prior body kept passive as serve keeps
     it (``body_passivity``: ``PassivityController``, its ``stats()`` in ``passivity``). A meshed
     body's health (``thermognn.serve.health.BodyHealth``) is recorded after every step (``health``)
-    and, as serve does (``body_reset``), a step that leaves crushed or inverted cells sends the body back to
-    rest (counted in ``resets``; its health is recorded before the reset). Steps stop at a state
-    that is not finite."""
+    and, as serve does (``body_reset``), a step that leaves crushed or inverted cells sends the body
+    back to rest (counted in ``resets``; its health is recorded before the reset). Steps stop at a
+    state that is not finite."""
     import torch
 
     from thermognn.devices.sim import SimDevice
@@ -100,8 +100,8 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
     passive = (PassivityController(module, z, StateLayout.from_json(meta["state_layout"]).slice("v"), q_slice)
                if counts0 is not None and body_passivity else None)
     health = BodyHealth.of_module(module, X)
-    record: dict[str, list] = {k: [] for k in ("inverted_cells", "crushed_cells", "smallest_volume_ratio", "largest_invariant",
-                                               "cells_beyond_states")}
+    record: dict[str, list] = {k: [] for k in ("inverted_cells", "crushed_cells", "smallest_volume_ratio",
+                                               "largest_invariant", "cells_beyond_states")}
     resets = 0
     f_prev = np.zeros_like(contact.loads)
     with torch.jit.optimized_execution(False):                              # as run_physics steps it
@@ -164,9 +164,10 @@ def compare(rollout: PressRollout, reference: PressRollout, envelope_steps: int 
     |f − f_ref| [N] with the reference's largest |f_ref| [N] beside it, ``displacement``
     ‖u − u_ref‖ / ‖u_ref‖ over all steps and nodes; ``steps`` compared, whether ``rollout``
     stopped early (``finite``), and its body's health (``PressRollout.healthy``: never a crushed or
-    inverted cell; ``resets``; ``first_beyond_states``, the first step a cell left its law's training
-    states, None: none did or no law box). ``force_magnitude`` is ``force``'s ratio for |f| alone: how hard,
-    not which way (the contact's normal turns from facet to facet of a coarse surface).
+    inverted cell; ``resets``; ``first_beyond_states``, the first step a cell left its law's
+    training states, None: none did or no law box). ``force_magnitude`` is ``force``'s ratio for
+    |f| alone: how hard, not which way (the contact's normal turns from facet to facet of a coarse
+    surface).
 
     The force also split in two (:func:`force_envelope`, a centred average over ``envelope_steps``
     steps: 5 at 20 ms spans 80 ms): ``force_envelope``, the envelopes' ratio as ``force``, what the

@@ -180,12 +180,12 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     A body that carries its mesh (a law prior) has its health checked after every step
     (``thermognn.serve.health.BodyHealth``, ~2 ms on the liver's 1493 cells): the first step that
     takes a cell beyond its learned law's training states puts a one-line warning on stderr and in
-    ``body_warning``; a step that leaves crushed or inverted cells (J = det F at most 1 %: a destroyed
-    body, though finite) sends the
-    body back to rest where ``body_reset`` (on by default; the first such step warns), else is
-    served as it is with the warning. The summary's ``body_largest_invariant`` (the largest scaled
-    invariant of any cell, 1 at the edge of the law's states; nan for the scene's own law), ``body_steps_beyond_states``,
-    ``body_destroyed_steps``, ``body_resets`` and ``body_smallest_volume_ratio`` say how it went.
+    ``body_warning``; a step that leaves crushed or inverted cells (J = det F at most 1 %: a
+    destroyed body, though finite) sends the body back to rest where ``body_reset`` (on by default;
+    the first such step warns), else is served as it is with the warning. The summary's
+    ``body_largest_invariant`` (the largest scaled invariant of any cell, 1 at the edge of the law's
+    states; nan for the scene's own law), ``body_steps_beyond_states``, ``body_destroyed_steps``,
+    ``body_resets`` and ``body_smallest_volume_ratio`` say how it went.
     """
     import torch
 
