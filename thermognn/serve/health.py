@@ -26,9 +26,11 @@ only: no torch, no training code.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
+
+from thermognn.core.kinematics import deformation_gradients, shape_gradients
 
 #: the learned law's guard starts at this multiple of its training states' box (``GUARD_MARGIN``
 #: of ``thermognn.train.learned_law``, read from the exported module where it has it)
@@ -56,9 +58,6 @@ class Health:
         """True where a cell is crushed or inverted (or a figure is not finite): no law steps back from it."""
         return self.crushed_cells > 0 or not np.isfinite(self.smallest_volume_ratio)
 
-    def as_dict(self) -> dict:
-        return asdict(self)
-
 
 class BodyHealth:
     """Health of a meshed body's carried states (module docstring): ``reference_positions`` X
@@ -76,8 +75,7 @@ class BodyHealth:
             raise ValueError(f"BodyHealth: cell_nodes has shape {cells.shape} (or indices outside the {len(X)} "
                              f"nodes), expected [C, 4] tetrahedra")
         self.X, self.cells = X, cells
-        edges = X[cells[:, 1:]] - X[cells[:, :1]]                          # [C, 3, 3] rows: edges
-        self.inverse_reference = np.linalg.inv(np.swapaxes(edges, 1, 2))  # [C, 3, 3] (∂X/∂ξ)⁻¹
+        self.grad = shape_gradients(X, cells)[0]                            # [C, 4, 3] 1/m: Grad φ_a
         self.scales = None if scales is None else np.asarray(scales, dtype=float).reshape(3)
         self.guard_margin = float(guard_margin)
 
@@ -98,9 +96,7 @@ class BodyHealth:
 
     def deformation_gradients(self, q: np.ndarray) -> np.ndarray:
         """F [..., C, 3, 3] of carried positions q [..., N, 3] m (one per linear tetrahedron)."""
-        q = np.asarray(q, dtype=float)
-        edges = q[..., self.cells[:, 1:], :] - q[..., self.cells[:, :1], :]   # [..., C, 3, 3] rows: edges
-        return np.swapaxes(edges, -1, -2) @ self.inverse_reference          # [..., C, 3, 3]
+        return deformation_gradients(q, self.cells, self.grad)
 
     def scaled_invariants(self, F: np.ndarray) -> np.ndarray:
         """x [..., C, 3] of deformation gradients F [..., C, 3, 3] (module docstring); needs ``scales``."""

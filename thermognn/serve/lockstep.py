@@ -58,11 +58,12 @@ class PressRollout:
         body's rollout, not only a finite one (session 94: a destroyed liver stayed finite for 600 steps)."""
         return self.finite and (self.health is None or not np.any(self.health["crushed_cells"] > 0))
 
-    def first_step(self, key: str, above: float = 0.0) -> int | None:
-        """The first step (1-based) whose ``health[key]`` exceeds ``above``; None: none did, or no health."""
+    def first_step(self, key: str) -> int | None:
+        """The first step (1-based) whose ``health[key]`` (a count of cells) is not zero; None: none
+        was, or no health."""
         if self.health is None:
             return None
-        hit = np.flatnonzero(np.asarray(self.health[key]) > above)
+        hit = np.flatnonzero(np.asarray(self.health[key]) > 0)
         return int(hit[0]) + 1 if len(hit) else None
 
 
