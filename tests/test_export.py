@@ -168,3 +168,49 @@ def test_export_with_another_time_step(exported, tmp_path):
     free = m.node_type != 1                     # exact kinematics: q_1 = q_0 + dt (v_0 + v_1) / 2
     assert torch.allclose(a[free, :3], m.z0[free, :3] + 0.5 * m.dt * (m.z0[free, 3:6] + a[free, 3:6]),
                           rtol=0, atol=1e-6 if m.z0.dtype == torch.float32 else 1e-12)
+
+
+def test_a_scene_declares_the_time_rule_its_law_is_served_with():
+    """``scene.time.served_hht``: export steps a law model of a scene that declares it with HHT's
+    dissipation unless ``rollout.prior_hht`` or ``rollout.prior_rule`` says otherwise (the liver
+    declares 0.02: at its data's undamped rule the served body rang up and collapsed, session 95).
+    The scene is the checkpoint's: read from the command line's scene where it names it, else from
+    conf/scene. A graph network, a law already damped or given another rule, and a network fitted
+    to its Newton budget's misses keep their rule; a bad value is one line naming the key."""
+    from omegaconf import OmegaConf
+
+    from thermognn.core.errors import ConfigError
+    from thermognn.export.exporter import served_rollout
+
+    law = {"scene": "liver", "prior": {"law": 1, "law_max": 16, "law_rtol": 1e-7}, "config": ""}
+    cfg = load_config([])                                     # scene=block: the liver's read from conf/scene
+    served, note = served_rollout(cfg, law)
+    assert OmegaConf.select(served, "rollout.prior_hht") == 0.02 and cfg.rollout.prior_hht is None
+    assert "scene 'liver' serves its law with HHT's dissipation α = -0.02 (scene.time.served_hht" in note
+    for kept in (load_config(["rollout.prior_hht=0"]), load_config(["rollout.prior_rule=energy"]),
+                 load_config(["scene=liver", "scene.time.served_hht=null"])):
+        assert served_rollout(kept, law) == (kept, "")
+    for other in ({**law, "prior": None}, {**law, "prior": {**law["prior"], "law_hht": 0.05}},
+                  {**law, "prior": {**law["prior"], "law_rule": "energy"}}, {**law, "scene": "shell"},
+                  {**law, "scene": "my_own_scene"}):
+        assert served_rollout(cfg, other) == (cfg, "")
+    budget = {**law, "config": "train:\n  fit_target: budget\n"}
+    same, note = served_rollout(cfg, budget)
+    assert same is cfg and "train.fit_target=budget" in note and "exported at its data's rule" in note
+    block = load_config(["scene.time.served_hht=0.05"])        # the command line's scene, where it is the model's
+    assert OmegaConf.select(served_rollout(block, {**law, "scene": "block"})[0], "rollout.prior_hht") == 0.05
+    # data whose rule HHT does not modify (the block's stiffness-proportional damping) keep it
+    from types import SimpleNamespace
+
+    from thermognn.core.state import describe_step
+
+    damped = SimpleNamespace(linear=SimpleNamespace(rayleigh=(0.0, 0.002), beta=0.25, gamma=0.5))
+    same, note = served_rollout(cfg, law, damped)
+    assert same is cfg and "its data's rule (β 0.25, γ 0.5, βK 0.002 s) is not the undamped" in note
+    plain = SimpleNamespace(linear=SimpleNamespace(rayleigh=(0.0, 0.0), beta=0.25, gamma=0.5))
+    assert OmegaConf.select(served_rollout(cfg, law, plain)[0], "rollout.prior_hht") == 0.02
+    # the exported file's step says so (its metadata, read by serve)
+    assert describe_step({"prior": "linear", "law": 1, "law_hht": 0.02}).startswith("HHT's step (α = -0.02, ")
+    for bad in ("2", "true", "abc"):
+        with pytest.raises(ConfigError, match=r"^scene.time.served_hht = .* \(scene 'block'\): expected null or a number 0 to 1/3"):
+            served_rollout(load_config([f"scene.time.served_hht={bad}"]), {**law, "scene": "block"})

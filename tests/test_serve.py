@@ -758,6 +758,13 @@ def test_physics_warns_as_cells_leave_the_law_states_and_resets_a_destroyed_body
     kept = session(6, body_reset=False)
     assert kept["body_destroyed_steps"] == 3 and kept["body_resets"] == 0 and "served as it is" in kept["body_warning"]
     assert kept["body_smallest_volume_ratio"] == pytest.approx(-0.8)
+    # a law already stepped with HHT's dissipation (its ``hht``, scene.time.served_hht) is told to damp more
+    from thermognn.serve.health import BodyHealth, beyond_states_warning
+
+    health = BodyHealth(X.numpy(), [[0, 1, 2, 3]], [0.5, 0.5, 0.2], hht=0.02)
+    damped = beyond_states_warning(health(X.numpy() * [1.0, 1.0, 0.7]), 3, health.guard_margin, health.hht)
+    assert "at model step 3 1 cell(s)" in damped and "already damps with HHT's α = -0.02" in damped
+    assert "export with rollout.prior_hht=0.02" not in damped
 
 
 def test_serve_checks_body_flags(exported_model, tmp_path):

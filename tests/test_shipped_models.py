@@ -226,3 +226,27 @@ def test_shipped_learned_law_follows_fresh_fe_cases_within_2_percent(tmp_path, l
         else:
             assert np.abs(pred[:, 5]).max() <= 0.1 * work, (name, pred[:, 5] / work)
             assert np.abs(pred[:, 5] - data[:, 5]).max() <= 0.02 * work, name
+    # as served: a scene that declares a served time rule (scene.time.served_hht; the liver's HHT
+    # 0.02, which held its law under 60 s of the sim press where the data's undamped rule collapsed,
+    # session 95) has its law exported so, and the law stepped so is still within 2 % of every
+    # fresh case, every step converged
+    from thermognn.export.exporter import scene_served_hht, verify
+    from thermognn.train.checkpoint import with_law_rollout
+
+    hht = scene_served_hht(load_config([]), ckpt)
+    if hht:
+        damped, newton, _ = law_errors(with_law_rollout(ckpt, {"prior_hht": hht})[0], tmp_path / "dataset.h5")
+        assert newton["unconverged"] == 0, newton
+        for name, err in damped.items():
+            print(f"{law} as served (HHT {hht}): {name} whole q {err['q']:.3e} v {err['v']:.3%} σ {err['sigma']:.3%}")
+            for group in ("q", "v", "sigma"):
+                assert 0 < err[group] <= 0.02 and err[group] != errors[name][group], (name, group, err)
+        out = tmp_path / "served"
+        out.mkdir()
+        shutil.copy(ROOT / "models" / law / "model.ckpt", out / "model.ckpt")
+        res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={out}",
+                              f"paths.dataset={tmp_path / 'dataset.h5'}", "train.threads=1",
+                              "train.export_optimized=false"], capture_output=True, text=True, timeout=1800)
+        assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+        assert f"scene '{ckpt['scene']}' serves its law with HHT's dissipation α = -{hht:g}" in res.stdout
+        assert verify(out / "model.pt")["step"]["law_hht"] == hht

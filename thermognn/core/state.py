@@ -132,9 +132,12 @@ def describe_step(step) -> str:
                      + (f", its updates line-searched (up to {int(step['law_search'])} halvings)"
                         if step.get("law_search") else "")
                      + ")")
+        rule = ("the data's Newmark step corrected to conserve the step's energy" if step.get("law_rule") == "energy"
+                else f"HHT's step (α = -{float(step['law_hht']):g}, damping what Δt does not resolve)"
+                if step.get("law_hht") else "the data's Newmark step")
         if step.get("remainders") == "zero":
-            return f"the data's Newmark step of the {solid} alone (its remainders zero, no network call)"
-        return (f"the data's Newmark step of the {solid} with learned remainders"
+            return f"{rule} of the {solid} alone (its remainders zero, no network call)"
+        return (f"{rule} of the {solid} with learned remainders"
                 + (" of second order" if second else "")
                 + f" ({calls} network call{'s' if calls > 1 else ''} a step"
                 + (", each on the state and its half-way state" if second else "") + ")")

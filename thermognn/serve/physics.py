@@ -307,7 +307,7 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
             body["smallest_j"] = min(body["smallest_j"], h.smallest_volume_ratio)
             if h.cells_beyond_states:
                 if not body["beyond"]:
-                    body_warn(beyond_states_warning(h, step, health.guard_margin))
+                    body_warn(beyond_states_warning(h, step, health.guard_margin, health.hht))
                 body["beyond"] += 1
             if h.destroyed:
                 if not body["destroyed"]:

@@ -271,6 +271,8 @@ def model_step(ckpt: dict) -> dict:
     tangent is kept between iterations and steps, "law_search": the halvings of its line search,
     "law_cut_loads": "linear" where a cut step's sub-steps are loaded between the step's loads,
     "law_substeps": how many sub-steps every step is taken as (``rollout.prior_substeps``),
+    "law_rule": "energy" where the trapezoid is corrected by its step potential's discrete gradient,
+    "law_hht": h where the step is HHT's with α = −h (``rollout.prior_hht``, ``scene.time.served_hht``),
     "law_material": "learned" where the law is a strain energy learned from the data, "remainders": "zero" where the prior steps alone,
     ``rollout.remainders`` or ``train.prior_alone_candidate``)."""
     from .model import step_settings
@@ -291,5 +293,7 @@ def model_step(ckpt: dict) -> dict:
                 **({"law_search": int(prior["law_search"])} if prior.get("law_search") else {}),
                 **({"law_cut_loads": "linear"} if prior.get("law_cut_loads") == "linear" else {}),
                 **({"law_substeps": int(prior["law_substeps"])} if int(prior.get("law_substeps", 1)) > 1 else {}),
+                **({"law_rule": "energy"} if prior.get("law_rule") == "energy" else {}),
+                **({"law_hht": float(prior["law_hht"])} if float(prior.get("law_hht", 0.0) or 0.0) else {}),
                 **({"remainders": "zero"} if prior.get("remainders") == "zero" else {})}
     return step_settings(ckpt.get("hparams", {}))
