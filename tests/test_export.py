@@ -204,10 +204,10 @@ def test_a_scene_declares_the_time_rule_its_law_is_served_with():
 
     from thermognn.core.state import describe_step
 
-    damped = SimpleNamespace(linear=SimpleNamespace(rayleigh=(0.0, 0.002), beta=0.25, gamma=0.5))
+    damped = SimpleNamespace(linear_solid=lambda: SimpleNamespace(rayleigh=(0.0, 0.002), beta=0.25, gamma=0.5))
     same, note = served_rollout(cfg, law, damped)
     assert same is cfg and "its data's rule (β 0.25, γ 0.5, βK 0.002 s) is not the undamped" in note
-    plain = SimpleNamespace(linear=SimpleNamespace(rayleigh=(0.0, 0.0), beta=0.25, gamma=0.5))
+    plain = SimpleNamespace(linear_solid=lambda: SimpleNamespace(rayleigh=(0.0, 0.0), beta=0.25, gamma=0.5))
     assert OmegaConf.select(served_rollout(cfg, law, plain)[0], "rollout.prior_hht") == 0.02
     # the exported file's step says so (its metadata, read by serve)
     assert describe_step({"prior": "linear", "law": 1, "law_hht": 0.02}).startswith("HHT's step (α = -0.02, ")

@@ -198,7 +198,7 @@ def served_rollout(cfg, ckpt: dict, ds: Dataset | None = None):
     h = scene_served_hht(cfg, ckpt)
     if h is None:
         return cfg, ""
-    linear = ds.linear if ds is not None else None
+    linear = ds.linear_solid() if ds is not None else None
     if linear is not None and (float(linear.rayleigh[1]) or (float(linear.beta), float(linear.gamma)) != (0.25, 0.5)):
         return cfg, (f"note: scene '{ckpt.get('scene')}' serves its law with HHT's dissipation α = -{h:g} "
                      f"(scene.time.served_hht), but its data's rule (β {linear.beta:g}, γ {linear.gamma:g}, "
