@@ -772,3 +772,22 @@ def test_serve_checks_body_flags(exported_model, tmp_path):
     for key in ("body_reset", "body_passivity"):
         with pytest.raises(ConfigError, match=f"serve.{key} = 'maybe', expected true or false"):
             serve(make_cfg(exported_model, tmp_path, f"serve.{key}=maybe"))
+
+
+def test_serve_notes_a_law_served_at_the_undamped_rule_its_scene_damps():
+    """A law model exported at its data's undamped Newmark rule (before session 96, or with
+    rollout.prior_hht=0) of a scene that declares the rule it is served with (the liver's
+    scene.time.served_hht 0.02) gets one line at serve's start; a damped or energy rule, a graph
+    network, and a scene declaring none (the shell) or unknown get none."""
+    from thermognn.serve.runner import served_rule_note
+
+    law = {"prior": "linear", "law": 1, "law_max": 16}
+    note = served_rule_note({"scene": "liver", "step_settings": law}, "runs/liver/model.pt")
+    assert note.startswith("runs/liver/model.pt steps the liver scene's law at its data's undamped Newmark rule")
+    assert "HHT's α = -0.02 (scene.time.served_hht" in note and "thermognn export" in note
+    for quiet in ({"scene": "liver", "step_settings": {**law, "law_hht": 0.02}},
+                  {"scene": "liver", "step_settings": {**law, "law_rule": "energy"}},
+                  {"scene": "liver", "step_settings": {"integrator": "euler", "kinematics": "exact"}},
+                  {"scene": "liver", "step_settings": None}, {"scene": "shell", "step_settings": law},
+                  {"scene": "no_such_scene", "step_settings": law}, {"step_settings": law}):
+        assert served_rule_note(quiet, "m.pt") == "", quiet

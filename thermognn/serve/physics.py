@@ -86,6 +86,7 @@ def model_geometry(buffers: dict, meta: dict, contact: SurfaceContact) -> dict:
             "surface": surface.tolist(), "surface_faces": contact.surface_triangles().tolist(),
             "dt": float(buffers["dt"]), "n_faces": int(len(buffers["surface_faces"])),
             "scene": meta.get("scene"), "state_layout": meta.get("state_layout"), "step": describe_step(meta.get("step")),
+            "step_settings": meta.get("step") if isinstance(meta.get("step"), dict) else None,
             "data_time_error": describe_time_error(meta.get("data_time_error"))}
 
 

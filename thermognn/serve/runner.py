@@ -11,6 +11,7 @@ import json
 import multiprocessing as mp
 import os
 import signal
+import sys
 import threading
 import time
 from pathlib import Path
@@ -19,7 +20,7 @@ from typing import Callable
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from thermognn.core.config import project_path
+from thermognn.core.config import CONF_DIR, project_path
 from thermognn.core.errors import ConfigError, DataError, DeviceError, ThermoGNNError
 from thermognn.core.io import atomic_path
 
@@ -228,7 +229,8 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
     unconverged step's line), and with ``body_passivity`` passivity_steps, passivity_removed_J,
     passivity_work_J, passivity_absorbed_J (``thermognn.serve.passivity``), and for a body that
     carries its mesh body_largest_invariant, body_smallest_volume_ratio, body_steps_beyond_states,
-    body_destroyed_steps, body_resets and body_warning (``thermognn.serve.health``), ...).
+    body_destroyed_steps, body_resets and body_warning (``thermognn.serve.health``),
+    served_rule_note ("" or ``served_rule_note``'s line), ...).
     """
     from thermognn import devices
 
@@ -269,6 +271,9 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
                 raise DataError(geometry["error"])
             if control[P.C_STOP]:
                 raise KeyboardInterrupt
+            rule_note = served_rule_note(geometry, model_path)
+            if rule_note:
+                print(f"thermognn serve: note: {rule_note}", file=sys.stderr, flush=True)
             lo, hi = np.array(geometry["lo"]), np.array(geometry["hi"])
             top = 0.5 * (lo + hi)
             top[2] = hi[2] + params["tool_radius"] + 0.5 * (hi[2] - lo[2])
@@ -359,6 +364,7 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
         n_nodes=int(geometry["n_nodes"]),
         model_step=str(geometry.get("step", "")),
         data_time_error=str(geometry.get("data_time_error", "")),
+        served_rule_note=served_rule_note(geometry, model_path),
         haptic_scheduler=str(haptic_summary.get("scheduler", "")),
         haptic_torch_loaded=bool(haptic_summary.get("torch_loaded", False)),
         wall_s=time.perf_counter() - t_wall,
@@ -368,6 +374,28 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
     write_session_log(log_path, rows, summary)
     _print_summary(summary)
     return summary
+
+
+def served_rule_note(geometry: dict, model_path) -> str:
+    """One line where a law model is served at its data's undamped Newmark rule though its scene
+    declares the rule it is served with (``scene.time.served_hht`` in ``conf/scene/<scene>.yaml``,
+    which ``thermognn export`` applies since session 96: the liver's HHT 0.02, which held its law
+    under 60 s of the sim press where the undamped rule collapsed it within 30 s); "" otherwise
+    (no law, a damped or energy rule already, a scene that declares none or is not found)."""
+    step, name = geometry.get("step_settings") or {}, str(geometry.get("scene") or "")
+    if not step.get("law") or step.get("law_hht") or step.get("law_rule") == "energy" or not name:
+        return ""
+    path = CONF_DIR / "scene" / f"{name}.yaml"
+    try:
+        hht = OmegaConf.select(OmegaConf.load(path), "time.served_hht", default=None) if path.is_file() else None
+    except Exception:                                      # noqa: BLE001 - a note, never a failure
+        return ""
+    if isinstance(hht, bool) or not isinstance(hht, (int, float)) or not hht > 0:
+        return ""
+    return (f"{model_path} steps the {name} scene's law at its data's undamped Newmark rule, where the scene "
+            f"serves it with HHT's α = -{float(hht):g} (scene.time.served_hht: the undamped liver collapsed "
+            f"within 30 s of pressing, the damped one held 60 s); export it again (thermognn export) unless "
+            f"rollout.prior_hht=0 was meant")
 
 
 def _print_summary(summary: dict) -> None:
