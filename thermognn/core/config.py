@@ -84,3 +84,33 @@ def project_path(p: str | os.PathLike) -> Path:
     if p.is_absolute() or p.exists():
         return p
     return PROJECT_ROOT / p
+
+
+#: HHT's dissipation h (α = −h) a scene may declare for serving: 0 to 1/3, where HHT is unconditionally
+#: stable (``thermognn.train.law_prior.MAX_HHT``)
+MAX_SERVED_HHT = 1.0 / 3.0
+
+
+def scene_served_hht(name: str, scene=None) -> float | None:
+    """The HHT dissipation h (α = −h) that scene ``name`` declares for serving its law
+    (``scene.time.served_hht``), read from ``scene`` (a composed scene config) where it is that
+    scene, so that ``scene.time.served_hht=null`` on the command line turns it off, else from
+    ``conf/scene/<name>.yaml``; None where the scene declares none (or 0) or is not found.
+    ``export`` steps a law model of the scene so, ``evaluate`` reports its errors so stepped beside
+    the data's rule's, ``serve`` notes a law served without it. A served body is pressed for
+    minutes where its data ran 0.6 s: the liver's law at its data's undamped Newmark rule rang up
+    in its smallest cells and collapsed within 30 s of the sim press, at HHT 0.02 it held 60 s,
+    1.11 % from its data against 0.563 % (docs/accuracy.md, sessions 94–95). ConfigError (one
+    line) for a value that is not a number 0 to 1/3."""
+    if scene is None or str(OmegaConf.select(scene, "name", default="")) != name:
+        path = CONF_DIR / "scene" / f"{name}.yaml"
+        if not name or not path.is_file():
+            return None
+        scene = OmegaConf.load(path)
+    h = OmegaConf.select(scene, "time.served_hht", default=None)
+    if h is None:
+        return None
+    if isinstance(h, bool) or not isinstance(h, (int, float)) or not 0.0 <= float(h) <= MAX_SERVED_HHT:
+        raise ConfigError(f"scene.time.served_hht = {h!r} (scene '{name}'): expected null or a number 0 to 1/3 "
+                          f"(HHT's dissipation, α = -served_hht, that export gives a law model of the scene)")
+    return float(h) or None

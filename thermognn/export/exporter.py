@@ -12,11 +12,12 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from thermognn.core.config import CONF_DIR, project_path
+from thermognn.core.config import project_path
 from thermognn.core.errors import ConfigError, DataError
 from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
-from thermognn.train.checkpoint import load_checkpoint, model_from_checkpoint, model_step, torch_dtype, with_rollout
+from thermognn.train.checkpoint import (load_checkpoint, model_from_checkpoint, model_step, served_law_hht, torch_dtype,
+                                        with_rollout)
 from thermognn.train.data import check_fingerprint, load_graph
 from thermognn.train.hybrid import carried_layout
 
@@ -157,58 +158,17 @@ def step_times(path, ds: Dataset, optimized=None, modes: tuple[bool, ...] = (Fal
     return times[0], times[1]
 
 
-def scene_served_hht(cfg, ckpt: dict) -> float | None:
-    """The HHT dissipation h (α = −h) that the checkpoint's scene declares for serving its law
-    (``scene.time.served_hht``): read from ``cfg.scene`` where it names the checkpoint's scene (so
-    that ``scene.time.served_hht=null`` on the command line turns it off), else from the project's
-    ``conf/scene/<name>.yaml``; None where the scene declares none or is not found. A served body
-    is pressed for minutes where its data ran 0.6 s: the liver's law at its data's undamped Newmark
-    rule rang up in its smallest cells and collapsed within 30 s of the sim press, at HHT 0.02 it
-    held 60 s, 1.11 % from its data against 0.563 % (docs/accuracy.md, sessions 94–95)."""
-    name = str(ckpt.get("scene", ""))
-    scene = OmegaConf.select(cfg, "scene", default=None)
-    if scene is None or str(OmegaConf.select(scene, "name", default="")) != name:
-        path = CONF_DIR / "scene" / f"{name}.yaml"
-        if not name or not path.is_file():
-            return None
-        scene = OmegaConf.load(path)
-    h = OmegaConf.select(scene, "time.served_hht", default=None)
-    if h is None:
-        return None
-    from thermognn.train.law_prior import MAX_HHT
-
-    if isinstance(h, bool) or not isinstance(h, (int, float)) or not 0.0 <= float(h) <= MAX_HHT:
-        raise ConfigError(f"scene.time.served_hht = {h!r} (scene '{name}'): expected null or a number 0 to 1/3 "
-                          f"(HHT's dissipation, α = -served_hht, that export gives a law model of the scene)")
-    return float(h) or None
-
-
 def served_rollout(cfg, ckpt: dict, ds: Dataset | None = None):
     """``cfg`` with ``rollout.prior_hht`` set to the scene's ``served_hht`` where a law model would
-    otherwise be exported at its data's undamped rule (``rollout.prior_hht`` and ``rollout.prior_rule``
-    null, the checkpoint's law stepped by Newmark without dissipation), and a note saying so ("" where
-    nothing changed). ``rollout.prior_hht=0`` keeps the data's rule. Data (``ds``) whose rule is not
-    the undamped average-acceleration Newmark rule HHT modifies (stiffness-proportional damping, as
-    the block's) keep their rule, with a note."""
-    law = ckpt.get("prior") or {}
-    if (not law.get("law") or float(law.get("law_hht", 0.0) or 0.0) or law.get("law_rule", "newmark") != "newmark"
-            or OmegaConf.select(cfg, "rollout.prior_hht", default=None) is not None
+    otherwise be exported at its data's undamped rule (``served_law_hht``; ``rollout.prior_hht`` and
+    ``rollout.prior_rule`` null), and a line saying so ("" where nothing changed, a note where the
+    scene's rule does not apply). ``rollout.prior_hht=0`` keeps the data's rule."""
+    if (OmegaConf.select(cfg, "rollout.prior_hht", default=None) is not None
             or OmegaConf.select(cfg, "rollout.prior_rule", default=None) is not None):
         return cfg, ""
-    h = scene_served_hht(cfg, ckpt)
+    h, note = served_law_hht(ckpt, OmegaConf.select(cfg, "scene", default=None), ds)
     if h is None:
-        return cfg, ""
-    linear = ds.linear_solid() if ds is not None else None
-    if linear is not None and (float(linear.rayleigh[1]) or (float(linear.beta), float(linear.gamma)) != (0.25, 0.5)):
-        return cfg, (f"note: scene '{ckpt.get('scene')}' serves its law with HHT's dissipation α = -{h:g} "
-                     f"(scene.time.served_hht), but its data's rule (β {linear.beta:g}, γ {linear.gamma:g}, "
-                     f"βK {linear.rayleigh[1]:g} s) is not the undamped average-acceleration rule HHT modifies: "
-                     f"exported at its data's rule")
-    trained = OmegaConf.create(ckpt.get("config") or "{}")
-    if str(OmegaConf.select(trained, "train.fit_target", default="exact")) == "budget":
-        return cfg, (f"note: scene '{ckpt.get('scene')}' serves its law with HHT's dissipation α = -{h:g} "
-                     f"(scene.time.served_hht), but this model's network was fitted to what its Newton budget "
-                     f"leaves (train.fit_target=budget), which another rule does not leave: exported at its data's rule")
+        return cfg, (f"{note}: exported at its data's rule" if note else "")
     served = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
     OmegaConf.update(served, "rollout.prior_hht", h, force_add=True)
     return served, (f"scene '{ckpt.get('scene')}' serves its law with HHT's dissipation α = -{h:g} "

@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from thermognn.core.config import CONF_DIR, project_path
+from thermognn.core.config import project_path, scene_served_hht
 from thermognn.core.errors import ConfigError, DataError, DeviceError, ThermoGNNError
 from thermognn.core.io import atomic_path
 
@@ -385,12 +385,11 @@ def served_rule_note(geometry: dict, model_path) -> str:
     step, name = geometry.get("step_settings") or {}, str(geometry.get("scene") or "")
     if not step.get("law") or step.get("law_hht") or step.get("law_rule") == "energy" or not name:
         return ""
-    path = CONF_DIR / "scene" / f"{name}.yaml"
     try:
-        hht = OmegaConf.select(OmegaConf.load(path), "time.served_hht", default=None) if path.is_file() else None
-    except Exception:                                      # noqa: BLE001 - a note, never a failure
+        hht = scene_served_hht(name)
+    except ConfigError:                                    # a note, never a failure
         return ""
-    if isinstance(hht, bool) or not isinstance(hht, (int, float)) or not hht > 0:
+    if not hht:
         return ""
     return (f"{model_path} steps the {name} scene's law at its data's undamped Newmark rule, where the scene "
             f"serves it with HHT's α = -{float(hht):g} (scene.time.served_hht: the undamped liver collapsed "

@@ -189,6 +189,37 @@ def with_law_rollout(ckpt: dict, want: dict) -> tuple[dict, str]:
     return {**ckpt, "prior": new}, f"the law prior's step {law_phrase(new)} (trained: {law_phrase(prior)})"
 
 
+def served_law_hht(ckpt: dict, scene=None, ds=None) -> tuple[float | None, str]:
+    """The HHT dissipation h (α = −h) a law model is served with where its scene declares one
+    (``scene.time.served_hht``, ``thermognn.core.config.scene_served_hht``; ``scene``: a composed
+    scene config, used where it is the checkpoint's) and the model is stepped at its data's
+    undamped Newmark rule: (h, ""). (None, "") where that does not arise (not a law model, a law
+    already damped or on the energy rule, a scene declaring none), and (None, why) where the scene
+    declares h but the model cannot take it: data ``ds`` whose rule HHT does not modify
+    (stiffness-proportional damping, as the block's), or a network fitted to what its Newton
+    budget leaves (``train.fit_target=budget``), which another rule does not leave."""
+    from omegaconf import OmegaConf
+
+    from thermognn.core.config import scene_served_hht
+
+    law = ckpt.get("prior") or {}
+    if not law.get("law") or float(law.get("law_hht", 0.0) or 0.0) or law.get("law_rule", "newmark") != "newmark":
+        return None, ""
+    h = scene_served_hht(str(ckpt.get("scene", "")), scene)
+    if h is None:
+        return None, ""
+    declared = f"note: scene '{ckpt.get('scene')}' serves its law with HHT's dissipation α = -{h:g} (scene.time.served_hht)"
+    linear = ds.linear_solid() if ds is not None else None
+    if linear is not None and (float(linear.rayleigh[1]) or (float(linear.beta), float(linear.gamma)) != (0.25, 0.5)):
+        return None, (f"{declared}, but its data's rule (β {linear.beta:g}, γ {linear.gamma:g}, βK "
+                      f"{linear.rayleigh[1]:g} s) is not the undamped average-acceleration rule HHT modifies")
+    trained = OmegaConf.create(ckpt.get("config") or "{}")
+    if str(OmegaConf.select(trained, "train.fit_target", default="exact")) == "budget":
+        return None, (f"{declared}, but this model's network was fitted to what its Newton budget leaves "
+                      f"(train.fit_target=budget), which another rule does not leave")
+    return h, ""
+
+
 #: ``rollout.remainders`` values: the network's remainders (as trained) | zero (G = H = 0, the prior alone)
 REMAINDERS = ("learned", "zero")
 

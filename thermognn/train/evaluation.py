@@ -38,7 +38,8 @@ from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
 from thermognn.core.state import describe_step
 
-from .checkpoint import load_checkpoint, model_from_checkpoint, model_step, torch_dtype, with_rollout
+from .checkpoint import (load_checkpoint, model_from_checkpoint, model_step, served_law_hht, torch_dtype,
+                         with_law_rollout, with_rollout)
 from .data import (Graph, LoadedData, TrajectoryTensors, check_fingerprint, load_data, rest_trajectory,
                    spread, velocity_columns)
 from .loop import held_out_sentence, print_rrmse_table, rest_growth
@@ -307,6 +308,38 @@ def _rollouts(model, data: LoadedData, trajs: list[TrajectoryTensors]):
         per_step.append(ps)
         per_traj.append(trajectory_rrmse(ps))
     return preds, per_step, per_traj, 1e3 * elapsed / max(steps, 1), shortened
+
+
+def served_errors(ckpt: dict, cfg, data: LoadedData, trajs: list[TrajectoryTensors]) -> dict:
+    """A law model whose scene declares the rule it is served with (``served_law_hht``: the
+    liver's HHT 0.02, which ``export`` gives it) rolled out so over ``trajs``: {"hht": h, "whole":
+    {group: mean whole-rollout error}, "worst": {group: the largest trajectory's}, "ms": ms a step,
+    "unconverged": law steps left unconverged}, so that the accuracy of what a user feels stands
+    beside the data's rule's; {} where the model is not served otherwise (a note printed where
+    the scene's rule does not apply)."""
+    h, note = served_law_hht(ckpt, OmegaConf.select(cfg, "scene", default=None), data.dataset)
+    if note:
+        print(f"evaluate: {note}: served at its data's rule")
+    if h is None:
+        return {}
+    served, _ = with_law_rollout(ckpt, {"prior_hht": h})
+    model = model_from_checkpoint(served, data.dataset).eval()
+    model.prior.newton_taken.zero_()
+    preds, _, _, ms, _ = _rollouts(model, data, trajs)
+    whole = [trajectory_error(p, t.z, data.layout) for p, t in zip(preds, trajs)]
+    groups = data.layout.names
+    return {"hht": h, "whole": _mean_groups(whole, groups),
+            "worst": {g: max(w[g] for w in whole) for g in groups}, "ms": ms,
+            "unconverged": int(model.prior.newton_taken[2])}
+
+
+def served_sentence(served: dict, groups: list[str]) -> str:
+    """One line for :func:`served_errors`' figures."""
+    return (f"as served (HHT's α = -{served['hht']:g}, the scene's scene.time.served_hht, which export gives the "
+            f"law): whole rollout " + ", ".join(f"{g} {_fmt(served['whole'][g])}" for g in groups)
+            + " (the largest trajectory's " + ", ".join(f"{g} {_fmt(served['worst'][g])}" for g in groups)
+            + f") at {served['ms']:.1f} ms a step" + (f", {served['unconverged']} law steps unconverged"
+                                                     if served["unconverged"] else ""))
 
 
 def _mean_groups(per_traj: list[dict[str, float]], groups: list[str]) -> dict[str, float]:
@@ -703,7 +736,10 @@ def evaluate(cfg) -> dict:
     where test trajectories repeat training ones up to a mirror of the mesh "test_repeats_train"
     (their number, :func:`repeated_cases`), and for a stress readout that ``train`` checked on
     held-out loads (``train.readout_folds``) "readout_held_out_sigma" / "readout_held_out_sigma_whole"
-    (``stress_readout.held_out_loads_check``, from the checkpoint)}."""
+    (``stress_readout.held_out_loads_check``, from the checkpoint), and for a law model whose scene
+    declares the rule it is served with (``scene.time.served_hht``) the test errors so stepped,
+    "served_hht", "served_whole_<group>", "served_ms_per_step", "served_unconverged_steps"
+    (:func:`served_errors`)}."""
     torch.set_num_threads(int(OmegaConf.select(cfg, "train.threads", default=2)))
     ckpt_path = project_path(cfg.paths.checkpoint)
     ckpt = load_checkpoint(ckpt_path)
@@ -766,6 +802,7 @@ def evaluate(cfg) -> dict:
         mean_test["readout_held_out_sigma"] = readout_check["per_snapshot"]
         mean_test["readout_held_out_sigma_whole"] = readout_check["whole"]
     by_load = by_peak_load(loads, per_traj, whole_traj, groups)
+    served = served_errors(ckpt, cfg, data, test)               # as export serves it (scene.time.served_hht)
     linear = linear_baseline(data, test)
     linear_train = linear_baseline(data, train_trajs) if "snapshot" in linear else {}
     corotated = linear_baseline(data, test, corotated=True)
@@ -959,6 +996,12 @@ def evaluate(cfg) -> dict:
         mean_test.update({f"newton1_fe_whole_{g}": implicit["whole"][g] for g in groups})
         mean_test["newton1_fe_ms_per_step"] = implicit["ms_per_step"]
         rows["linearly implicit FE, test"] = implicit["snapshot"]
+    if served:
+        mean_test["served_hht"] = served["hht"]
+        mean_test.update({f"served_whole_{g}": served["whole"][g] for g in groups})
+        mean_test["served_ms_per_step"] = served["ms"]
+        mean_test["served_unconverged_steps"] = float(served["unconverged"])
+        print(f"evaluate: {served_sentence(served, groups)} (test)")
     if fe:
         mean_test["fe_ms_per_step"] = fe["ms_per_step"]
         mean_test["fe_iterations_per_step"] = fe["iterations_per_step"]
@@ -1077,7 +1120,10 @@ def evaluate(cfg) -> dict:
              "model-selection metric; unlike the per-snapshot mean it does not blow up where a group "
              "comes to rest):", "",
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
-             "| test | " + " | ".join(_fmt(whole[g]) for g in groups) + " |", *linear_rows("whole"), "",
+             "| test | " + " | ".join(_fmt(whole[g]) for g in groups) + " |",
+             *([f"| test, as served (HHT α = -{served['hht']:g}) | " + " | ".join(_fmt(served["whole"][g]) for g in groups)
+                + " |"] if served else []), *linear_rows("whole"), "",
+             *([served_sentence(served, groups) + " (`served_*` in `rrmse.json`).", ""] if served else []),
              *([data_time_sentence(data.dataset), ""] if data_time else []),
              *(["The test errors at each peak load (the largest sum of the nodal load magnitudes over a "
                 "trajectory; loads within 1 % are one group, labelled by their mean to 3 significant figures; "
