@@ -173,7 +173,7 @@ def test_export_with_another_time_step(exported, tmp_path):
 def test_a_scene_declares_the_time_rule_its_law_is_served_with():
     """``scene.time.served_hht``: export steps a law model of a scene that declares it with HHT's
     dissipation unless ``rollout.prior_hht`` or ``rollout.prior_rule`` says otherwise (the liver
-    declares 0.02: at its data's undamped rule the served body rang up and collapsed, session 95).
+    declares one: at its data's undamped rule the served body rang up and collapsed, sessions 94–96).
     The scene is the checkpoint's: read from the command line's scene where it names it, else from
     conf/scene. A graph network, a law already damped or given another rule, and a network fitted
     to its Newton budget's misses keep their rule; a bad value is one line naming the key."""
@@ -182,11 +182,15 @@ def test_a_scene_declares_the_time_rule_its_law_is_served_with():
     from thermognn.core.errors import ConfigError
     from thermognn.export.exporter import served_rollout
 
+    from thermognn.core.config import scene_served_hht
+
+    liver = scene_served_hht("liver")                         # conf/scene/liver.yaml's
+    assert liver is not None and 0.0 < liver <= 0.05 and scene_served_hht("shell") is None
     law = {"scene": "liver", "prior": {"law": 1, "law_max": 16, "law_rtol": 1e-7}, "config": ""}
     cfg = load_config([])                                     # scene=block: the liver's read from conf/scene
     served, note = served_rollout(cfg, law)
-    assert OmegaConf.select(served, "rollout.prior_hht") == 0.02 and cfg.rollout.prior_hht is None
-    assert "scene 'liver' serves its law with HHT's dissipation α = -0.02 (scene.time.served_hht" in note
+    assert OmegaConf.select(served, "rollout.prior_hht") == liver and cfg.rollout.prior_hht is None
+    assert f"scene 'liver' serves its law with HHT's dissipation α = -{liver:g} (scene.time.served_hht" in note
     for kept in (load_config(["rollout.prior_hht=0"]), load_config(["rollout.prior_rule=energy"]),
                  load_config(["scene=liver", "scene.time.served_hht=null"])):
         assert served_rollout(kept, law) == (kept, "")
@@ -208,7 +212,7 @@ def test_a_scene_declares_the_time_rule_its_law_is_served_with():
     same, note = served_rollout(cfg, law, damped)
     assert same is cfg and "its data's rule (β 0.25, γ 0.5, βK 0.002 s) is not the undamped" in note
     plain = SimpleNamespace(linear_solid=lambda: SimpleNamespace(rayleigh=(0.0, 0.0), beta=0.25, gamma=0.5))
-    assert OmegaConf.select(served_rollout(cfg, law, plain)[0], "rollout.prior_hht") == 0.02
+    assert OmegaConf.select(served_rollout(cfg, law, plain)[0], "rollout.prior_hht") == liver
     # the exported file's step says so (its metadata, read by serve)
     assert describe_step({"prior": "linear", "law": 1, "law_hht": 0.02}).startswith("HHT's step (α = -0.02, ")
     for bad in ("2", "true", "abc"):

@@ -750,7 +750,7 @@ def test_physics_warns_as_cells_leave_the_law_states_and_resets_a_destroyed_body
     assert summary["body_largest_invariant"] == pytest.approx((lam ** (-4 / 3) * (2 * lam ** 2 + 1) - 3) / 0.5)
     warning = summary["body_warning"]
     assert "at model step 1 1 cell(s) of the body left the states its law was fitted on" in warning
-    assert "rollout.prior_hht=0.02" in warning and "at model step 4 1 cell(s) of the body are crushed or inverted (1 " \
+    assert "export with HHT's dissipation (rollout.prior_hht" in warning and "at model step 4 1 cell(s) of the body are crushed or inverted (1 " \
         "inverted" in warning
     assert "reset to rest (serve.body_reset)" in warning
     err = capsys.readouterr().err
@@ -764,7 +764,7 @@ def test_physics_warns_as_cells_leave_the_law_states_and_resets_a_destroyed_body
     health = BodyHealth(X.numpy(), [[0, 1, 2, 3]], [0.5, 0.5, 0.2], hht=0.02)
     damped = beyond_states_warning(health(X.numpy() * [1.0, 1.0, 0.7]), 3, health.guard_margin, health.hht)
     assert "at model step 3 1 cell(s)" in damped and "already damps with HHT's α = -0.02" in damped
-    assert "export with rollout.prior_hht=0.02" not in damped
+    assert "export with HHT's dissipation" not in damped
 
 
 def test_serve_checks_body_flags(exported_model, tmp_path):
@@ -777,14 +777,16 @@ def test_serve_checks_body_flags(exported_model, tmp_path):
 def test_serve_notes_a_law_served_at_the_undamped_rule_its_scene_damps():
     """A law model exported at its data's undamped Newmark rule (before session 96, or with
     rollout.prior_hht=0) of a scene that declares the rule it is served with (the liver's
-    scene.time.served_hht 0.02) gets one line at serve's start; a damped or energy rule, a graph
+    scene.time.served_hht) gets one line at serve's start; a damped or energy rule, a graph
     network, and a scene declaring none (the shell) or unknown get none."""
     from thermognn.serve.runner import served_rule_note
 
     law = {"prior": "linear", "law": 1, "law_max": 16}
+    from thermognn.core.config import scene_served_hht
+
     note = served_rule_note({"scene": "liver", "step_settings": law}, "runs/liver/model.pt")
     assert note.startswith("runs/liver/model.pt steps the liver scene's law at its data's undamped Newmark rule")
-    assert "HHT's α = -0.02 (scene.time.served_hht" in note and "thermognn export" in note
+    assert f"HHT's α = -{scene_served_hht('liver'):g} (scene.time.served_hht" in note and "thermognn export" in note
     for quiet in ({"scene": "liver", "step_settings": {**law, "law_hht": 0.02}},
                   {"scene": "liver", "step_settings": {**law, "law_rule": "energy"}},
                   {"scene": "liver", "step_settings": {"integrator": "euler", "kinematics": "exact"}},

@@ -132,7 +132,8 @@ def beyond_states_warning(health: Health, step: int, margin: float, hht: float =
     the law's time rule (``hht``: its HHT dissipation, 0 for the data's undamped Newmark rule)."""
     advice = (f"this file already damps with HHT's α = -{hht:g}; a larger rollout.prior_hht at export damps more "
               f"(0.05 held the liver 30 s at 2.18 % from its data)" if hht
-              else "for long sessions export with rollout.prior_hht=0.02 (the liver scene's scene.time.served_hht)")
+              else "for long sessions export with HHT's dissipation (rollout.prior_hht, or a scene's "
+                   "scene.time.served_hht, which export applies: the liver's)")
     return (f"at model step {step} {health.cells_beyond_states} cell(s) of the body left the states its "
             f"law was fitted on (largest scaled invariant {health.largest_invariant:.2f}, 1 at their edge; "
             f"the law's guard starts at {margin:g}): its force there is extrapolated, and a body ringing "
