@@ -260,6 +260,7 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
     t_wall = time.perf_counter()
     control[P.C_FINAL_FORCE] = float("nan")                # the haptic process sets 0 once it has zeroed the device
     completed = False
+    rule_note = ""                                         # served_rule_note, once the model's geometry is in
     try:
         with _signals(control):
             physics.start()
@@ -364,7 +365,7 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
         n_nodes=int(geometry["n_nodes"]),
         model_step=str(geometry.get("step", "")),
         data_time_error=str(geometry.get("data_time_error", "")),
-        served_rule_note=served_rule_note(geometry, model_path),
+        served_rule_note=rule_note,
         haptic_scheduler=str(haptic_summary.get("scheduler", "")),
         haptic_torch_loaded=bool(haptic_summary.get("torch_loaded", False)),
         wall_s=time.perf_counter() - t_wall,

@@ -202,6 +202,8 @@ def served_law_hht(ckpt: dict, scene=None, ds=None) -> tuple[float | None, str]:
 
     from thermognn.core.config import scene_served_hht
 
+    from .law_prior import hht_applies
+
     law = ckpt.get("prior") or {}
     if not law.get("law") or float(law.get("law_hht", 0.0) or 0.0) or law.get("law_rule", "newmark") != "newmark":
         return None, ""
@@ -210,7 +212,7 @@ def served_law_hht(ckpt: dict, scene=None, ds=None) -> tuple[float | None, str]:
         return None, ""
     declared = f"note: scene '{ckpt.get('scene')}' serves its law with HHT's dissipation α = -{h:g} (scene.time.served_hht)"
     linear = ds.linear_solid() if ds is not None else None
-    if linear is not None and (float(linear.rayleigh[1]) or (float(linear.beta), float(linear.gamma)) != (0.25, 0.5)):
+    if linear is not None and not hht_applies(float(linear.beta), float(linear.gamma), float(linear.rayleigh[1])):
         return None, (f"{declared}, but its data's rule (β {linear.beta:g}, γ {linear.gamma:g}, βK "
                       f"{linear.rayleigh[1]:g} s) is not the undamped average-acceleration rule HHT modifies")
     trained = OmegaConf.create(ckpt.get("config") or "{}")

@@ -96,6 +96,14 @@ SUBSTEPS = tuple(2 ** k for k in range(MAX_SUBSTEP_LEVEL + 1))
 BUDGET_STALLED = 3
 #: ``set_hht``: HHT's α at most −1/3 (the range where it is unconditionally stable)
 MAX_HHT = 1.0 / 3.0
+
+
+def hht_applies(beta: float, gamma: float, beta_k: float) -> bool:
+    """Whether HHT's dissipation (``set_hht``) modifies data stepped by Newmark's (β, γ) with
+    stiffness-proportional Rayleigh damping βK [s]: only the undamped average-acceleration rule
+    (β 1/4, γ 1/2, βK 0) is (``thermognn.train.checkpoint.served_law_hht`` asks it of a dataset)."""
+    return beta == 0.25 and gamma == 0.5 and beta_k == 0.0
+
 #: ``set_rule`` values: the data's Newmark rule (with ``set_hht``'s dissipation where set), or the
 #: trapezoid with its step potential's discrete gradient (Simpson's rule)
 RULES = ("newmark", "energy")
@@ -620,8 +628,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         hht = float(hht)
         if not 0.0 <= hht <= MAX_HHT:
             raise ValueError(f"the law prior's HHT dissipation: {hht!r}, expected 0 to {MAX_HHT:.4f}")
-        if hht > 0.0 and (self.beta_k != 0.0 or self.newmark_beta != 0.25 or self.newmark_gamma != 0.5
-                          or self.energy_rule):
+        if hht > 0.0 and (not hht_applies(self.newmark_beta, self.newmark_gamma, self.beta_k) or self.energy_rule):
             raise ValueError(f"the law prior's HHT dissipation {hht} needs the data's average-acceleration Newmark "
                              f"rule (β 1/4, γ 1/2, here {self.newmark_beta}, {self.newmark_gamma}) without "
                              f"stiffness-proportional damping (βK {self.beta_k}), and the Newmark rule "
