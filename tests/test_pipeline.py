@@ -682,11 +682,22 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
         if stage == "evaluate":
             assert re.search(r"the law prior took \S+ Newton iterations a step \(1 at least, 4 at most", res.stdout), \
                 res.stdout[-2000:]
+            # evaluated as export serves it too (served_law_step): its tangent kept, its updates searched
+            assert ("evaluate: as served (the law prior's step 1 to 4 Newton iterations to 1e-08, cut down to Δt/16, "
+                    "its tangent kept, its updates line-searched (6 halvings), as export gives it)") in res.stdout, \
+                res.stdout[-2000:]
+        else:
+            assert "export: a law iterated to a tolerance is served with rollout.prior_tangent=kept" in res.stdout
     converged = json.loads((most / "eval" / "rrmse.json").read_text())
     assert 1.0 < converged["newton_iterations_per_step"] <= 4.0 and converged["unconverged_steps"] == 0
     assert converged["cut_steps"] == 0
     for g in ("q", "v", "sigma"):
         assert converged[f"whole_{g}"] < 0.5 * converged[f"newton1_fe_whole_{g}"], (g, converged)
+        # served so, the same converged law: its steps stop at the same tolerance
+        assert converged[f"served_whole_{g}"] == pytest.approx(converged[f"whole_{g}"], rel=1e-3), (g, converged)
+    assert converged["served_hht"] == 0.0 and converged["served_unconverged_steps"] == 0
+    step = verify(most / "model.pt")["step"]
+    assert step["law_tangent"] == "kept" and step["law_search"] == 6 and step["law_max"] == 4
     res = subprocess.run([sys.executable, "-m", "thermognn.cli", "train", f"out={tmp_path / 'most_budget'}",
                           f"paths.dataset={tiny_block}", "model=law_prior", "model.prior_newton_max=3", "train.epochs=1",
                           "train.fit_target=budget", "train.threads=1"], capture_output=True, text=True, timeout=600)

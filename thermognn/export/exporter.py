@@ -16,8 +16,8 @@ from thermognn.core.config import project_path
 from thermognn.core.errors import ConfigError, DataError
 from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
-from thermognn.train.checkpoint import (load_checkpoint, model_from_checkpoint, model_step, served_law_hht, torch_dtype,
-                                        with_rollout)
+from thermognn.train.checkpoint import (load_checkpoint, model_from_checkpoint, model_step, served_law_hht,
+                                        served_law_settings, torch_dtype, with_rollout)
 from thermognn.train.data import check_fingerprint, load_graph
 from thermognn.train.hybrid import carried_layout
 
@@ -176,6 +176,27 @@ def served_rollout(cfg, ckpt: dict, ds: Dataset | None = None):
                     f"rollout.prior_hht=0 exports the data's rule)")
 
 
+def served_step(cfg, ckpt: dict):
+    """``cfg`` with the ``rollout.prior_*`` keys of ``served_law_settings`` set (a law model iterated
+    to a tolerance: its tangent kept, its updates line-searched, a looser tolerance tightened to
+    1e-7), and a line saying so ("" where nothing changed) with the overrides that export the step
+    as trained."""
+    want = served_law_settings(ckpt, cfg)
+    if not want:
+        return cfg, ""
+    served = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    for key, value in want.items():
+        OmegaConf.update(served, f"rollout.{key}", value, force_add=True)
+    law = ckpt["prior"]
+    trained = {"prior_tangent": "fresh", "prior_line_search": 0, "prior_newton_rtol": law.get("law_rtol"),
+               "prior_newton_max": law.get("law_max")}
+    said = " ".join(f"rollout.{k}={v:g}" if isinstance(v, float) else f"rollout.{k}={v}" for k, v in want.items())
+    undo = " ".join(f"rollout.{k}={trained[k]:g}" if isinstance(trained[k], float) else f"rollout.{k}={trained[k]}"
+                    for k in want)
+    return served, (f"a law iterated to a tolerance is served with {said} (its steps converged as before, faster, "
+                    f"and uncut after a sudden release: docs/stages.md; {undo} exports the step as trained)")
+
+
 def export(cfg) -> Path:
     """Load ``cfg.paths.checkpoint``, script it with the dataset's mesh, verify it against the
     eager model and write ``cfg.paths.exported`` atomically."""
@@ -187,6 +208,9 @@ def export(cfg) -> Path:
     cfg, served = served_rollout(cfg, ckpt, ds)
     if served:
         print(f"export: {served}")
+    cfg, step = served_step(cfg, ckpt)
+    if step:
+        print(f"export: {step}")
     ckpt, stepped = with_rollout(ckpt, cfg)
     if stepped:
         print(f"export: stepping the trained model with {stepped}")

@@ -222,6 +222,70 @@ def served_law_hht(ckpt: dict, scene=None, ds=None) -> tuple[float | None, str]:
     return h, ""
 
 
+#: how ``export`` steps a law model whose law iterates to a tolerance where neither its checkpoint
+#: nor the command line (``rollout.prior_*``) sets these: its tangent kept between chord updates, its
+#: Newton updates line-searched, and a looser tolerance tightened to 1e-7 with 16 updates at most, as
+#: a chord stops further from the solution than Newton's method at the same tolerance (the shell's
+#: 1e-4 kept: q 1.6e-4 from its fresh FE cases against 1.2e-6; at 1e-7, 1.2e-6 and 1.6x faster; the
+#: float32 states an exported model carries round at about 6e-8, so a tighter one buys serve
+#: nothing). ``served_law_step``; docs/accuracy.md, session 97: under the sim press the bunny's fresh,
+#: unsearched step took 2.1 s a step and cut steps for up to 16 s after the tool's release, kept and
+#: searched 0.39 s and none
+SERVED_LAW_STEP = {"prior_tangent": "kept", "prior_line_search": 6, "prior_newton_rtol": 1e-7, "prior_newton_max": 16}
+
+
+def served_law_step(ckpt: dict) -> dict:
+    """The ``rollout.prior_*`` settings (SERVED_LAW_STEP's) a law model is served with beyond its
+    checkpoint's: {} where none apply (not a law model, a fixed Newton budget, which the step's
+    settings would change, a network fitted to its budget's misses, or a checkpoint that already
+    keeps its tangent to 1e-7 and searches). A converged step stays where it was (within the
+    tolerance); what they change is how fast, and whether a step after a sudden release converges
+    at all."""
+    from omegaconf import OmegaConf
+
+    law = ckpt.get("prior") or {}
+    if not law.get("law") or int(law.get("law_max") or law["law"]) <= int(law["law"]):
+        return {}
+    trained = OmegaConf.create(ckpt.get("config") or "{}")
+    if str(OmegaConf.select(trained, "train.fit_target", default="exact")) == "budget":
+        return {}
+    want = {}
+    if (law.get("law_tangent") or "fresh") == "fresh":
+        want["prior_tangent"] = SERVED_LAW_STEP["prior_tangent"]
+    if not law.get("law_search"):
+        want["prior_line_search"] = SERVED_LAW_STEP["prior_line_search"]
+    if float(law.get("law_rtol") or 0.0) > SERVED_LAW_STEP["prior_newton_rtol"]:
+        want["prior_newton_rtol"] = SERVED_LAW_STEP["prior_newton_rtol"]
+        want["prior_newton_max"] = max(int(law["law_max"]), SERVED_LAW_STEP["prior_newton_max"])
+    return want
+
+
+def served_law_settings(ckpt: dict, cfg) -> dict:
+    """The ``served_law_step`` settings for a checkpoint as trained (``ckpt``) stepped as ``cfg``'s
+    ``rollout.*`` says: the keys the command line leaves null, where the step so is still a law
+    iterated to a tolerance (a fixed budget the command line made iterate keeps its step); the
+    tolerance tightened only where the served tangent is kept and the command line sets neither
+    ``rollout.prior_newton_rtol`` nor ``rollout.prior_newton_max``. What ``export`` serves and
+    ``evaluate`` rolls out as served."""
+    from omegaconf import OmegaConf
+
+    offered = served_law_step(ckpt)
+    if not offered:
+        return {}
+    stepped, _ = with_rollout(ckpt, cfg)
+    still = served_law_step(stepped)
+
+    def given(key: str) -> bool:
+        return OmegaConf.select(cfg, f"rollout.{key}", default=None) is not None
+
+    want = {k: offered[k] for k in ("prior_tangent", "prior_line_search") if k in offered and k in still and not given(k)}
+    kept = (want.get("prior_tangent") or stepped["prior"].get("law_tangent")) == "kept"
+    if (kept and "prior_newton_rtol" in offered and "prior_newton_rtol" in still and not given("prior_newton_rtol")
+            and not given("prior_newton_max")):
+        want["prior_newton_rtol"], want["prior_newton_max"] = offered["prior_newton_rtol"], offered["prior_newton_max"]
+    return want
+
+
 #: ``rollout.remainders`` values: the network's remainders (as trained) | zero (G = H = 0, the prior alone)
 REMAINDERS = ("learned", "zero")
 

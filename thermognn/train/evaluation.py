@@ -38,8 +38,8 @@ from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
 from thermognn.core.state import describe_step
 
-from .checkpoint import (load_checkpoint, model_from_checkpoint, model_step, served_law_hht, torch_dtype,
-                         with_law_rollout, with_rollout)
+from .checkpoint import (law_phrase, load_checkpoint, model_from_checkpoint, model_step, served_law_hht,
+                         served_law_settings, torch_dtype, with_law_rollout, with_rollout)
 from .data import (Graph, LoadedData, TrajectoryTensors, check_fingerprint, load_data, rest_trajectory,
                    spread, velocity_columns)
 from .loop import held_out_sentence, print_rrmse_table, rest_growth
@@ -310,33 +310,39 @@ def _rollouts(model, data: LoadedData, trajs: list[TrajectoryTensors]):
     return preds, per_step, per_traj, 1e3 * elapsed / max(steps, 1), shortened
 
 
-def served_errors(ckpt: dict, cfg, data: LoadedData, trajs: list[TrajectoryTensors]) -> dict:
-    """A law model whose scene declares the rule it is served with (``served_law_hht``: the
-    liver's HHT 0.02, which ``export`` gives it) rolled out so over ``trajs``: {"hht": h, "whole":
-    {group: mean whole-rollout error}, "worst": {group: the largest trajectory's}, "ms": ms a step,
+def served_errors(ckpt: dict, cfg, data: LoadedData, trajs: list[TrajectoryTensors], trained: dict | None = None) -> dict:
+    """A law model that ``export`` serves otherwise than it is evaluated here, rolled out so over
+    ``trajs``: its scene's rule (``served_law_hht``: the liver's HHT 0.02) and a law iterated to a
+    tolerance with its tangent kept and its updates line-searched (``served_law_settings`` of the
+    checkpoint as ``trained``, None: ``ckpt`` is; ``ckpt`` as ``cfg``'s rollout.* steps it). Returns
+    {"hht": h (0: the data's rule), "step": the served step in words, "whole": {group: mean
+    whole-rollout error}, "worst": {group: the largest trajectory's}, "ms": ms a step,
     "unconverged": law steps left unconverged}, so that the accuracy of what a user feels stands
-    beside the data's rule's; {} where the model is not served otherwise (a note printed where
-    the scene's rule does not apply)."""
+    beside the data's rule's; {} where the model is served as evaluated (a note printed where the
+    scene's rule does not apply)."""
     h, note = served_law_hht(ckpt, OmegaConf.select(cfg, "scene", default=None), data.dataset)
     if note:
         print(f"evaluate: {note}: served at its data's rule")
-    if h is None:
+    want = served_law_settings(ckpt if trained is None else trained, cfg)
+    if h is not None:
+        want["prior_hht"] = h
+    if not want:
         return {}
-    served, _ = with_law_rollout(ckpt, {"prior_hht": h})
+    served, _ = with_law_rollout(ckpt, want)
     model = model_from_checkpoint(served, data.dataset).eval()
     model.prior.newton_taken.zero_()
     preds, _, _, ms, _ = _rollouts(model, data, trajs)
     whole = [trajectory_error(p, t.z, data.layout) for p, t in zip(preds, trajs)]
     groups = data.layout.names
-    return {"hht": h, "whole": _mean_groups(whole, groups),
+    return {"hht": h or 0.0, "step": law_phrase(served["prior"]), "whole": _mean_groups(whole, groups),
             "worst": {g: max(w[g] for w in whole) for g in groups}, "ms": ms,
             "unconverged": int(model.prior.newton_taken[2])}
 
 
 def served_sentence(served: dict, groups: list[str]) -> str:
     """One line for :func:`served_errors`' figures."""
-    return (f"as served (HHT's α = -{served['hht']:g}, the scene's scene.time.served_hht, which export gives the "
-            f"law): whole rollout " + ", ".join(f"{g} {_fmt(served['whole'][g])}" for g in groups)
+    return (f"as served (the law prior's step {served['step']}, as export gives it): whole rollout "
+            + ", ".join(f"{g} {_fmt(served['whole'][g])}" for g in groups)
             + " (the largest trajectory's " + ", ".join(f"{g} {_fmt(served['worst'][g])}" for g in groups)
             + f") at {served['ms']:.1f} ms a step" + (f", {served['unconverged']} law steps unconverged"
                                                      if served["unconverged"] else ""))
@@ -736,9 +742,10 @@ def evaluate(cfg) -> dict:
     where test trajectories repeat training ones up to a mirror of the mesh "test_repeats_train"
     (their number, :func:`repeated_cases`), and for a stress readout that ``train`` checked on
     held-out loads (``train.readout_folds``) "readout_held_out_sigma" / "readout_held_out_sigma_whole"
-    (``stress_readout.held_out_loads_check``, from the checkpoint), and for a law model whose scene
-    declares the rule it is served with (``scene.time.served_hht``) the test errors so stepped,
-    "served_hht", "served_whole_<group>", "served_ms_per_step", "served_unconverged_steps"
+    (``stress_readout.held_out_loads_check``, from the checkpoint), and for a law model that
+    export serves otherwise (its scene's ``scene.time.served_hht``; a law iterated to a tolerance:
+    its tangent kept, its updates line-searched) the test errors so stepped, "served_hht" (0: the
+    data's rule), "served_whole_<group>", "served_ms_per_step", "served_unconverged_steps"
     (:func:`served_errors`)}."""
     torch.set_num_threads(int(OmegaConf.select(cfg, "train.threads", default=2)))
     ckpt_path = project_path(cfg.paths.checkpoint)
@@ -754,6 +761,7 @@ def evaluate(cfg) -> dict:
     train_names = spread(data.split["train"], max_train)        # covering every load level
     for n in data.split["test"] + train_names:
         data.read(n)
+    trained_ckpt = ckpt
     ckpt, stepped = with_rollout(ckpt, cfg)
     if stepped:
         print(f"evaluate: stepping the trained model with {stepped}")
@@ -802,7 +810,7 @@ def evaluate(cfg) -> dict:
         mean_test["readout_held_out_sigma"] = readout_check["per_snapshot"]
         mean_test["readout_held_out_sigma_whole"] = readout_check["whole"]
     by_load = by_peak_load(loads, per_traj, whole_traj, groups)
-    served = served_errors(ckpt, cfg, data, test)               # as export serves it (scene.time.served_hht)
+    served = served_errors(ckpt, cfg, data, test, trained_ckpt)   # as export serves it (served_errors)
     linear = linear_baseline(data, test)
     linear_train = linear_baseline(data, train_trajs) if "snapshot" in linear else {}
     corotated = linear_baseline(data, test, corotated=True)
@@ -1121,7 +1129,7 @@ def evaluate(cfg) -> dict:
              "comes to rest):", "",
              "| split | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups),
              "| test | " + " | ".join(_fmt(whole[g]) for g in groups) + " |",
-             *([f"| test, as served (HHT α = -{served['hht']:g}) | " + " | ".join(_fmt(served["whole"][g]) for g in groups)
+             *(["| test, as served | " + " | ".join(_fmt(served["whole"][g]) for g in groups)
                 + " |"] if served else []), *linear_rows("whole"), "",
              *([served_sentence(served, groups) + " (`served_*` in `rrmse.json`).", ""] if served else []),
              *([data_time_sentence(data.dataset), ""] if data_time else []),
