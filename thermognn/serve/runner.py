@@ -230,7 +230,7 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
     passivity_work_J, passivity_absorbed_J (``thermognn.serve.passivity``), and for a body that
     carries its mesh body_largest_invariant, body_smallest_volume_ratio, body_steps_beyond_states,
     body_destroyed_steps, body_resets and body_warning (``thermognn.serve.health``),
-    served_rule_note ("" or ``served_rule_note``'s line), ...).
+    served_rule_note ("" or the lines of ``served_rule_note`` and ``served_step_note``), ...).
     """
     from thermognn import devices
 
@@ -272,9 +272,10 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
                 raise DataError(geometry["error"])
             if control[P.C_STOP]:
                 raise KeyboardInterrupt
-            rule_note = served_rule_note(geometry, model_path)
-            if rule_note:
-                print(f"thermognn serve: note: {rule_note}", file=sys.stderr, flush=True)
+            notes = [n for n in (served_rule_note(geometry, model_path), served_step_note(geometry, model_path)) if n]
+            for line in notes:
+                print(f"thermognn serve: note: {line}", file=sys.stderr, flush=True)
+            rule_note = "; ".join(notes)
             lo, hi = np.array(geometry["lo"]), np.array(geometry["hi"])
             top = 0.5 * (lo + hi)
             top[2] = hi[2] + params["tool_radius"] + 0.5 * (hi[2] - lo[2])
@@ -396,6 +397,24 @@ def served_rule_note(geometry: dict, model_path) -> str:
             f"serves it with HHT's α = -{float(hht):g} (scene.time.served_hht: the undamped liver collapsed "
             f"within 30 s of pressing, the damped one held 60 s); export it again (thermognn export) unless "
             f"rollout.prior_hht=0 was meant")
+
+
+def served_step_note(geometry: dict, model_path) -> str:
+    """One line where a law iterated to a tolerance is served with a fresh tangent at every Newton
+    update or without a line search, as files exported before session 97 are (``thermognn export``
+    now keeps the tangent and searches the updates: under the sim press the bunny's body stepped 5x
+    faster, and cut no step after the tool's release where the fresh, unsearched one took up to
+    16 s a step); "" otherwise (no law, a fixed Newton budget, or a file exported so already)."""
+    step = geometry.get("step_settings") or {}
+    if not step.get("law") or int(step.get("law_max") or step["law"]) <= int(step["law"]):
+        return ""
+    missing = [what for what, off in (("its tangent kept", step.get("law_tangent") != "kept"),
+                                      ("its updates line-searched", not step.get("law_search"))) if off]
+    if not missing:
+        return ""
+    return (f"{model_path} steps its law to a tolerance without {' or '.join(missing)}: export it again "
+            f"(thermognn export), which serves it so (the bunny's body 5x faster under the sim press, no step "
+            f"cut after a release), unless rollout.prior_tangent=fresh or rollout.prior_line_search=0 was meant")
 
 
 def _print_summary(summary: dict) -> None:
