@@ -7,8 +7,9 @@ For one mass m [kg] under Newmark's average-acceleration rule (implicit in its o
 steps from x = 1 for r = k_c dt² / m: the lagged load grows an undamped body's motion at every r
 (the lag does positive work each cycle), where the same load found at the Newmark predictor
 x + dt v + dt²/4 a stays bounded up to r = 4. The shell (dt 5 ms, a thin 20 g strip, the tool's
-300 N/m on a few grams: r ~ 1-4) rang up so under the sim device's press (docs/accuracy.md,
-session 97); the liver and the bunny are damped (Prony) and stiff beside k_c.
+300 N/m on a few grams: r ~ 1-4) chattered under the sim device's press and left its law's states;
+found at the predictor the contact still chattered there (unilateral, on a few light nodes), so
+this bilateral model is one mechanism, not the whole story (docs/accuracy.md, session 97).
 
     .venv/bin/python benchmarks/contact_lag.py
 """
