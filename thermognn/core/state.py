@@ -103,6 +103,13 @@ def describe_time_error(record) -> str:
             f"{int(record.get('fine_substeps', 2 * k))}; generate's check)")
 
 
+def law_iterates(step) -> bool:
+    """Whether a law prior's step settings (a checkpoint's ``prior`` or an exported file's ``step``
+    metadata: "law" Newton iterations at least, "law_max" at most) iterate each step to a tolerance
+    rather than take a fixed budget; False for any other model."""
+    return bool(step) and bool(step.get("law")) and int(step.get("law_max") or step["law"]) > int(step["law"])
+
+
 def describe_step(step) -> str:
     """How a model steps, in one phrase used by evaluate, export's metadata readers, serve and the
     benchmarks, from its step settings ({"integrator", "implicit_iterations", "kinematics"}, the

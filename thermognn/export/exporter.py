@@ -16,6 +16,7 @@ from thermognn.core.config import project_path
 from thermognn.core.errors import ConfigError, DataError
 from thermognn.core.io import atomic_path
 from thermognn.core.schema import Dataset
+from thermognn.core.state import law_iterates
 from thermognn.train.checkpoint import (load_checkpoint, model_from_checkpoint, model_step, served_law_hht,
                                         served_law_settings, torch_dtype, with_rollout)
 from thermognn.train.data import check_fingerprint, load_graph
@@ -215,7 +216,7 @@ def export(cfg) -> Path:
     if stepped:
         print(f"export: stepping the trained model with {stepped}")
     law = ckpt.get("prior") or {}
-    if law.get("law") and int(law.get("law_max") or 0) > int(law["law"]) and not law.get("law_cuts"):
+    if law_iterates(law) and not law.get("law_cuts"):
         print(f"export: note: a law step whose {int(law['law_max'])} Newton iterations run out before it converges "
               f"is taken as it stands (serve warns when one is); rollout.prior_step_cuts=4 halves it as the FE "
               f"does, which held the liver under the sim's default press (docs/accuracy.md, session 78)")

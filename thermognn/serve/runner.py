@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from thermognn.core.config import project_path, scene_served_hht
 from thermognn.core.errors import ConfigError, DataError, DeviceError, ThermoGNNError
 from thermognn.core.io import atomic_path
+from thermognn.core.state import law_iterates
 
 from . import protocol as P
 from .loop import haptic_main, period_statistics
@@ -406,7 +407,7 @@ def served_step_note(geometry: dict, model_path) -> str:
     faster, and cut no step after the tool's release where the fresh, unsearched one took up to
     16 s a step); "" otherwise (no law, a fixed Newton budget, or a file exported so already)."""
     step = geometry.get("step_settings") or {}
-    if not step.get("law") or int(step.get("law_max") or step["law"]) <= int(step["law"]):
+    if not law_iterates(step):
         return ""
     missing = [what for what, off in (("its tangent kept", step.get("law_tangent") != "kept"),
                                       ("its updates line-searched", not step.get("law_search"))) if off]

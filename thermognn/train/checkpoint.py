@@ -32,6 +32,7 @@ import torch
 
 from thermognn.core.errors import DataError
 from thermognn.core.io import atomic_path
+from thermognn.core.state import law_iterates
 
 FORMAT = "thermognn-checkpoint/1"
 REQUIRED = ("hparams", "dtype", "state_dict", "stats", "state_layout", "dt", "structure", "fingerprint")
@@ -244,7 +245,7 @@ def served_law_step(ckpt: dict) -> dict:
     from omegaconf import OmegaConf
 
     law = ckpt.get("prior") or {}
-    if not law.get("law") or int(law.get("law_max") or law["law"]) <= int(law["law"]):
+    if not law_iterates(law):
         return {}
     trained = OmegaConf.create(ckpt.get("config") or "{}")
     if str(OmegaConf.select(trained, "train.fit_target", default="exact")) == "budget":
