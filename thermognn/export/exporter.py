@@ -191,9 +191,11 @@ def served_step(cfg, ckpt: dict):
     law = ckpt["prior"]
     trained = {"prior_tangent": "fresh", "prior_line_search": 0, "prior_newton_rtol": law.get("law_rtol"),
                "prior_newton_max": law.get("law_max")}
-    said = " ".join(f"rollout.{k}={v:g}" if isinstance(v, float) else f"rollout.{k}={v}" for k, v in want.items())
-    undo = " ".join(f"rollout.{k}={trained[k]:g}" if isinstance(trained[k], float) else f"rollout.{k}={trained[k]}"
-                    for k in want)
+
+    def overrides(values: dict) -> str:                 # as typed on the command line
+        return " ".join(f"rollout.{k}={v:g}" if isinstance(v, float) else f"rollout.{k}={v}" for k, v in values.items())
+
+    said, undo = overrides(want), overrides({k: trained[k] for k in want})
     return served, (f"a law iterated to a tolerance is served with {said} (its steps converged as before, faster, "
                     f"and uncut after a sudden release: docs/stages.md; {undo} exports the step as trained)")
 

@@ -104,6 +104,7 @@ def hht_applies(beta: float, gamma: float, beta_k: float) -> bool:
     (β 1/4, γ 1/2, βK 0) is (``thermognn.train.checkpoint.served_law_hht`` asks it of a dataset)."""
     return beta == 0.25 and gamma == 0.5 and beta_k == 0.0
 
+
 #: ``set_rule`` values: the data's Newmark rule (with ``set_hht``'s dissipation where set), or the
 #: trapezoid with its step potential's discrete gradient (Simpson's rule)
 RULES = ("newmark", "energy")
