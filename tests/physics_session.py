@@ -15,16 +15,20 @@ from thermognn.serve.shm import VersionedBuffer
 
 class Recorder:
     """The exported module with a hand on the session (in this process): records every force
-    model published before a step and requests a stop after ``steps`` physics steps."""
+    model published (each step's: before it under the explicit coupling, after it under the
+    implicit one, whose last :meth:`collect` reads) and requests a stop after ``steps`` physics
+    steps, however many model calls a step makes (``implicit``: the session's serve.contact_coupling;
+    the explicit one's finite-difference step calls the model after a step)."""
 
-    def __init__(self, module, shared, steps: int, slow_calls: int = 0, slow_s: float = 0.0) -> None:
+    def __init__(self, module, shared, steps: int, slow_calls: int = 0, slow_s: float = 0.0,
+                 implicit: bool = True) -> None:
         self.module, self.z0, self.dt = module, module.z0, module.dt
         self.slow_calls, self.slow_s, self.calls = slow_calls, slow_s, 0   # a slow warm-up, if asked
         self.control = shared["control"]
         self.buf = VersionedBuffer(shared["model"], P.MODEL_PAYLOAD)
         self.payload = np.zeros(P.MODEL_PAYLOAD)
         self.published: list[np.ndarray] = []
-        self.steps = steps
+        self.steps, self.implicit = steps, implicit
 
     def __getattr__(self, name: str):
         """The module's own attributes (``core``: a law prior's step counts, ``law_step_counts``)."""
@@ -32,11 +36,16 @@ class Recorder:
             raise AttributeError(name)
         return getattr(self.module, name)
 
-    def __call__(self, z, f):
+    def collect(self) -> None:
+        """Record the force model published last, if it is new."""
         if self.buf.read(self.payload) and (not self.published
                                             or self.payload[P.M_VERSION] != self.published[-1][P.M_VERSION]):
             self.published.append(self.payload.copy())
-        if len(self.published) >= self.steps:                            # this is the last step
+
+    def __call__(self, z, f):
+        self.collect()
+        if (self.control[P.C_STEPS] >= self.steps - 1 if self.implicit    # this is the last step
+                else len(self.published) >= self.steps):
             P.request_stop(self.control, "duration")
         self.calls += 1
         if self.calls <= self.slow_calls:
@@ -59,7 +68,8 @@ def run_physics_here(model: Path, steps: int, tool_x, slow=(0, 0.0), **params):
         tool = np.zeros(P.TOOL_PAYLOAD)
         tool[P.T_X] = tool_x
         VersionedBuffer(shared["tool"], P.TOOL_PAYLOAD).publish(tool)
-        recorder = Recorder(module, shared, steps, *slow)
+        recorder = Recorder(module, shared, steps, *slow,
+                            implicit=params.get("contact_coupling", "implicit") == "implicit")
         layout = StateLayout.from_json(meta["state_layout"])
         params = {"stale_ms": 50.0, "model": str(model), **params}
         if "v" in layout.names:                              # as physics_main passes them
@@ -67,6 +77,7 @@ def run_physics_here(model: Path, steps: int, tool_x, slow=(0, 0.0), **params):
         import torch
         with torch.jit.optimized_execution(False):           # as serve's physics process steps it
             summary = run_physics(params, recorder, layout.slice("q"), contact, shared)
+        recorder.collect()
     finally:
         shared.close()
     return summary, np.array(recorder.published)

@@ -611,12 +611,16 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     assert short.finite and 0 < short.law_counts[2] <= short.law_counts[1] == 80, short.law_counts
     from physics_session import run_physics_here  # tests/physics_session.py
     summary, _ = run_physics_here(out / "short.pt", 30, [0.0, 0.0, 0.02 + 0.003 - 0.002], body_stiffness_every=1,
-                                  stale_ms=1e9)                         # FD steps never held off
+                                  stale_ms=1e9, contact_coupling="explicit")   # FD steps never held off
     assert summary["law_steps"] == 60 and 0 < summary["law_unconverged_steps"] <= 60, summary
     assert summary["fd_evaluations"] > 0 and summary["law_cut_steps"] == 0
     assert "did not converge" in summary["law_warning"] and "rollout.prior_step_cuts=4" in summary["law_warning"]
     err = capsys.readouterr().err
     assert err.count("thermognn serve: warning: the body's law step did not converge") == 1, err[-2000:]
+    # nor the implicit coupling's discarded trials (serve's default): its body steps alone count
+    implicit, _ = run_physics_here(out / "short.pt", 30, [0.0, 0.0, 0.02 + 0.003 - 0.002], stale_ms=1e9)
+    assert implicit["law_steps"] == 60 and implicit["contact_trials_per_step"] > 1.0, implicit
+    assert 0 < implicit["law_unconverged_steps"] <= 60 and implicit["fd_evaluations"] == 0
     # a tool held 2 mm into the top from the first step: 16 iterations to 1e-9 run out in some steps
     # (those steps, taken as they stand, ran the block away, session 78); cut as the FE cuts them,
     # down to Δt/16, every one converges; so too with the sub-steps loaded between the tool's loads

@@ -77,9 +77,10 @@ def test_serve_sim_press_produces_contact_and_ends_at_zero_force(sim_session):
     strongest = np.argmax(np.linalg.norm(rows[:, 4:7], axis=1))
     assert rows[strongest, 6] > 0.9 * np.linalg.norm(rows[strongest, 4:7])   # pressing down: pushed up
     assert rows[in_contact, 6].mean() > 0     # (passivity damping may pull a little while retracting)
-    # body stiffness in series with the contact (default: every 4 contact steps), step time reported
-    assert summary["body_fd_evaluations"] > 0 and summary["body_stiffness_mean_N_per_m"] > 0
-    assert 0 < summary["contact_K_scale_mean"] <= 1.0
+    # body stiffness in series with the contact, from the implicit coupling's trials (no FD step)
+    assert summary["contact_coupling"] == "implicit" and summary["body_fd_evaluations"] == 0
+    assert summary["body_stiffness_mean_N_per_m"] > 0 and 0 < summary["contact_K_scale_mean"] < 1.0
+    assert 1.0 <= summary["contact_trials_per_step"] <= 4.0 and summary["contact_steps"] > 0
     assert summary["physics_step_ms"] > 0 and isinstance(summary["physics_warning"], str)
     assert summary["model_step"] == "not recorded in the model file"     # the toy spring model has no step
 
@@ -391,9 +392,10 @@ def test_physics_publishes_contact_in_series_with_the_body(exported_model):
     """Tool pressed 2 mm into the top face: with body_stiffness_every=1 the published normal
     stiffness -tr K lies in (0, k_c] and drops below k_c once the body is measured (after the
     step-time check at step 10, from the second step of each contact on); the FD step is
-    discarded (same forces as without it)."""
+    discarded (same forces as without it). The explicit coupling's: the implicit one measures the
+    body on its own trials (the next test)."""
     press = [0.0, 0.0, 0.02 + 0.003 - 0.002]
-    summary, pub = _run_physics(exported_model, 40, press, body_stiffness_every=1)
+    summary, pub = _run_physics(exported_model, 40, press, body_stiffness_every=1, contact_coupling="explicit")
     contact = pub[:, P.M_CONTACT] > 0
     k_normal = -np.trace(pub[:, P.M_K].reshape(-1, 3, 3), axis1=1, axis2=2)    # K = -k_eff n n^T
     assert summary["steps"] == 40 and contact.sum() > 20
@@ -406,7 +408,7 @@ def test_physics_publishes_contact_in_series_with_the_body(exported_model):
     assert summary["fd_evaluations"] == (contact & after).sum() and summary["body_stiffness_mean_N_per_m"] > 0
     assert summary["fd_disabled"] == ""
     assert 0 < summary["k_scale_mean"] < 1.0
-    plain, pub0 = _run_physics(exported_model, 40, press, body_stiffness_every=0)
+    plain, pub0 = _run_physics(exported_model, 40, press, body_stiffness_every=0, contact_coupling="explicit")
     assert plain["fd_evaluations"] == 0 and plain["k_scale_mean"] == 1.0
     k0 = -np.trace(pub0[:, P.M_K].reshape(-1, 3, 3), axis1=1, axis2=2)
     assert k0[pub0[:, P.M_CONTACT] > 0] == pytest.approx(300.0)           # contact stiffness only
@@ -415,12 +417,13 @@ def test_physics_publishes_contact_in_series_with_the_body(exported_model):
 
 def test_body_stiffness_returns_after_a_slow_warm_up(exported_model):
     """The step-time check repeats every RECHECK_STEPS steps: a warm-up of 0.2 s steps (2 x 0.2 s
-    > 0.8 x 0.3 s) holds the FD step off at step 10, the fast steps after it let it back at step 60."""
+    > 0.8 x 0.3 s) holds the FD step off at step 10, the fast steps after it let it back at step 60.
+    One model call a step (the explicit coupling) so that the slow calls are the first ten steps."""
     from thermognn.serve.physics import RECHECK_STEPS, WARMUP_STEPS
     press = [0.0, 0.0, 0.02 + 0.003 - 0.002]
     steps = WARMUP_STEPS[1] + RECHECK_STEPS + 15
     summary, pub = _run_physics(exported_model, steps, press, slow=(WARMUP_STEPS[1], 0.2), body_stiffness_every=1,
-                                stale_ms=300.0)
+                                stale_ms=300.0, contact_coupling="explicit")
     assert summary["fd_off_checks"] == 1 and summary["fd_disabled"] == ""
     contact = pub[:, P.M_CONTACT] > 0
     back = np.arange(len(pub)) >= WARMUP_STEPS[1] + RECHECK_STEPS
@@ -430,11 +433,12 @@ def test_body_stiffness_returns_after_a_slow_warm_up(exported_model):
 def test_physics_warns_when_steps_come_near_stale_ms(exported_model, capsys):
     """The step-time check after steps 3..10 (thresholds chosen far from any real step time)."""
     far = [0.0, 0.0, 1.0]
-    summary, _ = _run_physics(exported_model, 12, far, body_stiffness_every=4, stale_ms=1e-6)
+    summary, _ = _run_physics(exported_model, 12, far, body_stiffness_every=4, stale_ms=1e-6,
+                              contact_coupling="explicit")
     warning = summary["warning"]
     assert str(exported_model) in warning and "serve.stale_ms" in warning and "model.hidden=32" in warning
     assert "serve.physics_threads" in warning
-    assert "finite-difference" in summary["fd_disabled"]      # two steps cannot fit either: FD off
+    assert "finite-difference" in summary["fd_disabled"]      # two steps cannot fit either: FD off (explicit)
     err = capsys.readouterr().err
     assert err.count("thermognn serve: warning:") == 1 and warning in err
     summary, _ = _run_physics(exported_model, 12, far, body_stiffness_every=4, stale_ms=1e9)

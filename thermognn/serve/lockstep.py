@@ -4,11 +4,12 @@ time, side by side, each against its own deformed surface (``benchmarks/serve_ac
 ``serve`` steps the physics flat out and samples the tool wherever the wall clock has it, so two
 sessions never see the same loads. Here the tool follows the sim device's path
 (``thermognn.devices.sim``) at body time instead: step k reads the tool at t_k = k Δt (Δt the
-model's own step), finds its contact with the model's current surface (``SurfaceContact``, the
-physics process's, with serve's tool radius, penalty stiffness and load radius) and steps the model
-with that contact's nodal loads, as ``run_physics`` does. What comes out per step is what the user
-would feel, f_k [3] N (the penalty force on the tool), and the body's displacement u_k = q_k − X
-[N, 3] m, with the model call's time.
+model's own step), finds its contact with the model's surface (``SurfaceContact``, the physics
+process's, with serve's tool radius, penalty stiffness and load radius) and steps the model with
+that contact's nodal loads, as ``run_physics`` does: by default the load the surface at the step's
+end meets (``thermognn.serve.coupling``), else the one the surface before the step met. What comes
+out per step is what the user would feel, f_k [3] N (the penalty force on the tool, the reaction to
+the body's load), and the body's displacement u_k = q_k − X [N, 3] m, with the body step's time.
 
 Two such rollouts of the same path, a served model's and a reference's (the law stepped to
 convergence, say), give the force error the served step's speed costs (:func:`compare`): each
@@ -30,7 +31,8 @@ from thermognn.core.state import StateLayout
 
 from .health import BodyHealth
 from .passivity import PassivityController
-from .physics import body_contact, law_step_counts, load_exported
+from .coupling import COUPLINGS, implicit_contact_step
+from .physics import CONTACT_ATOL, CONTACT_RTOL, CONTACT_TRIALS, ModelStep, body_contact, load_exported
 
 
 @dataclass
@@ -39,7 +41,7 @@ class PressRollout:
 
     times: np.ndarray         # [T] s: body time after each step (k Δt)
     tool: np.ndarray          # [T, 3] m: tool centre the step's contact was found at
-    force: np.ndarray         # [T, 3] N: contact force on the user before each step
+    force: np.ndarray         # [T, 3] N: contact force on the user over each step (the body's load's reaction)
     displacement: np.ndarray  # [T, N, 3] m: the body's displacement q − X after each step
     step_ms: np.ndarray       # [T] ms: each model call
     finite: bool              # every state finite (False: the rollout stopped where it was not)
@@ -51,6 +53,9 @@ class PressRollout:
                                            # cells_beyond_states; None: a model without cells
     resets: int = 0                        # steps that left crushed cells, the body reset to rest after
                                            # (``body_reset``, as serve does)
+    trials: np.ndarray | None = None       # [T] model steps each body step took (implicit coupling's trials;
+                                           # 1 each under the explicit one)
+    unsettled: int = 0                     # implicit coupling: body steps whose load missed its tolerance
 
     @property
     def healthy(self) -> bool:
@@ -70,7 +75,8 @@ class PressRollout:
 def press_rollout(model: str | Path, steps: int, path: str = "press", period: float = 2.0,
                   depth: float | None = None, tool_radius: float = 0.003, contact_stiffness: float = 300.0,
                   load_radius: float = 0.006, threads: int = 1, body_passivity: bool = True,
-                  body_reset: bool = True) -> PressRollout:
+                  body_reset: bool = True, coupling: str = "implicit", contact_rtol: float = CONTACT_RTOL,
+                  contact_trials: int = CONTACT_TRIALS) -> PressRollout:
     """Step the exported ``model`` ``steps`` times with the tool of the sim device's ``path``
     (its ``period`` [s] and ``depth`` [m] below the surface, None: 20 % of the body's height) read
     at body time k Δt; the contact as ``serve``'s physics process finds it (``tool_radius`` [m],
@@ -78,14 +84,20 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
     it (``body_passivity``: ``PassivityController``, its ``stats()`` in ``passivity``). A meshed
     body's health (``thermognn.serve.health.BodyHealth``) is recorded after every step (``health``)
     and, as serve does (``body_reset``), a step that leaves crushed or inverted cells sends the body
-    back to rest (counted in ``resets``; its health is recorded before the reset). Steps stop at a
-    state that is not finite."""
+    back to rest (counted in ``resets``; its health is recorded before the reset). The contact load
+    is found as serve finds it (``coupling``: "implicit", the load the surface at the step's end
+    meets, within ``contact_rtol`` in at most ``contact_trials`` model steps,
+    ``thermognn.serve.coupling``; "explicit", the one the surface before the step met); ``step_ms``
+    is a body step's time, its trials together, and ``law_counts`` counts the steps taken, not the
+    trials discarded. Steps stop at a state that is not finite."""
     import torch
 
     from thermognn.devices.sim import SimDevice
 
     if steps < 1:
         raise DataError(f"press_rollout: steps = {steps}, expected >= 1")
+    if coupling not in COUPLINGS:
+        raise DataError(f"press_rollout: coupling = {coupling!r}, expected one of {', '.join(COUPLINGS)}")
     torch.set_num_threads(int(threads))
     module, meta, buffers = load_exported(model)
     q_slice, contact = body_contact(model, meta, buffers, tool_radius, contact_stiffness, load_radius)
@@ -95,34 +107,52 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
     device.attach_surface(X[contact.surface_nodes], contact.surface_triangles())
     dt = float(buffers["dt"])
     z = module.z0.detach().clone()                                          # [N, D] carried state
-    times, tool, force, disp, ms = [], [], [], [], []
+    times, tool, force_list, disp, ms = [], [], [], [], []
     finite = True
-    counts0 = law_step_counts(module)
+    stepper = ModelStep(module)                                             # the model, its law counts per call
+    law = np.zeros(4, dtype=np.int64) if stepper.law else None
     passive = (PassivityController(module, z, StateLayout.from_json(meta["state_layout"]).slice("v"), q_slice)
-               if counts0 is not None and body_passivity else None)
+               if stepper.law and body_passivity else None)
     health = BodyHealth.of_module(module, X)
     record: dict[str, list] = {k: [] for k in ("inverted_cells", "crushed_cells", "smallest_volume_ratio",
                                                "largest_invariant", "cells_beyond_states")}
-    resets = 0
+    resets, unsettled, trials, slope, guess = 0, 0, [], 2.0, None
     f_prev = np.zeros_like(contact.loads)
+
+    def positions(state) -> np.ndarray:
+        return state[:, q_slice].numpy()
+
     with torch.jit.optimized_execution(False):                              # as run_physics steps it
         for k in range(steps):
             x = device.position_at(k * dt)
-            res = contact(x, z[:, q_slice].numpy())
-            f = torch.from_numpy(contact.loads).to(z.dtype)                 # [N, 3] N on the body
+            stepper.reset()
             ts = time.perf_counter()
-            z_prev, z = z, module(z, f).detach()
-            ms.append((time.perf_counter() - ts) * 1e3)                    # the model's step alone
+            if coupling == "implicit":                                      # the load the step's end meets
+                coupled = implicit_contact_step(stepper, positions, z, x, contact, slope, contact_rtol,
+                                                CONTACT_ATOL, contact_trials, guess)
+                guess = coupled.magnitude
+                z_prev, z, loads, force, chosen = z, coupled.z, coupled.loads, coupled.force, coupled.chosen
+                slope = coupled.slope
+                unsettled += int(coupled.magnitude > 0.0 and not coupled.converged(contact_rtol, CONTACT_ATOL))
+            else:                                                           # the load the surface before met
+                res = contact(x, positions(z))
+                loads, force, chosen = contact.loads.copy(), res.force, 0
+                z_prev, z = z, stepper(z, loads)
+            ms.append((time.perf_counter() - ts) * 1e3)                    # the body's step alone
+            trials.append(stepper.calls)
+            if law is not None:
+                law += stepper.counts[chosen]
             if passive is not None:
-                z = passive.step(z_prev, z, f_prev, contact.loads)
-                f_prev = contact.loads.copy()
+                z = passive.step(z_prev, z, f_prev, loads)
+                f_prev = loads
             if not bool(torch.isfinite(z).all()):
                 finite = False
                 ms.pop()
+                trials.pop()
                 break
             times.append((k + 1) * dt)
             tool.append(x.copy())
-            force.append(res.force.copy())
+            force_list.append(np.asarray(force, dtype=float).copy())
             disp.append(z[:, q_slice].numpy().astype(float) - X)
             if health is not None:
                 h = health(z[:, q_slice].numpy())
@@ -132,11 +162,11 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
                     z = module.z0.detach().clone()                          # passive: E falls to E_0
                     resets += 1
     n = len(times)
-    counts = None if counts0 is None else law_step_counts(module) - counts0
-    return PressRollout(np.asarray(times), np.asarray(tool).reshape(n, 3), np.asarray(force).reshape(n, 3),
-                        np.asarray(disp).reshape(n, len(X), 3), np.asarray(ms), finite, counts,
+    return PressRollout(np.asarray(times), np.asarray(tool).reshape(n, 3), np.asarray(force_list).reshape(n, 3),
+                        np.asarray(disp).reshape(n, len(X), 3), np.asarray(ms), finite, law,
                         None if passive is None else passive.stats(),
-                        None if health is None else {k: np.asarray(v) for k, v in record.items()}, resets)
+                        None if health is None else {k: np.asarray(v) for k, v in record.items()}, resets,
+                        np.asarray(trials, dtype=np.int64), unsettled)
 
 
 def force_envelope(force: np.ndarray, steps: int) -> np.ndarray:

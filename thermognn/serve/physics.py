@@ -1,12 +1,13 @@
 """The PHYSICS process: loads the exported TorchScript model and steps the body flat out.
 
-Every step: read the tool state (seqlock buffer), compute the contact with the current surface
-(``thermognn.serve.contact``, numpy), publish the local force model (f0 at x0, K = df/dx) for
-the haptic loop, then advance the state ``z = model(z, f)`` with the nodal contact load f
-[N, 3] (not under no_grad: the model uses autograd). NaN/Inf in z stops the session
-("physics_nan"). K is the contact spring in series with the body's own stiffness, measured
-by finite differences on the model (see ``run_physics``). torch is imported here only, inside
-the process.
+Every step: read the tool state (seqlock buffer), advance the state ``z = model(z, f)`` with the
+nodal contact load f [N, 3] the tool exerts on the surface the step ends at (secant trials of the
+model, ``thermognn.serve.coupling``; with ``serve.contact_coupling=explicit`` the load at the
+surface before the step, ``thermognn.serve.contact``), and publish the local force model (f0 at
+x0, K = df/dx) for the haptic loop (explicit: before the step). Not under no_grad: the model
+uses autograd. NaN/Inf in z stops the session ("physics_nan"). K is the contact spring in series
+with the body's own stiffness, measured on the trials (explicit: by finite differences on the
+model; see ``run_physics``). torch is imported here only, inside the process.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from thermognn.core.state import StateLayout, describe_step, describe_time_error
 
 from . import protocol as P
 from .contact import SurfaceContact, normal_compliance, series_stiffness
+from .coupling import implicit_contact_step
 from .health import BodyHealth, beyond_states_warning, destroyed_warning
 from .passivity import PassivityController
 from .shm import SharedArrays, VersionedBuffer
@@ -35,6 +37,9 @@ TIMING_WINDOW = 4096         # step times kept for the medians (the latest ones)
 WARMUP_STEPS = (3, 10)       # steps (1-based) whose median step time the first glitch check uses
 RECHECK_STEPS = 50           # then the check again every this many steps, on the latest ones' median
 STALE_MARGIN = 0.8           # warn when a publish gap exceeds this fraction of serve.stale_ms
+CONTACT_RTOL = 0.01          # serve.contact_rtol's default: the coupled load's relative tolerance
+CONTACT_ATOL = 1e-4          # [N] and its absolute one
+CONTACT_TRIALS = 4           # serve.contact_trials's default: the most model steps a coupled step tries
 BUFFERS = ("reference_positions", "z0", "edge_index", "node_type", "surface_faces", "dt")
 
 
@@ -138,6 +143,40 @@ def law_step_counts(module) -> np.ndarray | None:
     return None if counts is None else np.asarray(counts.detach().numpy(), dtype=np.int64).copy()
 
 
+class ModelStep:
+    """The exported model as :func:`thermognn.serve.coupling.implicit_contact_step`'s ``step``:
+    ``z' = module(z, loads)`` with nodal loads [N, 3] N as numpy, and a law prior's step counts
+    (``law_step_counts``) of each call since the latest :meth:`reset` in ``counts`` (empty for any
+    other model), so that the trials the coupling discards can be told from the step it takes;
+    ``calls`` counts the calls since then."""
+
+    def __init__(self, module) -> None:
+        self.module = module
+        self.law = law_step_counts(module) is not None
+        self.counts: list[np.ndarray] = []
+        self.calls = 0
+
+    def reset(self) -> None:
+        self.counts, self.calls = [], 0
+
+    def __call__(self, z, loads: np.ndarray):
+        import torch
+
+        before = law_step_counts(self.module) if self.law else None
+        out = self.module(z, torch.from_numpy(np.ascontiguousarray(loads)).to(z.dtype)).detach()
+        self.calls += 1
+        if before is not None:
+            self.counts.append(law_step_counts(self.module) - before)
+        return out
+
+    def discarded(self, chosen: int) -> np.ndarray | None:
+        """The law counts of every call since :meth:`reset` but the ``chosen`` one (None: not a law)."""
+        if not self.law:
+            return None
+        total = np.sum(self.counts, axis=0) if self.counts else np.zeros(4, dtype=np.int64)
+        return total - (self.counts[chosen] if self.counts else 0)
+
+
 def _law_warning(unconverged: int, steps: int, step: int) -> str:
     """One line for the first law step that has not converged (``law_step_counts``)."""
     return (f"the body's law step did not converge at model step {step} ({unconverged} of {steps} law steps so "
@@ -148,10 +187,20 @@ def _law_warning(unconverged: int, steps: int, step: int) -> str:
 def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, shared: SharedArrays) -> dict:
     """Step the model until a stop is requested; returns step statistics.
 
+    Contact load (``contact_coupling``): "implicit" (default) finds it at the step's end,
+    ``coupling.implicit_contact_step`` within ``contact_rtol`` in at most ``contact_trials`` model
+    calls, the slope g' carried from step to step; the trials it discards are left out of the law
+    counts below, a step's time counts them all, and the force model is published after the step
+    (f0 the reaction to the load taken, x0 the tool the step was found at). "explicit" finds it
+    at the surface before the step and publishes before it. The summary's ``contact_coupling``,
+    ``contact_steps`` (loaded steps), ``contact_trials_per_step``, ``contact_unsettled_steps`` and
+    ``contact_unsettled_max_N`` (loaded steps whose load missed the tolerance; the largest |g|).
+
     Published stiffness: the contact spring k_c = ``contact_stiffness`` [N/m] in series with the
     body, K = -k_eff n n^T, k_eff = k_c k_b / (k_c + k_b) (``contact.series_stiffness``). The
-    body's local stiffness k_b [N/m] over one physics step comes from finite differences on the
-    model: every ``body_stiffness_every`` contact steps (0: off, K = contact stiffness only; the
+    body's local stiffness k_b [N/m] over one physics step comes, under the implicit coupling, from
+    the trials' slope, k_b = k_c / (g' - 1), on every loaded step that took two or more; under the
+    explicit one from finite differences on the model: every ``body_stiffness_every`` contact steps (0: off, K = contact stiffness only; the
     first contact step always), one extra step from the same z with the nodal loads scaled by
     (1 + FD_EPS); k_b = FD_EPS |f| / du with du the load-weighted inward normal displacement
     difference of the loaded nodes (``contact.normal_compliance``, du <= 0 or not finite:
@@ -173,7 +222,7 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     put in, the excess leaves its kinetic energy;
     ``passivity_steps`` and ``passivity_removed_J`` in the summary say how often and how much.
 
-    A law-prior model's steps are counted (``law_step_counts``, the FD steps left out):
+    A law-prior model's steps are counted (``law_step_counts``, FD steps and discarded trials left out):
     ``law_steps``, ``law_unconverged_steps``, ``law_cut_steps`` and ``law_iterations`` in the
     summary; the first law step that has not converged puts a one-line warning on stderr and in
     ``law_warning``.
@@ -208,7 +257,7 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     control[P.C_PHYSICS_T0] = t0
     control[P.C_PHYSICS_STATE] = 1
     step_time = 0.0
-    times = np.zeros(TIMING_WINDOW)                      # latest unperturbed model step times [s]
+    times = np.zeros(TIMING_WINDOW)                      # latest body step times [s] (a step's trials together)
     fd_times = np.zeros(TIMING_WINDOW)                   # latest FD step times [s]
     n_fd = 0                                             # FD evaluations
     k_body: float | None = None                          # latest body stiffness [N/m] (None: not measured)
@@ -221,12 +270,21 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     parent = os.getppid()
     law_base = law_step_counts(module)                   # None: not a law prior
     law_now = law_base
-    law_fd = None if law_base is None else np.zeros_like(law_base)   # what the FD steps added
+    law_fd = None if law_base is None else np.zeros_like(law_base)   # what FD steps and discarded trials added
     law_warning = ""
     passive = None                                       # the body kept passive (law priors: passivity.py)
     if law_base is not None and params.get("body_passivity", True):
         passive = PassivityController(module, z, params["velocity"], q_slice)
     f_prev = np.zeros_like(contact.loads)
+    implicit = params.get("contact_coupling", "implicit") == "implicit"
+    rtol = float(params.get("contact_rtol", CONTACT_RTOL))
+    max_trials = int(params.get("contact_trials", CONTACT_TRIALS))
+    stepper, slope, guess = ModelStep(module), 2.0, None
+    trials, n_coupled, n_unsettled, unsettled_max = 0, 0, 0, 0.0
+
+    def positions(state) -> np.ndarray:
+        return state[:, q_slice].numpy()
+
     health = BodyHealth.of_module(module, module.reference_positions.detach().cpu().numpy())   # None: no cells
     reset = bool(params.get("body_reset", True))
     body = {"largest": 0.0, "smallest_j": 1.0, "beyond": 0, "destroyed": 0, "resets": 0, "warning": ""}
@@ -257,7 +315,11 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
                 "fd_evaluations": n_fd, "fd_rigid": n_rigid,
                 "body_stiffness_mean_N_per_m": k_body_sum / n_k_body if n_k_body else float("nan"),
                 "k_scale_mean": scale_sum / n_scale if n_scale else float("nan"), "warning": warning,
-                "fd_disabled": fd_disabled, "fd_off_checks": fd_off_checks, **law_stats(), **body_stats(),
+                "fd_disabled": fd_disabled, "fd_off_checks": fd_off_checks,
+                "contact_coupling": "implicit" if implicit else "explicit",
+                "contact_trials_per_step": trials / step if implicit and step else float("nan"),
+                "contact_unsettled_steps": n_unsettled, "contact_unsettled_max_N": unsettled_max,
+                "contact_steps": n_coupled, **law_stats(), **body_stats(),
                 **({} if passive is None else passive.stats())}
 
     while control[P.C_STOP] == 0:
@@ -266,31 +328,57 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
             break
         tool_buf.read(tool)
         x = tool[P.T_X]
-        q = z[:, q_slice].detach().numpy()               # [N, 3] current positions
-        res = contact(x, q)
-        f_mag = float(np.linalg.norm(res.force))
-        pressing = res.in_contact and f_mag > 0.0
+        z_prev = z
+        if implicit:                                     # the load the surface at the step's end meets
+            stepper.reset()
+            ts = time.perf_counter()
+            coupled = implicit_contact_step(stepper, positions, z_prev, x, contact, slope, rtol, CONTACT_ATOL,
+                                            max_trials, guess)
+            elapsed = time.perf_counter() - ts
+            z, res, loads, force = coupled.z, coupled.contact, coupled.loads, coupled.force
+            slope, guess = coupled.slope, coupled.magnitude
+            trials += coupled.steps
+            if coupled.magnitude > 0.0 and coupled.measured:   # the body's stiffness over this step
+                k_body = k_c / (slope - 1.0) if slope > 1.0 else float("inf")
+                if np.isfinite(k_body):
+                    k_body_sum += k_body
+                    n_k_body += 1
+                else:
+                    n_rigid += 1
+            if coupled.magnitude > 0.0:
+                n_coupled += 1
+                if not coupled.converged(rtol, CONTACT_ATOL):
+                    n_unsettled += 1
+                    unsettled_max = max(unsettled_max, abs(coupled.residual))
+            if law_base is not None:                     # the discarded trials' counts are not the body's
+                law_fd += stepper.discarded(coupled.chosen)
+        else:                                            # the load the surface before the step meets
+            res = contact(x, z_prev[:, q_slice].detach().numpy())
+            loads, force = contact.loads.copy(), res.force
+        f_mag = float(np.linalg.norm(force))
+        pressing = f_mag > 0.0
         if not pressing:
             k_body, since_fd = None, 0                   # contact lost: measure afresh next time
         scale = 1.0 if k_body is None else series_stiffness(k_c, k_body) / k_c   # k_b / (k_c + k_b)
+        normal = force / f_mag if pressing else res.normal
         if pressing:
             scale_sum += scale
             n_scale += 1
         payload[P.M_VERSION] = step + 1
         payload[P.M_STEP] = step
         payload[P.M_TIME] = time.perf_counter()
-        payload[P.M_F0] = res.force
+        payload[P.M_F0] = force
         payload[P.M_X0] = x
-        payload[P.M_K] = (scale * res.stiffness).reshape(-1)
-        payload[P.M_CONTACT] = 1.0 if res.in_contact else 0.0
-        payload[P.M_DEPTH] = res.depth
+        payload[P.M_K] = (-scale * k_c * np.outer(normal, normal) if pressing else np.zeros((3, 3))).reshape(-1)
+        payload[P.M_CONTACT] = 1.0 if pressing else 0.0
+        payload[P.M_DEPTH] = f_mag / k_c if pressing else res.depth
         model_buf.publish(payload)
 
-        f = torch.from_numpy(contact.loads).to(dtype)    # [N, 3] nodal load on the body
-        z_prev = z
-        ts = time.perf_counter()
-        z = module(z_prev, f).detach()
-        elapsed = time.perf_counter() - ts
+        f = torch.from_numpy(loads).to(dtype)            # [N, 3] nodal load on the body
+        if not implicit:
+            ts = time.perf_counter()
+            z = module(z_prev, f).detach()
+            elapsed = time.perf_counter() - ts
         step_time += elapsed
         times[step % TIMING_WINDOW] = elapsed
         if not bool(torch.isfinite(z).all()):
@@ -298,8 +386,8 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
             return {"steps": step, "nan_at_step": step + 1, "elapsed_s": time.perf_counter() - t0,
                     "model_time_s": step_time, **stats()}
         if passive is not None:                           # never more energy out than the tool put in
-            z = passive.step(z_prev, z, f_prev, contact.loads)
-            f_prev = contact.loads.copy()
+            z = passive.step(z_prev, z, f_prev, loads)
+            f_prev = loads
         step += 1
         if health is not None:                            # cells still cells, within the law's states
             h = health(z[:, q_slice].numpy())
@@ -326,7 +414,7 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
                 law_warning = _law_warning(int(counted[2]), int(counted[1]), step)
                 print(f"thermognn serve: warning: {law_warning}", file=sys.stderr, flush=True)
 
-        if pressing and every > 0 and step > WARMUP_STEPS[1] and not fd_disabled:
+        if pressing and every > 0 and step > WARMUP_STEPS[1] and not fd_disabled and not implicit:
             since_fd += 1
             if k_body is None or since_fd >= every:      # body stiffness by finite differences
                 ts = time.perf_counter()
@@ -338,8 +426,7 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
                     law_now = after
                 n_fd += 1
                 since_fd = 0
-                du = normal_compliance(z[:, q_slice].numpy(), z_pert[:, q_slice].numpy(), contact.loads,
-                                       res.normal)
+                du = normal_compliance(z[:, q_slice].numpy(), z_pert[:, q_slice].numpy(), loads, normal)
                 if np.isfinite(du) and du > 0.0:
                     k_body = FD_EPS * f_mag / du
                     k_body_sum += k_body
@@ -358,7 +445,7 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
                     print(f"thermognn serve: warning: {warning}", file=sys.stderr, flush=True)
             limit_ms = STALE_MARGIN * float(params["stale_ms"])
             fd_disabled = ""
-            if every > 0 and 2.0 * step_ms > limit_ms:
+            if every > 0 and not implicit and 2.0 * step_ms > limit_ms:
                 fd_off_checks += 1
                 fd_disabled = (f"a model step takes {step_ms:.1f} ms: with a finite-difference step the gap "
                                f"between force models would pass {limit_ms:.0f} ms (0.8 serve.stale_ms)")

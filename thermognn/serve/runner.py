@@ -26,6 +26,7 @@ from thermognn.core.io import atomic_path
 from thermognn.core.state import law_iterates
 
 from . import protocol as P
+from .coupling import COUPLINGS
 from .loop import haptic_main, period_statistics
 from .physics import physics_main
 
@@ -66,6 +67,9 @@ def _serve_params(cfg: DictConfig) -> dict:
         "spin_us": num("spin_us", positive=False),
         "threads": int(num("physics_threads")),
         "body_stiffness_every": int(num("body_stiffness_every", positive=False)),
+        "contact_coupling": str(OmegaConf.select(s, "contact_coupling", default="implicit")),
+        "contact_rtol": num("contact_rtol"),
+        "contact_trials": OmegaConf.select(s, "contact_trials"),
         "realtime": bool(s.realtime_physics),
         "body_passivity": flag("body_passivity", True),
         "body_reset": flag("body_reset", True),
@@ -74,6 +78,11 @@ def _serve_params(cfg: DictConfig) -> dict:
     }
     if params["body_stiffness_every"] < 0 or params["body_stiffness_every"] != s.body_stiffness_every:
         raise ConfigError(f"serve.body_stiffness_every = {s.body_stiffness_every!r}, expected an integer >= 0")
+    if params["contact_coupling"] not in COUPLINGS:
+        raise ConfigError(f"serve.contact_coupling = {s.contact_coupling!r}, expected one of {', '.join(COUPLINGS)}")
+    trials = params["contact_trials"]
+    if isinstance(trials, bool) or not isinstance(trials, int) or trials < 1:
+        raise ConfigError(f"serve.contact_trials = {trials!r}, expected an integer >= 1")
     params["max_force_step"] = None if s.max_force_step is None else num("max_force_step")
     options = OmegaConf.to_container(s.device_options, resolve=True) if s.device_options else {}
     if params["device"] == "sim":
@@ -222,9 +231,12 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
 
     Returns the summary dict (loop_rate_hz, period_p50/p99/p999_ms, worst_gap_ms,
     physics_rate_hz, max_force_N, max_force_step_N, contact_ticks, final_force_N, exit_reason,
-    physics_step_ms (median model step), body_fd_evaluations, contact_K_scale_mean (published K
-    over contact stiffness), body_fd_disabled ("" or why the body-stiffness FD was off at the end),
-    body_fd_off_checks (step-time checks that held it off),
+    physics_step_ms (median body step, its coupling trials together), body_fd_evaluations,
+    contact_K_scale_mean (published K over contact stiffness), body_fd_disabled ("" or why the
+    body-stiffness FD was off at the end), body_fd_off_checks (step-time checks that held it off), contact_coupling (serve.contact_coupling),
+    contact_steps (body steps the implicit coupling loaded), contact_trials_per_step (its model calls
+    a body step), contact_unsettled_steps and contact_unsettled_max_N (loaded steps whose load missed
+    serve.contact_rtol within serve.contact_trials, and the largest such miss |g| [N]),
     physics_warning ("" or the step-time warning), and for a law-prior model law_steps,
     law_unconverged_steps, law_cut_steps, law_iterations and law_warning ("" or the first
     unconverged step's line), and with ``body_passivity`` passivity_steps, passivity_removed_J,
@@ -360,6 +372,11 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
         physics_warning=str(physics_summary.get("warning", "")),
         body_fd_disabled=str(physics_summary.get("fd_disabled", "")),
         body_fd_off_checks=int(physics_summary.get("fd_off_checks", 0)),
+        contact_coupling=str(physics_summary.get("contact_coupling", params["contact_coupling"])),
+        contact_steps=int(physics_summary.get("contact_steps", 0)),
+        contact_trials_per_step=float(physics_summary.get("contact_trials_per_step", float("nan"))),
+        contact_unsettled_steps=int(physics_summary.get("contact_unsettled_steps", 0)),
+        contact_unsettled_max_N=float(physics_summary.get("contact_unsettled_max_N", 0.0)),
         **{k: physics_summary[k] for k in ("law_steps", "law_unconverged_steps", "law_cut_steps",
                                            "law_iterations", "law_warning", "passivity_steps",
                                            "passivity_removed_J", "passivity_work_J", "passivity_absorbed_J")
