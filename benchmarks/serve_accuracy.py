@@ -20,7 +20,8 @@ The reference is typically the same law-prior model stepped to convergence (expo
 same export with ``rollout.remainders=zero`` is its law alone, without the network, so that row is
 what the network adds under the tool (docs/accuracy.md, session 78). Any
 further arguments are config overrides for serve's contact (``serve.tool_radius``,
-``serve.contact_stiffness``, ``serve.load_radius``, which follows ``scene=...``'s load radius).
+``serve.contact_stiffness``, ``serve.load_radius``, which follows ``scene=...``'s load radius, and
+``serve.contact_coupling``, ``serve.contact_rtol``, ``serve.contact_trials``).
 Prints figures, asserts nothing; docs/accuracy.md (session 77) quotes them.
 """
 
@@ -54,7 +55,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
 
     cfg = load_config(list(overrides))
     contact = {"tool_radius": float(cfg.serve.tool_radius), "contact_stiffness": float(cfg.serve.contact_stiffness),
-               "load_radius": float(cfg.serve.load_radius)}
+               "load_radius": float(cfg.serve.load_radius), "coupling": str(cfg.serve.contact_coupling),
+               "contact_rtol": float(cfg.serve.contact_rtol), "contact_trials": int(cfg.serve.contact_trials)}
     dt = float(load_exported(args.reference)[2]["dt"])
     seconds = args.period if args.seconds is None else args.seconds
     steps = max(1, int(round(seconds / dt)))
@@ -62,7 +64,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     run = dict(steps=steps, path=args.path, period=args.period, depth=args.depth, threads=args.threads, **contact)
     print(f"serve accuracy: path {args.path}, period {args.period:g} s, {steps} steps of {dt:g} s, "
           f"tool radius {contact['tool_radius']:g} m, contact {contact['contact_stiffness']:g} N/m, "
-          f"load radius {contact['load_radius']:g} m, {args.threads} thread(s); the force's envelope over "
+          f"load radius {contact['load_radius']:g} m, {contact['coupling']} coupling, {args.threads} thread(s); "
+          f"the force's envelope over "
           f"{envelope_steps} steps")
     reference = press_rollout(args.reference, **run)
     rows = []
