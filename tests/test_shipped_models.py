@@ -266,3 +266,27 @@ def test_shipped_learned_law_follows_fresh_fe_cases_within_2_percent(tmp_path, l
         assert f"scene '{ckpt['scene']}' serves its law with HHT's dissipation α = -{hht:g}" in res.stdout
         step = verify(out / "model.pt")["step"]
         assert step["law_hht"] == hht and step["law_tangent"] == "kept" and step["law_search"] == 6, step
+    if not viscous:                                   # the undamped shell under serve's tool (session 98)
+        # exported as served and pressed by the sim device's default press for one period (400
+        # steps of 5 ms), serve's passivity and health on: with the contact load found at the end
+        # of each step (serve's implicit coupling) the shell stays within its law's states, its
+        # passivity never acts, every law step converges and the force is smooth; found before
+        # each step (explicit) it chattered between 0 and 2.4 N and was crushed (session 97)
+        from thermognn.serve.lockstep import force_envelope, press_rollout
+
+        out = tmp_path / "served"
+        out.mkdir()
+        shutil.copy(ROOT / "models" / law / "model.ckpt", out / "model.ckpt")
+        res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={out}",
+                              f"paths.dataset={tmp_path / 'dataset.h5'}", "train.threads=1",
+                              "train.export_optimized=false"], capture_output=True, text=True, timeout=1800)
+        assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+        pressed = press_rollout(out / "model.pt", 400, load_radius=0.008)
+        assert pressed.finite and pressed.healthy and pressed.resets == 0, pressed.health
+        assert pressed.first_step("cells_beyond_states") is None and pressed.unsettled == 0
+        assert pressed.passivity["passivity_steps"] == 0 and pressed.law_counts[2] == 0, pressed.passivity
+        force = np.linalg.norm(pressed.force, axis=1)                  # [400] N
+        assert 0.3 < force.max() < 1.0 and 1.0 < pressed.trials.mean() < 2.5, (force.max(), pressed.trials.mean())
+        envelope = force_envelope(pressed.force, 21)                    # over 100 ms
+        assert np.linalg.norm(pressed.force - envelope) < 0.1 * np.linalg.norm(envelope)
+        assert np.abs(np.diff(force)).max() < 0.1                      # [N] a step
