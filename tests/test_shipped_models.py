@@ -255,7 +255,9 @@ def test_shipped_learned_law_follows_fresh_fe_cases_within_2_percent(tmp_path, l
             assert served["whole"][group] != pytest.approx(mean), (group, served)
         else:
             assert served["whole"][group] <= 1.05 * mean + 1e-8, (group, served, mean)
-    if hht:                                           # exported so by the CLI (the liver's)
+
+    def export_as_served() -> tuple[Path, str]:
+        """The shipped law exported by the CLI as export serves it (tmp_path/served/model.pt); its stdout."""
         out = tmp_path / "served"
         out.mkdir()
         shutil.copy(ROOT / "models" / law / "model.ckpt", out / "model.ckpt")
@@ -263,8 +265,12 @@ def test_shipped_learned_law_follows_fresh_fe_cases_within_2_percent(tmp_path, l
                               f"paths.dataset={tmp_path / 'dataset.h5'}", "train.threads=1",
                               "train.export_optimized=false"], capture_output=True, text=True, timeout=1800)
         assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
-        assert f"scene '{ckpt['scene']}' serves its law with HHT's dissipation α = -{hht:g}" in res.stdout
-        step = verify(out / "model.pt")["step"]
+        return out / "model.pt", res.stdout
+
+    if hht:                                           # exported so by the CLI (the liver's)
+        exported, stdout = export_as_served()
+        assert f"scene '{ckpt['scene']}' serves its law with HHT's dissipation α = -{hht:g}" in stdout
+        step = verify(exported)["step"]
         assert step["law_hht"] == hht and step["law_tangent"] == "kept" and step["law_search"] == 6, step
     if not viscous:                                   # the undamped shell under serve's tool (session 98)
         # exported as served and pressed by the sim device's default press for one period (400
@@ -274,14 +280,7 @@ def test_shipped_learned_law_follows_fresh_fe_cases_within_2_percent(tmp_path, l
         # each step (explicit) it chattered between 0 and 2.4 N and was crushed (session 97)
         from thermognn.serve.lockstep import force_envelope, press_rollout
 
-        out = tmp_path / "served"
-        out.mkdir()
-        shutil.copy(ROOT / "models" / law / "model.ckpt", out / "model.ckpt")
-        res = subprocess.run([sys.executable, "-m", "thermognn.cli", "export", f"out={out}",
-                              f"paths.dataset={tmp_path / 'dataset.h5'}", "train.threads=1",
-                              "train.export_optimized=false"], capture_output=True, text=True, timeout=1800)
-        assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
-        pressed = press_rollout(out / "model.pt", 400, load_radius=0.008)
+        pressed = press_rollout(export_as_served()[0], 400, load_radius=0.008)
         assert pressed.finite and pressed.healthy and pressed.resets == 0, pressed.health
         assert pressed.first_step("cells_beyond_states") is None and pressed.unsettled == 0
         assert pressed.passivity["passivity_steps"] == 0 and pressed.law_counts[2] == 0, pressed.passivity
