@@ -15,10 +15,9 @@ from thermognn.serve.shm import VersionedBuffer
 
 class Recorder:
     """The exported module with a hand on the session (in this process): records every force
-    model published (each step's: before it under the explicit coupling, after it under the
-    implicit one, whose last :meth:`collect` reads) and requests a stop after ``steps`` physics
-    steps, however many model calls a step makes (``implicit``: the session's serve.contact_coupling;
-    the explicit one's finite-difference step calls the model after a step)."""
+    model published before a step and requests a stop after ``steps`` physics steps, however many
+    model calls a step makes (``implicit``: the session's serve.contact_coupling, whose trials call
+    the model several times a step; the explicit one's finite-difference step calls it after one)."""
 
     def __init__(self, module, shared, steps: int, slow_calls: int = 0, slow_s: float = 0.0,
                  implicit: bool = True) -> None:

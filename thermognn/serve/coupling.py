@@ -20,10 +20,12 @@ which the body would overshoot), then secant updates kept inside the bracket fou
 bisection), until |g| <= rtol f + atol or ``max_steps`` steps; the step taken is the trial with
 the smallest |g|. A tool that meets a surface still out of reach takes one step (no load), as does
 a press on a body at rest; a body moving under the tool takes about two (the shell, the liver and
-the bunny under the sim press: 1.5-1.7 a step over a press, the steps out of reach included). The slope g' measured over two trials also gives the body's
-stiffness over the step, k_b = 1 / c_b = k_c / (g' - 1) [N/m], and the series scale of the contact
-stiffness, k_eff / k_c = 1 / g' (``contact.series_stiffness``), without the extra finite-difference
-step the explicit coupling needs for it.
+the bunny under the sim press: 1.5-1.7 a step over a press, the steps out of reach included).
+The slope g' measured over two trials also gives the body's stiffness over the step,
+k_b = 1 / c_b = k_c / (g' - 1) [N/m], and the series scale of the contact stiffness,
+k_eff / k_c = 1 / g' (``contact.series_stiffness``), without the extra finite-difference step
+the explicit coupling needs for it. The force the user feels is still the tool's penalty against
+the surface as it is before each step (serve publishes it before the step, as it did).
 
 The pattern is the contact's at the start of the step (or, with no contact there, at the end of
 the unloaded step): the tool's point on the surface moves little in one step, and the step stays
@@ -59,7 +61,8 @@ class CoupledStep:
 
     @property
     def force(self) -> np.ndarray:
-        """[3] N the force on the user: the reaction to the load the body took."""
+        """[3] N the reaction to the load the body took (serve publishes the tool's contact with the
+        surface before the step instead: the force model for the tool where it is now)."""
         return -self.loads.sum(axis=0)
 
     def converged(self, rtol: float, atol: float) -> bool:

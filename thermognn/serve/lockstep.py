@@ -8,8 +8,9 @@ model's own step), finds its contact with the model's surface (``SurfaceContact`
 process's, with serve's tool radius, penalty stiffness and load radius) and steps the model with
 that contact's nodal loads, as ``run_physics`` does: by default the load the surface at the step's
 end meets (``thermognn.serve.coupling``), else the one the surface before the step met. What comes
-out per step is what the user would feel, f_k [3] N (the penalty force on the tool, the reaction to
-the body's load), and the body's displacement u_k = q_k − X [N, 3] m, with the body step's time.
+out per step is what the user would feel, f_k [3] N (the penalty force on the tool against the
+surface before the step, the force model serve publishes), and the body's displacement
+u_k = q_k − X [N, 3] m, with the body step's time.
 
 Two such rollouts of the same path, a served model's and a reference's (the law stepped to
 convergence, say), give the force error the served step's speed costs (:func:`compare`): each
@@ -41,7 +42,7 @@ class PressRollout:
 
     times: np.ndarray         # [T] s: body time after each step (k Δt)
     tool: np.ndarray          # [T, 3] m: tool centre the step's contact was found at
-    force: np.ndarray         # [T, 3] N: contact force on the user over each step (the body's load's reaction)
+    force: np.ndarray         # [T, 3] N: contact force on the user before each step (serve's published f0)
     displacement: np.ndarray  # [T, N, 3] m: the body's displacement q − X after each step
     step_ms: np.ndarray       # [T] ms: each model call
     finite: bool              # every state finite (False: the rollout stopped where it was not)
@@ -127,16 +128,15 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
             x = device.position_at(k * dt)
             stepper.reset()
             ts = time.perf_counter()
+            force = contact(x, positions(z)).force                          # what the user feels (serve publishes it)
             if coupling == "implicit":                                      # the load the step's end meets
                 coupled = implicit_contact_step(stepper, positions, z, x, contact, slope, contact_rtol,
                                                 CONTACT_ATOL, contact_trials, guess)
-                guess = coupled.magnitude
-                z_prev, z, loads, force, chosen = z, coupled.z, coupled.loads, coupled.force, coupled.chosen
-                slope = coupled.slope
+                z_prev, z, loads, chosen = z, coupled.z, coupled.loads, coupled.chosen
+                slope, guess = coupled.slope, coupled.magnitude
                 unsettled += int(coupled.magnitude > 0.0 and not coupled.converged(contact_rtol, CONTACT_ATOL))
             else:                                                           # the load the surface before met
-                res = contact(x, positions(z))
-                loads, force, chosen = contact.loads.copy(), res.force, 0
+                loads, chosen = contact.loads.copy(), 0
                 z_prev, z = z, stepper(z, loads)
             ms.append((time.perf_counter() - ts) * 1e3)                    # the body's step alone
             trials.append(stepper.calls)

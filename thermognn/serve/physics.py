@@ -1,13 +1,14 @@
 """The PHYSICS process: loads the exported TorchScript model and steps the body flat out.
 
-Every step: read the tool state (seqlock buffer), advance the state ``z = model(z, f)`` with the
-nodal contact load f [N, 3] the tool exerts on the surface the step ends at (secant trials of the
-model, ``thermognn.serve.coupling``; with ``serve.contact_coupling=explicit`` the load at the
-surface before the step, ``thermognn.serve.contact``), and publish the local force model (f0 at
-x0, K = df/dx) for the haptic loop (explicit: before the step). Not under no_grad: the model
-uses autograd. NaN/Inf in z stops the session ("physics_nan"). K is the contact spring in series
-with the body's own stiffness, measured on the trials (explicit: by finite differences on the
-model; see ``run_physics``). torch is imported here only, inside the process.
+Every step: read the tool state (seqlock buffer), compute the contact with the current surface
+(``thermognn.serve.contact``, numpy), publish the local force model (f0 at x0, K = df/dx) for
+the haptic loop, then advance the state ``z = model(z, f)`` with the nodal contact load f [N, 3]
+the tool exerts on the surface the step ends at (secant trials of the model,
+``thermognn.serve.coupling``; with ``serve.contact_coupling=explicit`` the load at the surface
+before the step). Not under no_grad: the model uses autograd. NaN/Inf in z stops the session
+("physics_nan"). K is the contact spring in series with the body's own stiffness, measured on
+the trials (explicit: by finite differences on the model; see ``run_physics``). torch is
+imported here only, inside the process.
 """
 
 from __future__ import annotations
@@ -190,9 +191,11 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     Contact load (``contact_coupling``): "implicit" (default) finds it at the step's end,
     ``coupling.implicit_contact_step`` within ``contact_rtol`` in at most ``contact_trials`` model
     calls, the slope g' carried from step to step; the trials it discards are left out of the law
-    counts below, a step's time counts them all, and the force model is published after the step
-    (f0 the reaction to the load taken, x0 the tool the step was found at). "explicit" finds it
-    at the surface before the step and publishes before it. The summary's ``contact_coupling``,
+    counts below and a step's time counts them all. "explicit" applies the load at the surface
+    before the step. Either way the force model is published before the step: the tool's penalty
+    against the surface as it is (published after a slow step, x0 would be the tool of long ago and
+    f0 + K (x - x0) would be extrapolated far: the liver in real time felt at most 0.1 N). The
+    summary's ``contact_coupling``,
     ``contact_steps`` (loaded steps), ``contact_trials_per_step``, ``contact_unsettled_steps`` and
     ``contact_unsettled_max_N`` (loaded steps whose load missed the tolerance; the largest |g|).
 
@@ -200,8 +203,8 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     body, K = -k_eff n n^T, k_eff = k_c k_b / (k_c + k_b) (``contact.series_stiffness``). The
     body's local stiffness k_b [N/m] over one physics step comes, under the implicit coupling, from
     the trials' slope, k_b = k_c / (g' - 1), on every loaded step that took two or more; under the
-    explicit one from finite differences on the model: every ``body_stiffness_every`` contact steps (0: off, K = contact stiffness only; the
-    first contact step always), one extra step from the same z with the nodal loads scaled by
+    explicit one from finite differences on the model: every ``body_stiffness_every`` contact
+    steps (0: off, K = contact stiffness only; the first contact step always), one extra step from the same z with the nodal loads scaled by
     (1 + FD_EPS); k_b = FD_EPS |f| / du with du the load-weighted inward normal displacement
     difference of the loaded nodes (``contact.normal_compliance``, du <= 0 or not finite:
     rigid). The perturbed step is discarded; its k_b applies from the next publish on and is
@@ -329,38 +332,14 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
         tool_buf.read(tool)
         x = tool[P.T_X]
         z_prev = z
-        if implicit:                                     # the load the surface at the step's end meets
-            stepper.reset()
-            ts = time.perf_counter()
-            coupled = implicit_contact_step(stepper, positions, z_prev, x, contact, slope, rtol, CONTACT_ATOL,
-                                            max_trials, guess)
-            elapsed = time.perf_counter() - ts
-            z, res, loads, force = coupled.z, coupled.contact, coupled.loads, coupled.force
-            slope, guess = coupled.slope, coupled.magnitude
-            trials += coupled.steps
-            if coupled.magnitude > 0.0 and coupled.measured:   # the body's stiffness over this step
-                k_body = k_c / (slope - 1.0) if slope > 1.0 else float("inf")
-                if np.isfinite(k_body):
-                    k_body_sum += k_body
-                    n_k_body += 1
-                else:
-                    n_rigid += 1
-            if coupled.magnitude > 0.0:
-                n_coupled += 1
-                if not coupled.converged(rtol, CONTACT_ATOL):
-                    n_unsettled += 1
-                    unsettled_max = max(unsettled_max, abs(coupled.residual))
-            if law_base is not None:                     # the discarded trials' counts are not the body's
-                law_fd += stepper.discarded(coupled.chosen)
-        else:                                            # the load the surface before the step meets
-            res = contact(x, z_prev[:, q_slice].detach().numpy())
-            loads, force = contact.loads.copy(), res.force
+        res = contact(x, z_prev[:, q_slice].detach().numpy())   # the tool against the surface now
+        force = res.force
         f_mag = float(np.linalg.norm(force))
-        pressing = f_mag > 0.0
+        pressing = res.in_contact and f_mag > 0.0
         if not pressing:
             k_body, since_fd = None, 0                   # contact lost: measure afresh next time
         scale = 1.0 if k_body is None else series_stiffness(k_c, k_body) / k_c   # k_b / (k_c + k_b)
-        normal = force / f_mag if pressing else res.normal
+        normal = res.normal
         if pressing:
             scale_sum += scale
             n_scale += 1
@@ -369,11 +348,36 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
         payload[P.M_TIME] = time.perf_counter()
         payload[P.M_F0] = force
         payload[P.M_X0] = x
-        payload[P.M_K] = (-scale * k_c * np.outer(normal, normal) if pressing else np.zeros((3, 3))).reshape(-1)
-        payload[P.M_CONTACT] = 1.0 if pressing else 0.0
-        payload[P.M_DEPTH] = f_mag / k_c if pressing else res.depth
+        payload[P.M_K] = (scale * res.stiffness).reshape(-1)
+        payload[P.M_CONTACT] = 1.0 if res.in_contact else 0.0
+        payload[P.M_DEPTH] = res.depth
         model_buf.publish(payload)
 
+        if implicit:                                     # the load the surface at the step's end meets
+            stepper.reset()
+            ts = time.perf_counter()
+            coupled = implicit_contact_step(stepper, positions, z_prev, x, contact, slope, rtol, CONTACT_ATOL,
+                                            max_trials, guess)
+            elapsed = time.perf_counter() - ts
+            z, loads = coupled.z, coupled.loads
+            slope, guess = coupled.slope, coupled.magnitude
+            trials += coupled.steps
+            if coupled.magnitude > 0.0:
+                n_coupled += 1
+                if not coupled.converged(rtol, CONTACT_ATOL):
+                    n_unsettled += 1
+                    unsettled_max = max(unsettled_max, abs(coupled.residual))
+                if coupled.measured and pressing:        # the body's stiffness over the step, from the next publish
+                    k_body = k_c / (slope - 1.0) if slope > 1.0 else float("inf")
+                    if np.isfinite(k_body):
+                        k_body_sum += k_body
+                        n_k_body += 1
+                    else:
+                        n_rigid += 1
+            if law_base is not None:                     # the discarded trials' counts are not the body's
+                law_fd += stepper.discarded(coupled.chosen)
+        else:                                            # the load the surface before the step meets
+            loads = contact.loads.copy()
         f = torch.from_numpy(loads).to(dtype)            # [N, 3] nodal load on the body
         if not implicit:
             ts = time.perf_counter()
