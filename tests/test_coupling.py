@@ -63,8 +63,8 @@ def test_the_load_is_the_one_the_surface_at_the_step_end_meets():
     assert step.steps == 3 and step.chosen == 2 and step.measured
     assert step.magnitude == pytest.approx(K_C * 0.002 / (1 + K_C * c), rel=1e-9)
     assert step.converged(1e-9, 1e-12) and abs(step.residual) < 1e-9
-    assert step.force == pytest.approx([0.0, 0.0, step.magnitude], rel=1e-12, abs=1e-15)   # pushes the tool up
-    assert step.loads.sum(axis=0) == pytest.approx(-step.force)
+    reaction = -step.loads.sum(axis=0)                                   # [3] N on the tool: pushes it up
+    assert reaction == pytest.approx([0.0, 0.0, step.magnitude], rel=1e-12, abs=1e-15)
     assert step.z[0] == pytest.approx(-c * step.magnitude, rel=1e-9)
     assert step.slope == pytest.approx(1 + K_C * c, rel=1e-6)          # k_b = k_c / (g' - 1) = 1 / c
     assert step.contact.depth == pytest.approx(step.magnitude / K_C, rel=1e-6)

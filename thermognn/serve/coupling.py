@@ -51,19 +51,13 @@ class CoupledStep:
 
     z: Any                   # the body's state after the step (what ``step`` returned for the chosen load)
     contact: ContactResult   # the tool's contact with the surface the step ends at
-    loads: np.ndarray        # [N, 3] N: the nodal load the step took (its sum: minus the force on the user)
+    loads: np.ndarray        # [N, 3] N: the nodal load the step took (its sum: minus its reaction on the tool)
     magnitude: float         # f [N]: the load's magnitude
     residual: float          # g(f) [N]: the load less the contact force it ends at (0: consistent)
     steps: int               # model steps taken (trials)
     chosen: int              # which of them (0-based) is the step taken
     slope: float             # g' = 1 + k_c c_b (>= 1) seen over the trials, else the one passed in
     measured: bool = False   # whether ``slope`` was seen over this step's trials (two with g' >= 1)
-
-    @property
-    def force(self) -> np.ndarray:
-        """[3] N the reaction to the load the body took (serve publishes the tool's contact with the
-        surface before the step instead: the force model for the tool where it is now)."""
-        return -self.loads.sum(axis=0)
 
     def converged(self, rtol: float, atol: float) -> bool:
         """Whether |g| <= rtol f + atol."""

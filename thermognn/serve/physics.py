@@ -333,20 +333,18 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
         x = tool[P.T_X]
         z_prev = z
         res = contact(x, z_prev[:, q_slice].detach().numpy())   # the tool against the surface now
-        force = res.force
-        f_mag = float(np.linalg.norm(force))
+        f_mag = float(np.linalg.norm(res.force))
         pressing = res.in_contact and f_mag > 0.0
         if not pressing:
             k_body, since_fd = None, 0                   # contact lost: measure afresh next time
         scale = 1.0 if k_body is None else series_stiffness(k_c, k_body) / k_c   # k_b / (k_c + k_b)
-        normal = res.normal
         if pressing:
             scale_sum += scale
             n_scale += 1
         payload[P.M_VERSION] = step + 1
         payload[P.M_STEP] = step
         payload[P.M_TIME] = time.perf_counter()
-        payload[P.M_F0] = force
+        payload[P.M_F0] = res.force
         payload[P.M_X0] = x
         payload[P.M_K] = (scale * res.stiffness).reshape(-1)
         payload[P.M_CONTACT] = 1.0 if res.in_contact else 0.0
@@ -378,8 +376,7 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
                 law_fd += stepper.discarded(coupled.chosen)
         else:                                            # the load the surface before the step meets
             loads = contact.loads.copy()
-        f = torch.from_numpy(loads).to(dtype)            # [N, 3] nodal load on the body
-        if not implicit:
+            f = torch.from_numpy(loads).to(dtype)        # [N, 3] nodal load on the body
             ts = time.perf_counter()
             z = module(z_prev, f).detach()
             elapsed = time.perf_counter() - ts
@@ -430,7 +427,7 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
                     law_now = after
                 n_fd += 1
                 since_fd = 0
-                du = normal_compliance(z[:, q_slice].numpy(), z_pert[:, q_slice].numpy(), loads, normal)
+                du = normal_compliance(z[:, q_slice].numpy(), z_pert[:, q_slice].numpy(), loads, res.normal)
                 if np.isfinite(du) and du > 0.0:
                     k_body = FD_EPS * f_mag / du
                     k_body_sum += k_body
