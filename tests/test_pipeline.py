@@ -593,12 +593,13 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     off = compare(served, converged)
     assert 0.0 < off["force"] < 0.5 and 0.0 < off["displacement"] < 1.0 and off["steps"] == 40, off
     # what the network adds under the press: the converged law alone against it with the network;
-    # each steps its law twice a model step (one network sweep and the final step), each converged
-    # (a fixed budget always is)
+    # with the network each steps its law twice a model step (one network sweep and the final
+    # step), the law alone once (its sweep would step it over again), each converged (a fixed
+    # budget always is)
     alone = press_rollout(out / "law_alone.pt", **press)
     share = compare(alone, converged)
     assert share["steps"] == 40 and 0.0 < share["force"] < 0.05, share
-    assert alone.law_counts[1] == converged.law_counts[1] == served.law_counts[1] == 80
+    assert 2 * alone.law_counts[1] == converged.law_counts[1] == served.law_counts[1] == 80
     assert alone.law_counts[2] == converged.law_counts[2] == served.law_counts[2] == 0
     # a law step whose iterations run out before it converges is taken as it stands: counted, and
     # serve's physics process warns once, naming the remedies (FD steps not counted)

@@ -253,8 +253,9 @@ def test_shipped_learned_law_follows_fresh_fe_cases_within_2_percent(tmp_path, l
         assert 0 < served["worst"][group] <= 0.02, (group, served)
         if hht:                                   # another rule: other errors; else the converged law's
             assert served["whole"][group] != pytest.approx(mean), (group, served)
-        else:
-            assert served["whole"][group] <= 1.05 * mean + 1e-8, (group, served, mean)
+        else:   # within 1e-4 of it: the kept tangent's chords stop at the tolerance on the update, short
+            # of the root (the shell's v 1.8e-5 -> 5.6e-5 once a law alone steps once a model step, session 99)
+            assert served["whole"][group] <= 1.05 * mean + 1e-4, (group, served, mean)
 
     def export_as_served() -> tuple[Path, str]:
         """The shipped law exported by the CLI as export serves it (tmp_path/served/model.pt); its stdout."""

@@ -378,12 +378,18 @@ class LinearPriorModel(nn.Module):
         f1_rows = self.prior.gather(f1)
         f0_rows = self.start_loads(f0)
         G1 = G
-        for _ in range(self.sweeps):
-            u1, v1, _a1, h1 = self.prior.step(u, v, a, f1_rows, G, G1, h, f0_rows)
-            z1 = self.state(u1, v1, H, h1)
-            if self.correction:
-                z1 = self.correction_view(z1, u, v, u1)
-            G1, H = self.remainders(z1, f1, edge_index, node_type, ref_pos, create_graph, rest_rates)
+        if self.learned:
+            for _ in range(self.sweeps):
+                u1, v1, _a1, h1 = self.prior.step(u, v, a, f1_rows, G, G1, h, f0_rows)
+                z1 = self.state(u1, v1, H, h1)
+                if self.correction:
+                    z1 = self.correction_view(z1, u, v, u1)
+                G1, H = self.remainders(z1, f1, edge_index, node_type, ref_pos, create_graph, rest_rates)
+        elif self.sweeps > 0:
+            # the prior alone (``rollout.remainders = zero``): the sweep's remainders are zero
+            # wherever it would step, so its step would be the final one over again (the law's
+            # whole cost twice a model step until session 99); the final step alone is taken
+            G1, H = torch.zeros_like(G), torch.zeros_like(H)
         u1, v1, a1, h1 = self.prior.step(u, v, a, f1_rows, G, G1, h, f0_rows)
         return u1, v1, a1, G1, H, h1
 
