@@ -19,6 +19,7 @@ import pytest
 from thermognn.core.config import load_config
 from thermognn.core.errors import ConfigError, DataError, DeviceError
 from thermognn.serve import serve
+from thermognn.serve.runner import REALTIME_WARN, realtime_warning
 from thermognn.serve.contact import (SurfaceContact, closest_points_on_triangles, normal_compliance,
                                     series_stiffness)
 from thermognn.serve.loop import Blender
@@ -83,6 +84,22 @@ def test_serve_sim_press_produces_contact_and_ends_at_zero_force(sim_session):
     assert 1.0 <= summary["contact_trials_per_step"] <= 4.0 and summary["contact_steps"] > 0
     assert summary["physics_step_ms"] > 0 and isinstance(summary["physics_warning"], str)
     assert summary["model_step"] == "not recorded in the model file"     # the toy spring model has no step
+    # the body's time against the wall's, and the warning where it lags (realtime_warning)
+    assert summary["body_time_ratio"] > 0
+    assert bool(summary["realtime_warning"]) == (summary["body_time_ratio"] < REALTIME_WARN), summary
+
+
+def test_serve_warns_where_the_body_lags_real_time():
+    """A body whose time runs at under half of real time is named in one line: how much slower,
+    what that does to the tool's speed in its time, and on how many ticks in contact the force
+    reached the device; none at real time, at half of it or without two steps."""
+    line = realtime_warning(0.0434, 0.02, 11866, 848, 50.0, 45)
+    assert line.startswith("the body's time ran at 0.043 of real time (45 steps of Δt = 20 ms, 23x slower)"), line
+    assert "the tool moved 23x faster in the body's time" in line and "\n" not in line
+    assert "on 848 of 11866 ticks in contact" in line and "serve.stale_ms = 50 ms" in line
+    assert "ticks in contact" not in realtime_warning(0.1, 0.005, 0, 0, 50.0, 296)      # never in contact
+    for ratio, steps in ((1.0, 100), (REALTIME_WARN, 100), (0.01, 1), (float("nan"), 100)):
+        assert realtime_warning(ratio, 0.02, 10, 5, 50.0, steps) == "", (ratio, steps)
 
 
 def test_serve_replay_of_a_session_log(sim_session, exported_model, tmp_path):

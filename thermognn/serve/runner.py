@@ -243,7 +243,9 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
     passivity_work_J, passivity_absorbed_J (``thermognn.serve.passivity``), and for a body that
     carries its mesh body_largest_invariant, body_smallest_volume_ratio, body_steps_beyond_states,
     body_destroyed_steps, body_resets and body_warning (``thermognn.serve.health``),
-    served_rule_note ("" or the lines of ``served_rule_note`` and ``served_step_note``), ...).
+    served_rule_note ("" or the lines of ``served_rule_note`` and ``served_step_note``),
+    body_time_ratio (the body's seconds a wall second: physics_rate_hz times its Δt) and
+    realtime_warning ("" or ``realtime_warning``'s line, also on stderr), ...).
     """
     from thermognn import devices
 
@@ -387,13 +389,47 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
         served_rule_note=rule_note,
         haptic_scheduler=str(haptic_summary.get("scheduler", "")),
         haptic_torch_loaded=bool(haptic_summary.get("torch_loaded", False)),
+        body_time_ratio=float(steps * float(geometry.get("dt", 0.0)) / phys_span) if phys_span > 0 else 0.0,
         wall_s=time.perf_counter() - t_wall,
         log=str(log_path),
     )
+    summary["realtime_warning"] = realtime_warning(summary["body_time_ratio"], float(geometry.get("dt", 0.0)),
+                                                   summary["contact_ticks"], summary["contact_force_ticks"],
+                                                   params["stale_ms"], int(steps))
+    if summary["realtime_warning"]:
+        print(f"thermognn serve: warning: {summary['realtime_warning']}", file=sys.stderr, flush=True)
     shared.close()
     write_session_log(log_path, rows, summary)
     _print_summary(summary)
     return summary
+
+
+#: ``realtime_warning``: below this share of real time a session's body is said to lag the hand
+REALTIME_WARN = 0.5
+
+
+def realtime_warning(ratio: float, dt: float, contact_ticks: int, force_ticks: int, stale_ms: float,
+                     steps: int) -> str:
+    """One line where the body's time ran at less than ``REALTIME_WARN`` of real time over a
+    session (``ratio``: body seconds a wall second, ``body_time_ratio``; ``dt`` [s] its step;
+    ``steps`` its body steps, two at least), else "". The physics process steps the body as fast
+    as it can against the tool where the hand is now, so a body at 1/r of real time sees the tool
+    move r times faster in its own time than the hand moved: its inertia and viscosity resist
+    r times the speed they would (session 99: the liver's law under `serve` on a 2-core CPU took
+    2.2 body steps of Δt = 20 ms a second, 23x slower than real time; stepped in lockstep,
+    ``thermognn.serve.lockstep.press_rollout``, the sim press 20x faster, as such a body sees it,
+    peaked at 6.7 N against 2.3 N at its own pace), and a step slower
+    than ``stale_ms`` leaves the haptic loop a stale force model that its watchdog fades
+    (``contact_ticks`` and ``force_ticks``: the ticks in contact and those with a force)."""
+    if steps < 2 or dt <= 0.0 or not ratio < REALTIME_WARN:
+        return ""
+    slower = 1.0 / ratio if ratio > 0 else float("inf")
+    felt = (f"; the force reached the device on {force_ticks} of {contact_ticks} ticks in contact (the watchdog "
+            f"fades a force model older than serve.stale_ms = {stale_ms:g} ms)" if contact_ticks else "")
+    return (f"the body's time ran at {ratio:.2g} of real time ({steps} steps of Δt = {dt * 1e3:g} ms, "
+            f"{slower:.3g}x slower): the tool moved {slower:.3g}x faster in the body's time than the hand did, "
+            f"so its inertia and viscosity resisted faster motion than the hand's{felt}; a faster body step "
+            f"(its median is physics_step_ms) is what serves this body in real time")
 
 
 def served_rule_note(geometry: dict, model_path) -> str:
