@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from thermognn.serve.contact import SurfaceContact
-from thermognn.serve.coupling import implicit_contact_step
+from thermognn.serve.coupling import ContactCoupling, implicit_contact_step
 
 X = np.array([[-0.05, -0.05, 0.0], [0.05, -0.05, 0.0], [0.05, 0.05, 0.0], [-0.05, 0.05, 0.0], [0.0, 0.0, -0.05]])
 FACES = np.array([[0, 1, 2], [0, 2, 3]])
@@ -98,19 +98,42 @@ def test_an_undamped_body_held_by_the_tool_keeps_its_energy_where_the_late_load_
     e0 = energy(rest, h)
     c = contact()
     for rtol, atol, drift in ((1e-12, 1e-15, 1e-9), (0.01, 1e-4, 0.02)):
-        z, slope, guess, trials = rest, 2.0, None, []
+        z, trials = rest, []                   # ContactCoupling carries the slope and the load between steps
+        coupler = ContactCoupling(plate_step, plate_positions, c, "implicit", rtol, atol, 6)
         for _ in range(2000):
-            step = implicit_contact_step(plate_step, plate_positions, z, tool(h), c, slope, rtol, atol, 6, guess)
-            z, slope, guess = step.z, step.slope, step.magnitude
+            assert coupler.begin(z, tool(h)).in_contact
+            step = coupler.step()
+            z = step.z
             trials.append(step.steps)
             assert step.contact.in_contact
         assert energy(z, h) == pytest.approx(e0, rel=drift), rtol
-        assert np.mean(trials) <= 2.01, rtol
-    late = rest
+        assert np.mean(trials) <= 2.01 and coupler.calls == sum(trials) and coupler.loaded == 2000, rtol
+        assert coupler.unsettled <= 2000 and coupler.unsettled_max <= 0.05 * K_C * 0.002, rtol
+    # the body's one-step stiffness from a step whose trials measured the slope: 1 / c
+    c_b = DT * DT / 4 / (M + K * DT * DT / 4)                        # [m/N]
+    coupler = ContactCoupling(plate_step, plate_positions, c, "implicit", 1e-12, 1e-15)
+    coupler.begin(np.zeros(3), tool(h))
+    assert coupler.body_stiffness(coupler.step()) == pytest.approx(1 / c_b, rel=1e-6)
+    late, coupler = rest, ContactCoupling(plate_step, plate_positions, c, "explicit")
     for _ in range(2000):
-        res = c(tool(h), plate_positions(late))
-        late = plate_step(late, c.loads.copy())
-    assert energy(late, h) > 2.0 * e0
+        res = coupler.begin(late, tool(h))
+        step = coupler.step()                  # one call, the load found before the step
+        assert step.steps == 1 and step.magnitude == pytest.approx(np.linalg.norm(res.force), rel=1e-12)
+        assert coupler.body_stiffness(step) is None
+        late = step.z
+    assert energy(late, h) > 2.0 * e0 and coupler.calls == 0      # (the implicit steps' counts only)
+
+
+def test_the_coupling_steps_only_from_a_state_it_has_begun_at():
+    coupler = ContactCoupling(plate_step, plate_positions, contact())
+    with pytest.raises(RuntimeError, match="begin"):
+        coupler.step()
+    coupler.begin(np.zeros(3), tool(R - 0.002))
+    coupler.step()
+    with pytest.raises(RuntimeError, match="begin"):              # once a step
+        coupler.step()
+    with pytest.raises(ValueError, match="coupling = 'late'"):
+        ContactCoupling(plate_step, plate_positions, contact(), "late")
 
 
 def test_a_step_that_is_not_finite_is_returned_at_once():

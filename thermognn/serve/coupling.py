@@ -27,7 +27,9 @@ k_eff / k_c = 1 / g' (``contact.series_stiffness``), without the extra finite-di
 the explicit coupling needs for it. The force the user feels is still the tool's penalty against
 the surface as it is before each step (serve publishes it before the step, as it did).
 
-The pattern is the contact's at the start of the step (or, with no contact there, at the end of
+:class:`ContactCoupling` carries the slope, the previous load and the counts from step to step,
+for serve's physics process and ``lockstep.press_rollout`` alike (and applies the explicit
+coupling's load). The pattern is the contact's at the start of the step (or, with no contact there, at the end of
 the unloaded step): the tool's point on the surface moves little in one step, and the step stays
 one model call per trial.
 """
@@ -66,21 +68,26 @@ class CoupledStep:
 
 def implicit_contact_step(step: Callable[[Any, np.ndarray], Any], positions: Callable[[Any], np.ndarray], z: Any,
                           x: np.ndarray, contact: SurfaceContact, slope: float = 2.0, rtol: float = 0.01,
-                          atol: float = 1e-4, max_steps: int = 4, guess: float | None = None) -> CoupledStep:
+                          atol: float = 1e-4, max_steps: int = 4, guess: float | None = None,
+                          begun: tuple[ContactResult, np.ndarray] | None = None) -> CoupledStep:
     """Step the body ``z`` once with the tool centred at ``x`` [3] m pressing the surface the step ends at.
 
     ``step(z, loads)`` is one model step with nodal loads [N, 3] N; ``positions(z)`` the state's
     positions [N, 3] m; ``contact`` the tool's :class:`SurfaceContact`; ``slope`` the first
     secant's g' (>= 1; the previous call's ``CoupledStep.slope``); ``rtol``, ``atol`` [N] the
     tolerance on g; ``max_steps`` (>= 1) the most trials; ``guess`` [N] the first trial's load where
-    the tool presses at the start (the previous call's ``magnitude``; None or 0: f_start / slope).
+    the tool presses at the start (the previous call's ``magnitude``; None or 0: f_start / slope);
+    ``begun`` the contact at the start and its nodal loads [N, 3] N where the caller has found them
+    (``contact(x, positions(z))`` and a copy of ``contact.loads``; None: found here).
     See the module docstring.
     """
     if max_steps < 1:
         raise ValueError(f"max_steps = {max_steps}, expected >= 1")
     slope = max(float(slope), 1.0) if np.isfinite(slope) else 2.0
-    start = contact(x, positions(z))
-    zero = np.zeros_like(contact.loads)
+    if begun is None:
+        begun = contact(x, positions(z)), contact.loads.copy()
+    start, start_loads = begun
+    zero = np.zeros_like(start_loads)
     trials: list[tuple[float, float, Any, ContactResult]] = []          # (f, g, z, contact at the end)
 
     def trial(f: float) -> bool:
@@ -96,7 +103,7 @@ def implicit_contact_step(step: Callable[[Any, np.ndarray], Any], positions: Cal
 
     if start.in_contact:
         f_start = float(np.linalg.norm(start.force))                     # k_c (r - s) at the start
-        pattern = contact.loads / f_start                               # [N, 3] 1/N
+        pattern = start_loads / f_start                                 # [N, 3] 1/N
         f0 = f_start / slope if not guess else float(guess)   # (f_start / g': the root for a surface at rest)
     else:                                                               # the unloaded step first
         f0, pattern = 0.0, zero
@@ -136,3 +143,64 @@ def implicit_contact_step(step: Callable[[Any, np.ndarray], Any], positions: Cal
             slope, measured = (g1 - g2) / (f1 - f2), True
     f, g, z1, res = trials[best]
     return CoupledStep(z1, res, f * pattern if f > 0.0 else zero, f, g, len(trials), best, slope, measured)
+
+
+class ContactCoupling:
+    """The tool's contact load on a served body, step after step, as serve's physics process
+    (``physics.run_physics``) and ``lockstep.press_rollout`` both apply it.
+
+    Each body step is :meth:`begin` (the tool at x [3] m against the surface as it is: the force
+    serve publishes before the step) then :meth:`step`. ``coupling`` "implicit" finds the load at
+    the step's end (:func:`implicit_contact_step`, within ``rtol`` f + ``atol`` [N] in at most
+    ``max_steps`` calls of ``step``), the slope g' and the load carried from step to step;
+    "explicit" applies the load found at the start, one call. ``step(z, loads)`` is one model step
+    with nodal loads [N, 3] N, ``positions(z)`` the state's positions [N, 3] m. Counted over the
+    implicit steps: ``calls`` (model calls), ``loaded`` (steps with a load), ``unsettled`` and
+    ``unsettled_max`` [N] (loaded steps whose load missed the tolerance, the largest |g|)."""
+
+    def __init__(self, step: Callable[[Any, np.ndarray], Any], positions: Callable[[Any], np.ndarray],
+                 contact: SurfaceContact, coupling: str = "implicit", rtol: float = 0.01, atol: float = 1e-4,
+                 max_steps: int = 4) -> None:
+        if coupling not in COUPLINGS:
+            raise ValueError(f"coupling = {coupling!r}, expected one of {', '.join(COUPLINGS)}")
+        self.model_step, self.positions, self.contact = step, positions, contact
+        self.implicit = coupling == "implicit"
+        self.rtol, self.atol, self.max_steps = float(rtol), float(atol), int(max_steps)
+        self.slope, self.guess = 2.0, None           # carried between implicit steps
+        self.calls = self.loaded = self.unsettled = 0
+        self.unsettled_max = 0.0
+        self._begun: tuple[Any, np.ndarray, ContactResult, np.ndarray] | None = None
+
+    def begin(self, z: Any, x: np.ndarray) -> ContactResult:
+        """The tool centred at ``x`` [3] m against the surface of the body ``z`` as it is: the
+        start of the next :meth:`step` (its loads kept for it)."""
+        res = self.contact(x, self.positions(z))
+        self._begun = (z, np.array(x, dtype=float), res, self.contact.loads.copy())
+        return res
+
+    def step(self) -> CoupledStep:
+        """One body step from the state :meth:`begin` saw."""
+        if self._begun is None:
+            raise RuntimeError("ContactCoupling.step: begin(z, x) first")
+        z, x, start, loads = self._begun
+        self._begun = None
+        if not self.implicit:                        # the load the surface before the step met
+            f = float(np.linalg.norm(start.force))
+            return CoupledStep(self.model_step(z, loads), start, loads, f, float("nan"), 1, 0, self.slope)
+        coupled = implicit_contact_step(self.model_step, self.positions, z, x, self.contact, self.slope, self.rtol,
+                                        self.atol, self.max_steps, self.guess, (start, loads))
+        self.slope, self.guess = coupled.slope, coupled.magnitude
+        self.calls += coupled.steps
+        if coupled.magnitude > 0.0:
+            self.loaded += 1
+            if not coupled.converged(self.rtol, self.atol):
+                self.unsettled += 1
+                self.unsettled_max = max(self.unsettled_max, abs(coupled.residual))
+        return coupled
+
+    def body_stiffness(self, coupled: CoupledStep) -> float | None:
+        """The body's stiffness k_b = k_c / (g' - 1) [N/m] over an implicit step whose trials
+        measured the slope (inf: g' = 1, rigid), else None."""
+        if not (self.implicit and coupled.measured):
+            return None
+        return self.contact.k / (coupled.slope - 1.0) if coupled.slope > 1.0 else float("inf")

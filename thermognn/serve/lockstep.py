@@ -32,7 +32,7 @@ from thermognn.core.state import StateLayout
 
 from .health import BodyHealth
 from .passivity import PassivityController
-from .coupling import COUPLINGS, implicit_contact_step
+from .coupling import COUPLINGS, ContactCoupling
 from .physics import CONTACT_ATOL, CONTACT_RTOL, CONTACT_TRIALS, ModelStep, body_contact, load_exported
 
 
@@ -117,31 +117,26 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
     health = BodyHealth.of_module(module, X)
     record: dict[str, list] = {k: [] for k in ("inverted_cells", "crushed_cells", "smallest_volume_ratio",
                                                "largest_invariant", "cells_beyond_states")}
-    resets, unsettled, trials, slope, guess = 0, 0, [], 2.0, None
+    resets, trials = 0, []
     f_prev = np.zeros_like(contact.loads)
 
     def positions(state) -> np.ndarray:
         return state[:, q_slice].numpy()
+
+    coupler = ContactCoupling(stepper, positions, contact, coupling, contact_rtol, CONTACT_ATOL, contact_trials)
 
     with torch.jit.optimized_execution(False):                              # as run_physics steps it
         for k in range(steps):
             x = device.position_at(k * dt)
             stepper.reset()
             ts = time.perf_counter()
-            force = contact(x, positions(z)).force                          # what the user feels (serve publishes it)
-            if coupling == "implicit":                                      # the load the step's end meets
-                coupled = implicit_contact_step(stepper, positions, z, x, contact, slope, contact_rtol,
-                                                CONTACT_ATOL, contact_trials, guess)
-                z_prev, z, loads, chosen = z, coupled.z, coupled.loads, coupled.chosen
-                slope, guess = coupled.slope, coupled.magnitude
-                unsettled += int(coupled.magnitude > 0.0 and not coupled.converged(contact_rtol, CONTACT_ATOL))
-            else:                                                           # the load the surface before met
-                loads, chosen = contact.loads.copy(), 0
-                z_prev, z = z, stepper(z, loads)
+            force = coupler.begin(z, x).force                            # what the user feels (serve publishes it)
+            coupled = coupler.step()                                     # implicit: the load the step's end meets
+            z_prev, z, loads = z, coupled.z, coupled.loads
             ms.append((time.perf_counter() - ts) * 1e3)                    # the body's step alone
             trials.append(stepper.calls)
             if law is not None:
-                law += stepper.counts[chosen]
+                law += stepper.counts[coupled.chosen]
             if passive is not None:
                 z = passive.step(z_prev, z, f_prev, loads)
                 f_prev = loads
@@ -166,7 +161,7 @@ def press_rollout(model: str | Path, steps: int, path: str = "press", period: fl
                         np.asarray(disp).reshape(n, len(X), 3), np.asarray(ms), finite, law,
                         None if passive is None else passive.stats(),
                         None if health is None else {k: np.asarray(v) for k, v in record.items()}, resets,
-                        np.asarray(trials, dtype=np.int64), unsettled)
+                        np.asarray(trials, dtype=np.int64), coupler.unsettled)
 
 
 def force_envelope(force: np.ndarray, steps: int) -> np.ndarray:

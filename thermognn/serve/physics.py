@@ -27,7 +27,7 @@ from thermognn.core.state import StateLayout, describe_step, describe_time_error
 
 from . import protocol as P
 from .contact import SurfaceContact, normal_compliance, series_stiffness
-from .coupling import implicit_contact_step
+from .coupling import ContactCoupling
 from .health import BodyHealth, beyond_states_warning, destroyed_warning
 from .passivity import PassivityController
 from .shm import SharedArrays, VersionedBuffer
@@ -279,14 +279,15 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     if law_base is not None and params.get("body_passivity", True):
         passive = PassivityController(module, z, params["velocity"], q_slice)
     f_prev = np.zeros_like(contact.loads)
-    implicit = params.get("contact_coupling", "implicit") == "implicit"
-    rtol = float(params.get("contact_rtol", CONTACT_RTOL))
-    max_trials = int(params.get("contact_trials", CONTACT_TRIALS))
-    stepper, slope, guess = ModelStep(module), 2.0, None
-    trials, n_coupled, n_unsettled, unsettled_max = 0, 0, 0, 0.0
+    stepper = ModelStep(module)
 
     def positions(state) -> np.ndarray:
         return state[:, q_slice].numpy()
+
+    coupling = ContactCoupling(stepper, positions, contact, params.get("contact_coupling", "implicit"),
+                               float(params.get("contact_rtol", CONTACT_RTOL)), CONTACT_ATOL,
+                               int(params.get("contact_trials", CONTACT_TRIALS)))
+    implicit = coupling.implicit
 
     health = BodyHealth.of_module(module, module.reference_positions.detach().cpu().numpy())   # None: no cells
     reset = bool(params.get("body_reset", True))
@@ -320,9 +321,9 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
                 "k_scale_mean": scale_sum / n_scale if n_scale else float("nan"), "warning": warning,
                 "fd_disabled": fd_disabled, "fd_off_checks": fd_off_checks,
                 "contact_coupling": "implicit" if implicit else "explicit",
-                "contact_trials_per_step": trials / step if implicit and step else float("nan"),
-                "contact_unsettled_steps": n_unsettled, "contact_unsettled_max_N": unsettled_max,
-                "contact_steps": n_coupled, **law_stats(), **body_stats(),
+                "contact_trials_per_step": coupling.calls / step if implicit and step else float("nan"),
+                "contact_unsettled_steps": coupling.unsettled, "contact_unsettled_max_N": coupling.unsettled_max,
+                "contact_steps": coupling.loaded, **law_stats(), **body_stats(),
                 **({} if passive is None else passive.stats())}
 
     while control[P.C_STOP] == 0:
@@ -332,7 +333,7 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
         tool_buf.read(tool)
         x = tool[P.T_X]
         z_prev = z
-        res = contact(x, z_prev[:, q_slice].detach().numpy())   # the tool against the surface now
+        res = coupling.begin(z_prev, x)                  # the tool against the surface now
         f_mag = float(np.linalg.norm(res.force))
         pressing = res.in_contact and f_mag > 0.0
         if not pressing:
@@ -351,35 +352,21 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
         payload[P.M_DEPTH] = res.depth
         model_buf.publish(payload)
 
-        if implicit:                                     # the load the surface at the step's end meets
-            stepper.reset()
-            ts = time.perf_counter()
-            coupled = implicit_contact_step(stepper, positions, z_prev, x, contact, slope, rtol, CONTACT_ATOL,
-                                            max_trials, guess)
-            elapsed = time.perf_counter() - ts
-            z, loads = coupled.z, coupled.loads
-            slope, guess = coupled.slope, coupled.magnitude
-            trials += coupled.steps
-            if coupled.magnitude > 0.0:
-                n_coupled += 1
-                if not coupled.converged(rtol, CONTACT_ATOL):
-                    n_unsettled += 1
-                    unsettled_max = max(unsettled_max, abs(coupled.residual))
-                if coupled.measured and pressing:        # the body's stiffness over the step, from the next publish
-                    k_body = k_c / (slope - 1.0) if slope > 1.0 else float("inf")
-                    if np.isfinite(k_body):
-                        k_body_sum += k_body
-                        n_k_body += 1
-                    else:
-                        n_rigid += 1
-            if law_base is not None:                     # the discarded trials' counts are not the body's
-                law_fd += stepper.discarded(coupled.chosen)
-        else:                                            # the load the surface before the step meets
-            loads = contact.loads.copy()
-            f = torch.from_numpy(loads).to(dtype)        # [N, 3] nodal load on the body
-            ts = time.perf_counter()
-            z = module(z_prev, f).detach()
-            elapsed = time.perf_counter() - ts
+        stepper.reset()
+        ts = time.perf_counter()
+        coupled = coupling.step()                        # implicit: the load the surface at the step's end meets
+        elapsed = time.perf_counter() - ts
+        z, loads = coupled.z, coupled.loads
+        measured = coupling.body_stiffness(coupled)
+        if measured is not None and coupled.magnitude > 0.0 and pressing:   # from the next publish on
+            k_body = measured
+            if np.isfinite(k_body):
+                k_body_sum += k_body
+                n_k_body += 1
+            else:
+                n_rigid += 1
+        if law_base is not None:                         # the discarded trials' counts are not the body's
+            law_fd += stepper.discarded(coupled.chosen)
         step_time += elapsed
         times[step % TIMING_WINDOW] = elapsed
         if not bool(torch.isfinite(z).all()):
@@ -419,7 +406,7 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
             since_fd += 1
             if k_body is None or since_fd >= every:      # body stiffness by finite differences
                 ts = time.perf_counter()
-                z_pert = module(z_prev, f * (1.0 + FD_EPS)).detach()
+                z_pert = module(z_prev, torch.from_numpy(loads).to(dtype) * (1.0 + FD_EPS)).detach()
                 fd_times[n_fd % TIMING_WINDOW] = time.perf_counter() - ts
                 if law_base is not None:                 # the discarded step's counts are not the body's
                     after = law_step_counts(module)
