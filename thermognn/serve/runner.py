@@ -418,7 +418,7 @@ def realtime_warning(ratio: float, dt: float, contact_ticks: int, force_ticks: i
     r times the speed they would (session 99: the liver's law under `serve` on a 2-core CPU took
     2.2 body steps of Δt = 20 ms a second, 23x slower than real time; stepped in lockstep,
     ``thermognn.serve.lockstep.press_rollout``, the sim press 20x faster, as such a body sees it,
-    peaked at 6.7 N against 2.3 N at its own pace), and a step slower
+    peaked at 6.6 N against 2.3 N at its own pace), and a step slower
     than ``stale_ms`` leaves the haptic loop a stale force model that its watchdog fades
     (``contact_ticks`` and ``force_ticks``: the ticks in contact and those with a force)."""
     if steps < 2 or dt <= 0.0 or not ratio < REALTIME_WARN:
@@ -428,7 +428,7 @@ def realtime_warning(ratio: float, dt: float, contact_ticks: int, force_ticks: i
             f"fades a force model older than serve.stale_ms = {stale_ms:g} ms)" if contact_ticks else "")
     return (f"the body's time ran at {ratio:.2g} of real time ({steps} steps of Δt = {dt * 1e3:g} ms, "
             f"{slower:.3g}x slower): the tool moved {slower:.3g}x faster in the body's time than the hand did, "
-            f"so its inertia and viscosity resisted faster motion than the hand's{felt}; a faster body step "
+            f"so its inertia and any viscosity resisted a faster motion than the hand's{felt}; a faster body step "
             f"(its median is physics_step_ms) is what serves this body in real time")
 
 
