@@ -27,11 +27,11 @@ k_eff / k_c = 1 / g' (``contact.series_stiffness``), without the extra finite-di
 the explicit coupling needs for it. The force the user feels is still the tool's penalty against
 the surface as it is before each step (serve publishes it before the step, as it did).
 
-:class:`ContactCoupling` carries the slope, the previous load and the counts from step to step,
-for serve's physics process and ``lockstep.press_rollout`` alike (and applies the explicit
-coupling's load). The pattern is the contact's at the start of the step (or, with no contact there, at the end of
+The pattern is the contact's at the start of the step (or, with no contact there, at the end of
 the unloaded step): the tool's point on the surface moves little in one step, and the step stays
-one model call per trial.
+one model call per trial. :class:`ContactCoupling` carries the slope, the previous load and the
+counts from step to step, for serve's physics process and ``lockstep.press_rollout`` alike (and
+applies the explicit coupling's load).
 """
 
 from __future__ import annotations

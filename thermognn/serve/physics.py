@@ -134,9 +134,9 @@ def physics_main(params: dict, conn) -> None:
 def law_step_counts(module) -> np.ndarray | None:
     """An exported law-prior model's step counts since it was loaded (its prior's
     ``newton_taken``): [4] int, the Newton iterations, the law's steps (two a model step with a
-    network, one per sweep and the final one; one for a law alone), those that had not converged where their most iterations
-    (``rollout.prior_newton_max``) ran out (with ``rollout.prior_step_cuts``: a cut step's sub-step
-    at the floor), and the cut steps; None for any other model. A step that has not converged is
+    network, one per sweep and the final one; one for a law alone), those that had not converged
+    where their most iterations (``rollout.prior_newton_max``) ran out (with
+    ``rollout.prior_step_cuts``: a cut step's sub-step at the floor), and the cut steps; None for any other model. A step that has not converged is
     taken as it stands, and its force may be wrong: under the sim's default liver press such a
     step ran the body away (docs/accuracy.md, session 78)."""
     prior = getattr(getattr(module, "core", None), "prior", None)
