@@ -136,9 +136,10 @@ def law_step_counts(module) -> np.ndarray | None:
     ``newton_taken``): [4] int, the Newton iterations, the law's steps (two a model step with a
     network, one per sweep and the final one; one for a law alone), those that had not converged
     where their most iterations (``rollout.prior_newton_max``) ran out (with
-    ``rollout.prior_step_cuts``: a cut step's sub-step at the floor), and the cut steps; None for any other model. A step that has not converged is
-    taken as it stands, and its force may be wrong: under the sim's default liver press such a
-    step ran the body away (docs/accuracy.md, session 78)."""
+    ``rollout.prior_step_cuts``: a cut step's sub-step at the floor), and the cut steps; None for
+    any other model. A step that has not converged is taken as it stands, and its force may be
+    wrong: under the sim's default liver press such a step ran the body away (docs/accuracy.md,
+    session 78)."""
     prior = getattr(getattr(module, "core", None), "prior", None)
     counts = getattr(prior, "newton_taken", None)
     return None if counts is None else np.asarray(counts.detach().numpy(), dtype=np.int64).copy()
@@ -204,11 +205,12 @@ def run_physics(params: dict, module, q_slice: slice, contact: SurfaceContact, s
     body's local stiffness k_b [N/m] over one physics step comes, under the implicit coupling, from
     the trials' slope, k_b = k_c / (g' - 1), on every loaded step that took two or more; under the
     explicit one from finite differences on the model: every ``body_stiffness_every`` contact
-    steps (0: off, K = contact stiffness only; the first contact step always), one extra step from the same z with the nodal loads scaled by
-    (1 + FD_EPS); k_b = FD_EPS |f| / du with du the load-weighted inward normal displacement
-    difference of the loaded nodes (``contact.normal_compliance``, du <= 0 or not finite:
-    rigid). The perturbed step is discarded; its k_b applies from the next publish on and is
-    kept until the next evaluation or the loss of contact.
+    steps (0: off, K = contact stiffness only; the first contact step always), one extra step from
+    the same z with the nodal loads scaled by (1 + FD_EPS); k_b = FD_EPS |f| / du with du the
+    load-weighted inward normal displacement difference of the loaded nodes
+    (``contact.normal_compliance``, du <= 0 or not finite: rigid). The perturbed step is
+    discarded; its k_b applies from the next publish on and is kept until the next evaluation or
+    the loss of contact.
 
     Glitch check, first after steps 3..10 (the first ones include warm-up; no FD step before
     it), then every RECHECK_STEPS steps on the median of the latest RECHECK_STEPS step times: an

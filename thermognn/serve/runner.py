@@ -389,13 +389,13 @@ def serve(cfg: DictConfig, monitor: Callable[[dict], None] | None = None) -> dic
         served_rule_note=rule_note,
         haptic_scheduler=str(haptic_summary.get("scheduler", "")),
         haptic_torch_loaded=bool(haptic_summary.get("torch_loaded", False)),
-        body_time_ratio=float(steps * float(geometry.get("dt", 0.0)) / phys_span) if phys_span > 0 else 0.0,
         wall_s=time.perf_counter() - t_wall,
         log=str(log_path),
     )
-    summary["realtime_warning"] = realtime_warning(summary["body_time_ratio"], float(geometry.get("dt", 0.0)),
-                                                   summary["contact_ticks"], summary["contact_force_ticks"],
-                                                   params["stale_ms"], int(steps))
+    dt = float(geometry.get("dt", 0.0))                    # [s] the body's step
+    summary["body_time_ratio"] = summary["physics_rate_hz"] * dt
+    summary["realtime_warning"] = realtime_warning(summary["body_time_ratio"], dt, summary["contact_ticks"],
+                                                   summary["contact_force_ticks"], params["stale_ms"], int(steps))
     if summary["realtime_warning"]:
         print(f"thermognn serve: warning: {summary['realtime_warning']}", file=sys.stderr, flush=True)
     shared.close()
