@@ -23,7 +23,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --upgrade "pip>=23"
 	@# numpy pinned to Debian's own build (dolfinx and h5py are compiled against it; never numpy 2)
 	$(PY) -m pip install -q "numpy==$$(/usr/bin/python3 -c 'import numpy; print(numpy.__version__)')" \
-	  "torch==2.13.0" torch-geometric typer "hydra-core>=1.3" rich pytest matplotlib tensorboard
+	  "torch==2.13.0" torch-geometric typer "hydra-core>=1.3" rich pytest pytest-xdist matplotlib tensorboard
 	$(PY) -m pip install -q --no-deps -e .
 	@$(PY) -c "import numpy, dolfinx, torch, torch_geometric, h5py, meshio; assert numpy.__version__ < '2', numpy.__version__"
 	@touch $(STAMP)
@@ -31,11 +31,14 @@ $(STAMP): pyproject.toml
 demo: setup
 	$(VENV)/bin/thermognn demo --out $(DEMO_DIR)
 
+# one pytest worker a CPU core (pytest-xdist); a worker free takes tests queued on a busy one, so
+# the few long pipeline tests run beside the many short ones. PYTEST_WORKERS=0 runs in one process.
+PYTEST_WORKERS ?= auto
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist worksteal
 
 test-fast: setup
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist worksteal -m "not slow"
 
 # Speed-and-accuracy figures (printed, never asserted). Each script's docstring says what it measures.
 bench: setup
