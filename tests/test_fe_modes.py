@@ -980,7 +980,7 @@ def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders
     with pytest.raises(RuntimeError, match="corotated prior: a non-finite state"):
         prior.step(bad, bad, bad, prior.gather(f[1:2]), G[:1], G[1:2], prior.internal_variables(bad))
 
-    model, batched = _carried_steps_follow_rollouts(prior, graph, optimized=True)      # a small graph: both ways
+    model, batched = _carried_steps_follow_rollouts(prior, graph)
     assert rel(batched[..., 3:6], fe[..., 3:6]) > 1e-6                     # the network corrects something
     ref = torch.as_tensor(X, dtype=torch.float32)
     with torch.enable_grad():               # rollouts back-propagate through the rotations and the solves
@@ -990,14 +990,13 @@ def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders
 
 
 def _carried_steps_follow_rollouts(prior, graph, width: int = 0, inputs: str = "positions", cut_loads: str = "end",
-                                   optimized: bool = False):
+                                   optimized: bool = True):
     """A LinearPriorModel on ``prior`` with a tiny seeded network seeing ``inputs``
     (``model.prior_inputs``) and a cut step's sub-steps loaded as ``cut_loads`` says
     (``model.prior_cut_loads``), on the bent block's ``graph`` (``_bent_block_graph``): its carried
-    step, eager and scripted (with TorchScript's graph-executor optimisation ``optimized``: off by
-    default, as serve steps it; on, a law prior's whole step inlined is some 230,000 graph nodes and
-    the executor's one-off optimisation of it takes minutes, which ``test_pipeline``'s exports
-    checked both ways pay once), follows its batched rollout (carried states [N, 12 + 6 + width]); returns (model, the batched
+    step, eager and scripted (with TorchScript's graph-executor optimisation ``optimized``, as a
+    program loading the exported file with torch's defaults steps it; off is serve's), follows its
+    batched rollout (carried states [N, 12 + 6 + width]); returns (model, the batched
     rollout [S, N, 12])."""
     import torch
 
@@ -1072,7 +1071,7 @@ def test_relaxing_corotated_prior_is_the_relaxing_corotated_fe_model():
     packed = prior.pack_internal(h)                                         # [2, N, 2 cell_columns]
     assert packed.shape == (2, len(X), 2 * prior.cell_columns) and torch.equal(prior.unpack_internal(packed), h)
 
-    _carried_steps_follow_rollouts(prior, graph, width=2 * prior.cell_columns, optimized=True)
+    _carried_steps_follow_rollouts(prior, graph, width=2 * prior.cell_columns)
 
 
 def test_corotated_step_solves_sparse_on_the_cpu_as_dense():
