@@ -33,9 +33,10 @@ demo: setup
 
 # one pytest worker a CPU core (pytest-xdist); a worker free takes tests queued on a busy one, so
 # the few long pipeline tests run beside the many short ones. PYTEST_WORKERS=0 runs in one process.
+# The 15 slowest tests are listed at the end.
 PYTEST_WORKERS ?= auto
 test: setup
-	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist worksteal
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist worksteal --durations=15
 
 test-fast: setup
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist worksteal -m "not slow"
