@@ -409,8 +409,9 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
     __jit_ignored_attributes__ = ["_start_memo", "_kept_lus"]
     # constants of the scripted step: TorchScript resolves a branch on a constant as it compiles, so
     # a scripted step holds its own law's, rule's and tangent's code alone (a neo-Hookean step:
-    # 71,000 graph nodes inlined instead of 234,000, and the graph executor's one-off optimisation of
-    # it 22 s instead of 160 s here). Set before scripting (``set_rule`` and the constructor).
+    # 34,563 graph nodes inlined instead of 233,563, and the graph executor's one-off optimisation
+    # of it 10 s instead of 162 s here; docs/accuracy.md, session 100). Set before scripting (the
+    # constructors, ``set_rule``).
     __constants__ = ["ogden", "learned", "energy_rule", "kept_tangent", "n_terms"]
 
     def __init__(self, linear: LinearSolid, n_nodes: int, dt: float, X: np.ndarray, tets: np.ndarray,
