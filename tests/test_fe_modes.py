@@ -1262,7 +1262,7 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
     assert rel(prior.solve(pairs, b), prior.law_solve(pairs, b)) < 1e-12
     prior.forget()
     assert rel(prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0], sparse_step) < 1e-12
-    assert prior.memo_sep_lu.shape == (1, sep, sep) and prior.memo_band_X.shape == (1, 2, m, sep)
+    assert prior.memo_sep_lu.shape == (1, sep, sep) and prior.memo_band_X.shape == (1, 2 * m, sep)
     prior.set_band(0.0)                                   # nothing below no flops: the dense LU
     assert prior.band_blocks == 0 == dense_blocks and prior.dissection_half == 0
     # the law's stresses kept for the last F met without a gradient (``law``): by value, never stale
@@ -1271,8 +1271,15 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
     assert prior.law(F1.clone())[0] is kept and torch.equal(kept, prior.pk2(F1)[0])
     assert torch.equal(prior.law(F2)[1], prior.pk2(F2)[1]) and prior.law(F1)[0] is not kept
     assert prior.law(F1.clone().requires_grad_())[0].requires_grad          # training's: evaluated, not kept
+    # ... and so are the cells' F for the last displacements met without a gradient (``cells``)
+    u1 = 1.01 * uf
+    F3 = prior.cells(u1)
+    assert prior.cells(u1.clone()) is F3 and torch.equal(F3, F2)
+    u1.mul_(1.5)                                                            # changed in place: not stale
+    assert torch.equal(prior.cells(u1), prior.deformation_gradients(prior.positions(u1)))
+    assert prior.cells(uf.clone().requires_grad_()).requires_grad           # training's: formed, not kept
     prior.forget()
-    assert prior.memo_law_F.numel() == 0
+    assert prior.memo_law_F.numel() == 0 == prior.memo_cells_u.numel()
     # a second step from the same start (a model step's, with the network's G1) reuses the first
     # one's start and factors, by identity on the sparse path and by value on the dense one: the
     # same step as from scratch; a start changed in place, or another one, is not reused

@@ -12,6 +12,7 @@ from thermognn.train.law_prior import (HyperelasticNewmarkPrior, cofactor, learn
                                        neo_hookean_pk2, neo_hookean_tangent, ogden_isochoric_pk2,
                                        ogden_tangent, ogden_volumetric_pk2)
 from thermognn.train.learned_law import CONVEX, StrainEnergy  # noqa: E402
+from thermognn.train.mat3 import det3, det_inverse3, inverse3  # noqa: E402
 
 
 def _gradients() -> np.ndarray:
@@ -146,6 +147,28 @@ def _learned(seed: int = 4) -> StrainEnergy:
     return law
 
 
+def test_closed_form_determinants_and_inverses_are_lapacks():
+    """``mat3``'s cofactor determinant and adjugate inverse of stacks of 3×3 matrices equal
+    LAPACK's to round-off (random F near I, I, a uniaxial stretch, far from I, a batch [2, 26]),
+    in TorchScript too, pass autograd as det's own gradient (cof F), and give a singular matrix a
+    zero determinant and a non-finite inverse instead of raising."""
+    F = torch.as_tensor(_gradients())
+    F = torch.cat([F, 3.0 * torch.randn(8, 3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(2))])
+    for A in (F, F.reshape(2, -1, 3, 3)):
+        det, inv = det_inverse3(A)
+        assert float((det - torch.linalg.det(A)).abs().max()) < 1e-13 * float(A.abs().amax() ** 3)
+        assert float(((inv - torch.linalg.inv(A)) / torch.linalg.inv(A).abs().amax((-2, -1), keepdim=True)).abs().max()) < 1e-11
+        assert torch.equal(det3(A), det) and torch.equal(inverse3(A), inv)
+        scripted = torch.jit.script(det_inverse3)(A)
+        assert torch.equal(scripted[0], det) and torch.equal(scripted[1], inv)
+    Fg = F.clone().requires_grad_()
+    (grad,) = torch.autograd.grad(det3(Fg).sum(), Fg)
+    assert float((grad - cofactor(F)).abs().max()) < 1e-12 * float(cofactor(F).abs().max())
+    singular = torch.tensor([[1.0, 2.0, 3.0], [2.0, 4.0, 6.0], [0.0, 1.0, 1.0]], dtype=torch.float64)
+    det, inv = det_inverse3(singular)
+    assert float(det) == 0.0 and not bool(torch.isfinite(inv).all())
+
+
 def test_the_learned_law_stress_is_its_energys_derivative_and_vanishes_at_rest():
     """``StrainEnergy.pk2``'s closed form is 2 ∂Ψ/∂C of its own energy as autograd takes it, to
     round-off, at random F and a uniaxial stretch; at rest (C = I) S = 0 whatever the weights."""
@@ -157,6 +180,9 @@ def test_the_learned_law_stress_is_its_energys_derivative_and_vanishes_at_rest()
     auto = grad + grad.transpose(-1, -2)
     assert float((S_iso + S_vol - auto).abs().max()) < 1e-12 * float(auto.abs().max())
     assert float(S_iso[-2].abs().max()) < 1e-9 and float(S_vol[-2].abs().max()) < 1e-9      # F = I
+    # the step's pk2 (coefficients gathered per cell) is the fit's stress of ``geometry``, to round-off
+    for fast, fit in zip((S_iso, S_vol), law.stress(*law.geometry(C.detach()))):
+        assert float((fast - fit).abs().max()) < 1e-13 * float(fit.abs().max())
     assert float(law.energy(torch.eye(3, dtype=torch.float64)).abs()) < 1e-9
 
 

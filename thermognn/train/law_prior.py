@@ -54,6 +54,7 @@ from thermognn.core.hyperelastic import NeoHookean, Ogden
 from thermognn.core.linear import LinearSolid
 
 from .learned_law import StrainEnergy
+from .mat3 import det3, inverse3
 
 from .prior import (BAND_MAX_SHARE, DISSECTION_MAX_SHARE, CorotatedNewmarkPrior, FactoredSolve, SparseSolve, _matrix,
                     _voigt, band_factor, band_layout, band_solve, dissection_factor, dissection_layout,
@@ -143,8 +144,8 @@ def neo_hookean_pk2(F: Tensor, c10: float, d1: float) -> Tuple[Tensor, Tensor]:
     """(S_iso, S_vol) [..., 3, 3] Pa of Ψ = C10 (J^(-2/3) I1 − 3) + (J − 1)²/D1 at deformation
     gradients F [..., 3, 3]: S_iso = 2 C10 J^(-2/3) (I − I1/3 C⁻¹), S_vol = (2/D1)(J − 1) J C⁻¹."""
     C = F.transpose(-1, -2) @ F
-    Ci = torch.linalg.inv(C)
-    J = torch.linalg.det(F)[..., None, None]
+    Ci = inverse3(C)
+    J = det3(F)[..., None, None]
     I1 = C.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None]
     s_iso = 2.0 * c10 * J.pow(-2.0 / 3.0) * (_eye(F) - I1 / 3.0 * Ci)
     return s_iso, 2.0 / d1 * (J - 1.0) * J * Ci
@@ -173,8 +174,8 @@ def ogden_isochoric(C: Tensor, mu: List[float], alpha: List[float], eps: float,
     a = J^(-2/3). The derivatives (the tangent's, as UFL differentiates the FE's form twice) take
     the differential of each line of that chain in turn, ``d`` before its name."""
     eye = _eye(C)
-    Ci = torch.linalg.inv(C)
-    a = torch.linalg.det(C).pow(-1.0 / 3.0)[..., None, None]                       # J^(-2/3)
+    Ci = inverse3(C)
+    a = det3(C).pow(-1.0 / 3.0)[..., None, None]                                   # J^(-2/3)
     Cb = a * C
     m = Cb.diagonal(dim1=-2, dim2=-1).sum(-1) / 3.0                                   # [...]
     B = Cb - m[..., None, None] * eye
@@ -253,7 +254,7 @@ def ogden_isochoric(C: Tensor, mu: List[float], alpha: List[float], eps: float,
 def ogden_isochoric_energy(C: Tensor, mu: List[float], alpha: List[float], eps: float = EIGEN_EPS) -> Tensor:
     """Ψ_iso = Σ_i 2 μ_i/α_i² (Σ_a λ̄_a^α_i − 3) [...] J/m³ of C [..., 3, 3], with the FE's regularised
     eigenvalues of C̄ (:func:`ogden_isochoric`'s first lines): the energy whose 2 ∂/∂C is its S_iso."""
-    a = torch.linalg.det(C).pow(-1.0 / 3.0)[..., None, None]                       # J^(-2/3)
+    a = det3(C).pow(-1.0 / 3.0)[..., None, None]                                   # J^(-2/3)
     Cb = a * C
     m = Cb.diagonal(dim1=-2, dim2=-1).sum(-1) / 3.0
     B = Cb - m[..., None, None] * _eye(C)
@@ -279,11 +280,11 @@ def ogden_volumetric_energy(J: Tensor, d: List[float]) -> Tensor:
 
 def ogden_volumetric_pk2(F: Tensor, C: Tensor, d: List[float]) -> Tensor:
     """S_vol = U'(J) J C⁻¹ [..., 3, 3] Pa of U = Σ_i (J − 1)^(2i)/D_i (i from 1)."""
-    J = torch.linalg.det(F)[..., None, None]
+    J = det3(F)[..., None, None]
     dU = torch.zeros_like(J)
     for i, di in enumerate(d):
         dU = dU + 2.0 * (i + 1) * (J - 1.0).pow(2 * i + 1) / di
-    return dU * J * torch.linalg.inv(C)
+    return dU * J * inverse3(C)
 
 
 def neo_hookean_tangent(F: Tensor, c10: float, d1: float, w_iso: float, w_vol: float,
@@ -300,8 +301,8 @@ def neo_hookean_tangent(F: Tensor, c10: float, d1: float, w_iso: float, w_vol: f
                                      + I1/3 G_il G_kj)
                       + w_vol k ((2J − 1) J G_ij G_kl − (J − 1) J G_il G_kj) + δ_ik extra_lj."""
     eye = _eye(F)
-    G = torch.linalg.inv(F).transpose(-1, -2)                                          # F⁻ᵀ
-    J = torch.linalg.det(F)[..., None, None, None, None]
+    G = inverse3(F).transpose(-1, -2)                                                      # F⁻ᵀ
+    J = det3(F)[..., None, None, None, None]
     I1 = (F * F).sum((-2, -1))[..., None, None, None, None]
     a = J.pow(-2.0 / 3.0)
     k = 2.0 / d1
@@ -347,8 +348,8 @@ def ogden_tangent(F: Tensor, mu: List[float], alpha: List[float], d: List[float]
     E = symmetric_directions(F).reshape([6] + [1] * (F.dim() - 2) + [3, 3])               # [6, ..., 3, 3]
     S_iso, dS_iso = ogden_isochoric(C, mu, alpha, eps, E)
     assert dS_iso is not None
-    Ci = torch.linalg.inv(C)
-    J = torch.linalg.det(F)[..., None, None]
+    Ci = inverse3(C)
+    J = det3(F)[..., None, None]
     dU = torch.zeros_like(J)                                                           # U'(J) Pa
     ddU = torch.zeros_like(J)                                                          # U''(J) Pa
     for i, di in enumerate(d):
@@ -513,9 +514,11 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self._start_memo = None         # eager CPU: the last step start and its factors (``_eager_first_iteration``)
         # dense path without gradients (TorchScript, serve): the last step start, by value, and its
         # LU factors (``first_iteration``); empty until a step sets them. memo_law_*: the last F the
-        # law met without a gradient and its (S_iso, S_vol) (``law``; eager too)
+        # law met without a gradient and its (S_iso, S_vol) (``law``; eager too); memo_cells_*: the last
+        # displacements ``cells`` met without a gradient (a copy) and their F
         for name in ("memo_key", "memo_predictor", "memo_S_iso0", "memo_extra", "memo_damping0", "memo_u1",
-                     "memo_internal", "memo_lu", "memo_law_F", "memo_law_S_iso", "memo_law_S_vol"):
+                     "memo_internal", "memo_lu", "memo_law_F", "memo_law_S_iso", "memo_law_S_vol",
+                     "memo_cells_u", "memo_cells_F"):
             self.register_buffer(name, torch.zeros(0, dtype=dtype), persistent=False)
         self.register_buffer("memo_pivots", torch.zeros(0, dtype=torch.int32), persistent=False)
         # ... and the rest of ``factor``'s factors: the block-tridiagonal factor's X and lower blocks
@@ -688,8 +691,17 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         return F @ S
 
     def cells(self, u: Tensor) -> Tensor:
-        """The cells' deformation gradients F [B, T, 3, 3] at free-DOF displacements u [B, n] m."""
-        return self.deformation_gradients(self.positions(u))
+        """The cells' deformation gradients F [B, T, 3, 3] at free-DOF displacements u [B, n] m, the
+        last u's kept where it takes no gradient: a kept-tangent iteration meets each iterate three
+        times (the line search's floor at its start, its trial, the residual at the trial). Kept
+        by value (a copy of u), as ``law`` keeps its stresses; ``forget`` drops it."""
+        if u.requires_grad:
+            return self.deformation_gradients(self.positions(u))
+        if self.memo_cells_u.shape == u.shape and bool(torch.equal(self.memo_cells_u, u)):
+            return self.memo_cells_F
+        F = self.deformation_gradients(self.positions(u))
+        self.memo_cells_u, self.memo_cells_F = u.clone(), F
+        return F
 
     def strain_energy_density(self, F: Tensor) -> Tuple[Tensor, Tensor]:
         """(Ψ_iso, Ψ_vol) [...] J/m³ of cells' deformation gradients F [..., 3, 3]: the law's strain
@@ -698,7 +710,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         C = F.transpose(-1, -2) @ F
         if self.learned:
             return self.learned_law.energy_parts(C)
-        J = torch.linalg.det(F)
+        J = det3(F)
         if self.ogden:
             return (ogden_isochoric_energy(C, self.ogden_mu, self.ogden_alpha),
                     ogden_volumetric_energy(J, self.ogden_d))
@@ -729,10 +741,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         invert a cell is shortened, one that would not (every step of the data) is taken whole, to
         the bit. s carries no gradient."""
         with torch.no_grad():
-            floor = torch.clamp(0.5 * torch.linalg.det(self.cells(base)).amin(1), max=self.j_floor)    # [B]
+            floor = torch.clamp(0.5 * det3(self.cells(base)).amin(1), max=self.j_floor)                # [B]
             s = torch.ones(base.shape[0], 1, dtype=base.dtype, device=base.device)
             for k in range(self.max_halvings + 1):
-                J = torch.linalg.det(self.cells(base - s * du)).amin(1)                           # [B]
+                J = det3(self.cells(base - s * du)).amin(1)                                       # [B]
                 short = ~(J > floor)                                                                # NaN too
                 if not bool(short.any()):
                     break
@@ -996,6 +1008,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         self.memo_band_X, self.memo_band_L, self.memo_sep_lu = empty, empty, empty
         self.memo_sep_pivots = self.memo_sep_pivots.new_zeros(0)
         self.memo_law_F, self.memo_law_S_iso, self.memo_law_S_vol = empty, empty, empty
+        self.memo_cells_u, self.memo_cells_F = empty, empty
         self.drop_kept()
 
     def fresh_first_iteration(self, u0: Tensor, v0: Tensor, a0: Tensor, h0: Tensor, loads: Tensor
@@ -1545,7 +1558,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         if self.n_terms == 0:
             return u.new_zeros(B, self.n_nodes, 6)
         F = self.cells(u)
-        J = torch.linalg.det(F)[..., None, None]
+        J = det3(F)[..., None, None]
         return self.nodal(F @ self._law_relaxed(F, h) @ F.transpose(-1, -2) / J)
 
     def physical_state(self, X: Tensor, u: Tensor, v: Tensor, H: Optional[Tensor], h: Tensor) -> Tensor:
@@ -1558,7 +1571,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         S = s_iso + s_vol
         if self.n_terms > 0:
             S = S + self._relaxed_from(s_iso, h)
-        sigma = self.nodal(F @ S @ F.transpose(-1, -2) / torch.linalg.det(F)[..., None, None])
+        sigma = self.nodal(F @ S @ F.transpose(-1, -2) / det3(F)[..., None, None])
         if H is not None:
             sigma = sigma + H
         return torch.cat([X.unsqueeze(0) + U, self.scatter(v), sigma], -1)
@@ -1569,7 +1582,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         volume-averaged at the nodes as the dataset's."""
         F = self.deformation_gradients(self.reference.unsqueeze(0) + u)
         s_iso, s_vol = self.law(F)
-        J = torch.linalg.det(F)[..., None, None]
+        J = det3(F)[..., None, None]
         cell = self.nodal(F @ (s_iso + s_vol) @ F.transpose(-1, -2) / J)
         return cell if H is None else cell + H
 

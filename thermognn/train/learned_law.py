@@ -50,6 +50,7 @@ import torch
 from torch import Tensor, nn
 
 from .data import spread
+from .mat3 import det_inverse3
 
 #: default hidden units (isochoric, volumetric): ``model.prior_material_hidden``
 HIDDEN = (16, 8)
@@ -170,18 +171,33 @@ class StrainEnergy(nn.Module):
 
     def invariants(self, C: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
         """(Ī1, Ī2, J, C⁻¹) of right Cauchy–Green tensors C [..., 3, 3]: [...] each, C⁻¹ [..., 3, 3]."""
-        J = torch.sqrt(torch.linalg.det(C))
+        det, Ci = det_inverse3(C)                                                         # closed form (mat3)
+        J = torch.sqrt(det)
         I1 = C.diagonal(dim1=-2, dim2=-1).sum(-1)
         I2 = 0.5 * (I1 * I1 - (C * C).sum((-2, -1)))
         a = J.pow(-2.0 / 3.0)
-        return a * I1, a * a * I2, J, torch.linalg.inv(C)
+        return a * I1, a * a * I2, J, Ci
+
+    def iso_preactivation(self, x: Tensor) -> Tensor:
+        """w_k · x + b_k [..., k] of scaled invariants x [..., 2]: one addmm over the rows (``x @ wᵀ``
+        on a stack [B, T, 2] took 6× as long on the liver's cells, a batched product against a
+        transposed weight)."""
+        k = self.iso_weight.shape[0]
+        rows = torch.addmm(self.iso_bias, x.reshape(-1, 2), self.iso_weight.t())              # [R, k]
+        return rows.reshape(list(x.shape[:-1]) + [k])
+
+    def iso_contract(self, h: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
+        """bias + h @ weight [..., j] of hidden values h [..., k] and weight [k, j] (one addmm over the
+        rows, as ``iso_preactivation``)."""
+        k, j = weight.shape[0], weight.shape[1]
+        return torch.addmm(bias, h.reshape(-1, k), weight).reshape(list(h.shape[:-1]) + [j])
 
     def energy_derivatives(self, I1b: Tensor, I2b: Tensor, J: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
         """(ψ1 = ∂Ψ_iso/∂Ī1, ψ2 = ∂Ψ_iso/∂Ī2, U'(J)) [...] Pa at the invariants [...]."""
         s = self.scales
         x = torch.stack([(I1b - 3.0) / s[0], (I2b - 3.0) / s[1]], -1)                    # [..., 2]
-        sig = torch.sigmoid(x @ self.iso_weight.t() + self.iso_bias)                       # [..., k]
-        dx = self.iso_linear + (sig * self.iso_out) @ self.iso_weight \
+        sig = torch.sigmoid(self.iso_preactivation(x))                                     # [..., k]
+        dx = self.iso_contract(sig, self.iso_out.unsqueeze(-1) * self.iso_weight, self.iso_linear) \
             + self.guard[0:2] * self.excess(x)                                             # [..., 2] ∂Ψ/∂x / μ_s
         y = ((J - 1.0) / s[2]).unsqueeze(-1)                                               # [..., 1]
         sv = torch.sigmoid(y * self.vol_weight + self.vol_bias)                            # [..., m]
@@ -201,7 +217,7 @@ class StrainEnergy(nn.Module):
         I1b, I2b, J, _ = self.invariants(C)
         s = self.scales
         x = torch.stack([(I1b - 3.0) / s[0], (I2b - 3.0) / s[1]], -1)
-        sp = torch.nn.functional.softplus(x @ self.iso_weight.t() + self.iso_bias)
+        sp = torch.nn.functional.softplus(self.iso_preactivation(x))
         rest = torch.nn.functional.softplus(self.iso_bias)
         iso = (x * self.iso_linear).sum(-1) + ((sp - rest) * self.iso_out).sum(-1) \
             + 0.5 * (self.guard[0:2] * self.excess(x).pow(2)).sum(-1)
@@ -232,27 +248,41 @@ class StrainEnergy(nn.Module):
 
     @torch.jit.export
     def pk2(self, C: Tensor) -> Tuple[Tensor, Tensor]:
-        """(S_iso, S_vol) [..., 3, 3] Pa, S = 2 ∂Ψ/∂C at C [..., 3, 3] (module docstring)."""
-        I1b, I2b, J, JCi, dI1, dI2 = self.geometry(C)
-        return self.stress(I1b, I2b, J, JCi, dI1, dI2)
+        """(S_iso, S_vol) [..., 3, 3] Pa, S = 2 ∂Ψ/∂C at C [..., 3, 3] (module docstring), as ``stress``
+        of ``geometry`` gives them (to round-off) with the invariants' derivatives gathered per cell
+        first (fewer operations on the cells' 3×3 stacks; a law step evaluates it every iteration):
+
+            S_iso = α I + β C + γ C⁻¹,   α = 2 a (ψ1 + a I1 ψ2),  β = −2 a² ψ2,  γ = −⅔ (ψ1 Ī1 + 2 ψ2 Ī2),
+            S_vol = U'(J) J C⁻¹,        a = J^(-2/3)."""
+        I1b, I2b, J, Ci = self.invariants(C)
+        psi1, psi2, dU = self.energy_derivatives(I1b, I2b, J)                            # [...] Pa each
+        a = J.pow(-2.0 / 3.0)
+        I1 = C.diagonal(dim1=-2, dim2=-1).sum(-1)
+        alpha = 2.0 * a * (psi1 + a * I1 * psi2)                                           # [...]
+        beta = -2.0 * a * a * psi2
+        gamma = -(2.0 / 3.0) * (psi1 * I1b + 2.0 * psi2 * I2b)
+        eye = torch.eye(3, dtype=C.dtype, device=C.device)
+        S_iso = alpha[..., None, None] * eye + beta[..., None, None] * C + gamma[..., None, None] * Ci
+        return S_iso, (dU * J)[..., None, None] * Ci
 
     def energy_second_derivatives(self, I1b: Tensor, I2b: Tensor, J: Tensor
                                   ) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
         """(ψ11, ψ12, ψ22, U''(J)) [...] Pa: the energy's second derivatives in Ī1, Ī2 and J."""
         s = self.scales
         x = torch.stack([(I1b - 3.0) / s[0], (I2b - 3.0) / s[1]], -1)                    # [..., 2]
-        sig = torch.sigmoid(x @ self.iso_weight.t() + self.iso_bias)                       # [..., k]
-        curvature = sig * (1.0 - sig) * self.iso_out                                       # [..., k]
+        sig = torch.sigmoid(self.iso_preactivation(x))                                     # [..., k]
         w1, w2 = self.iso_weight[:, 0], self.iso_weight[:, 1]
+        pairs = self.iso_out.unsqueeze(-1) * torch.stack([w1 * w1, w1 * w2, w2 * w2], -1)  # [k, 3] a_k w_ki w_kj
+        second = self.iso_contract(sig * (1.0 - sig), pairs, self.iso_linear.new_zeros(3))  # [..., 3] (11, 12, 22)
         mu = self.mu_scale
         y = ((J - 1.0) / s[2]).unsqueeze(-1)
         sv = torch.sigmoid(y * self.vol_weight + self.vol_bias)                            # [..., m]
         ddU = self.vol_quadratic + (self.vol_out * self.vol_weight * self.vol_weight * sv * (1.0 - sv)).sum(-1, True) \
             + self.guard[2] * (self.excess(y) != 0).to(y.dtype)                            # [..., 1]
         beyond = (self.excess(x) != 0).to(x.dtype) * self.guard[0:2]                       # [..., 2] the guard's
-        return (mu * ((curvature * w1 * w1).sum(-1) + beyond[..., 0]) / (s[0] * s[0]),
-                mu * (curvature * w1 * w2).sum(-1) / (s[0] * s[1]),
-                mu * ((curvature * w2 * w2).sum(-1) + beyond[..., 1]) / (s[1] * s[1]),
+        return (mu * (second[..., 0] + beyond[..., 0]) / (s[0] * s[0]),
+                mu * second[..., 1] / (s[0] * s[1]),
+                mu * (second[..., 2] + beyond[..., 1]) / (s[1] * s[1]),
                 self.kappa_scale * ddU.squeeze(-1) / (s[2] * s[2]))
 
     @torch.jit.export

@@ -665,8 +665,9 @@ def dissection_factor(flat: Tensor, m: int, s: int) -> Tuple[Tensor, Tensor, Ten
     [B, 2m² + 4ms + s²]: each half's A_kk factored (partial pivoting within it; the step matrices
     are symmetric and their mass dominates), W_k = A_kk⁻¹ A_ks and the separator's Schur complement
     A_ss − Σ_k A_sk W_k factored. Returns (LU of the halves [B, 2, m, m], their pivots [B, 2, m],
-    W [B, 2, m, s], A_sk [B, 2, s, m], the Schur complement's LU [B, s, s] and pivots [B, s]) for
-    :func:`dissection_solve`."""
+    W = [W_1; W_2] [B, 2m, s], the couplings side by side [A_s1 A_s2] [B, s, 2m], the Schur complement's LU
+    [B, s, s] and pivots [B, s]) for :func:`dissection_solve`, which takes the couplings' product
+    with both halves as one matrix-vector product."""
     B = flat.shape[0]
     ks, sk, ss = 2 * m * m, 2 * m * m + 2 * m * s, 2 * m * m + 4 * m * s
     halves = flat[:, :ks].reshape(B * 2, m, m)
@@ -677,19 +678,20 @@ def dissection_factor(flat: Tensor, m: int, s: int) -> Tuple[Tensor, Tensor, Ten
     W = torch.linalg.lu_solve(lu, pivots, A_ks)                                           # [B, 2, m, s]
     schur = flat[:, ss:].reshape(B, s, s) - (A_sk @ W).sum(1)                             # [B, s, s]
     lu_s, pivots_s = lu_factor_each(schur)
-    return lu, pivots, W, A_sk, lu_s, pivots_s
+    W_s = W.reshape(B, 2 * m, s).contiguous()                                              # [B, 2m, s]
+    return lu, pivots, W_s, A_sk.transpose(1, 2).reshape(B, s, 2 * m), lu_s, pivots_s     # A_s [B, s, 2m]
 
 
-def dissection_solve(lu: Tensor, pivots: Tensor, W: Tensor, A_sk: Tensor, lu_s: Tensor, pivots_s: Tensor,
+def dissection_solve(lu: Tensor, pivots: Tensor, W: Tensor, A_s: Tensor, lu_s: Tensor, pivots_s: Tensor,
                      r: Tensor) -> Tensor:
     """x [B, 2m + s] with A x = r [B, 2m + s] (halves, then the separator) for the A that
-    :func:`dissection_factor` factored: y_k = A_kk⁻¹ r_k, x_s = S⁻¹ (r_s − Σ_k A_sk y_k),
-    x_k = y_k − W_k x_s."""
-    B, m = r.shape[0], lu.shape[-1]
-    y = torch.linalg.lu_solve(lu, pivots, r[:, :2 * m].reshape(B, 2, m, 1))                # [B, 2, m, 1]
-    g = r[:, 2 * m:] - (A_sk @ y).sum(1).squeeze(-1)                                       # [B, s]
-    x_s = torch.linalg.lu_solve(lu_s, pivots_s, g.unsqueeze(-1))                           # [B, s, 1]
-    x_k = y - W @ x_s.unsqueeze(1)                                                         # [B, 2, m, 1]
+    :func:`dissection_factor` factored (W [B, 2m, s], A_s = [A_s1 A_s2] [B, s, 2m]): y_k = A_kk⁻¹ r_k,
+    x_s = S⁻¹ (r_s − Σ_k A_sk y_k), x_k = y_k − W_k x_s."""
+    B, m, s = r.shape[0], lu.shape[-1], lu_s.shape[-1]
+    y = torch.linalg.lu_solve(lu, pivots, r[:, :2 * m].reshape(B, 2, m, 1)).reshape(B, 2 * m, 1)   # [B, 2m, 1]
+    g = torch.baddbmm(r[:, 2 * m:].unsqueeze(-1), A_s, y, beta=1.0, alpha=-1.0)          # [B, s, 1]
+    x_s = torch.linalg.lu_solve(lu_s, pivots_s, g)                                         # [B, s, 1]
+    x_k = torch.baddbmm(y, W, x_s, beta=1.0, alpha=-1.0)                                   # [B, 2m, 1]
     return torch.cat([x_k.reshape(B, 2 * m), x_s.squeeze(-1)], 1)
 
 
