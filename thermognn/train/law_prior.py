@@ -1558,7 +1558,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         if self.n_terms == 0:
             return u.new_zeros(B, self.n_nodes, 6)
         F = self.cells(u)
-        J = det3(F)[..., None, None]
+        J = torch.linalg.det(F)[..., None, None]
         return self.nodal(F @ self._law_relaxed(F, h) @ F.transpose(-1, -2) / J)
 
     def physical_state(self, X: Tensor, u: Tensor, v: Tensor, H: Optional[Tensor], h: Tensor) -> Tensor:
@@ -1571,7 +1571,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         S = s_iso + s_vol
         if self.n_terms > 0:
             S = S + self._relaxed_from(s_iso, h)
-        sigma = self.nodal(F @ S @ F.transpose(-1, -2) / det3(F)[..., None, None])
+        sigma = self.nodal(F @ S @ F.transpose(-1, -2) / torch.linalg.det(F)[..., None, None])
         if H is not None:
             sigma = sigma + H
         return torch.cat([X.unsqueeze(0) + U, self.scatter(v), sigma], -1)
@@ -1582,7 +1582,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         volume-averaged at the nodes as the dataset's."""
         F = self.deformation_gradients(self.reference.unsqueeze(0) + u)
         s_iso, s_vol = self.law(F)
-        J = det3(F)[..., None, None]
+        J = torch.linalg.det(F)[..., None, None]
         cell = self.nodal(F @ (s_iso + s_vol) @ F.transpose(-1, -2) / J)
         return cell if H is None else cell + H
 
