@@ -522,7 +522,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             self.register_buffer(name, torch.zeros(0, dtype=dtype), persistent=False)
         self.register_buffer("memo_pivots", torch.zeros(0, dtype=torch.int32), persistent=False)
         # ... and the rest of ``factor``'s factors: the block-tridiagonal factor's X and lower blocks
-        # (the dissection's W and A_sk), the dissection separator's Schur complement's LU
+        # (the dissection's W and couplings A_s), the dissection separator's Schur complement's LU
         self.register_buffer("memo_band_X", torch.zeros(0, dtype=dtype), persistent=False)
         self.register_buffer("memo_band_L", torch.zeros(0, dtype=dtype), persistent=False)
         self.register_buffer("memo_sep_lu", torch.zeros(0, dtype=dtype), persistent=False)
