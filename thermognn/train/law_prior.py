@@ -54,7 +54,7 @@ from thermognn.core.hyperelastic import NeoHookean, Ogden
 from thermognn.core.linear import LinearSolid
 
 from .learned_law import StrainEnergy
-from .mat3 import det3, inverse3
+from .mat3 import det3, det_inverse3, inverse3
 
 from .prior import (BAND_MAX_SHARE, DISSECTION_MAX_SHARE, CorotatedNewmarkPrior, FactoredSolve, SparseSolve, _matrix,
                     _voigt, band_factor, band_layout, band_solve, dissection_factor, dissection_layout,
@@ -174,8 +174,8 @@ def ogden_isochoric(C: Tensor, mu: List[float], alpha: List[float], eps: float,
     a = J^(-2/3). The derivatives (the tangent's, as UFL differentiates the FE's form twice) take
     the differential of each line of that chain in turn, ``d`` before its name."""
     eye = _eye(C)
-    Ci = inverse3(C)
-    a = det3(C).pow(-1.0 / 3.0)[..., None, None]                                   # J^(-2/3)
+    detC, Ci = det_inverse3(C)
+    a = detC.pow(-1.0 / 3.0)[..., None, None]                                      # J^(-2/3)
     Cb = a * C
     m = Cb.diagonal(dim1=-2, dim2=-1).sum(-1) / 3.0                                   # [...]
     B = Cb - m[..., None, None] * eye
@@ -301,8 +301,9 @@ def neo_hookean_tangent(F: Tensor, c10: float, d1: float, w_iso: float, w_vol: f
                                      + I1/3 G_il G_kj)
                       + w_vol k ((2J − 1) J G_ij G_kl − (J − 1) J G_il G_kj) + δ_ik extra_lj."""
     eye = _eye(F)
-    G = inverse3(F).transpose(-1, -2)                                                      # F⁻ᵀ
-    J = det3(F)[..., None, None, None, None]
+    detF, Fi = det_inverse3(F)
+    G = Fi.transpose(-1, -2)                                                           # F⁻ᵀ
+    J = detF[..., None, None, None, None]
     I1 = (F * F).sum((-2, -1))[..., None, None, None, None]
     a = J.pow(-2.0 / 3.0)
     k = 2.0 / d1

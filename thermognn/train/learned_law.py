@@ -142,7 +142,7 @@ class StrainEnergy(nn.Module):
         with torch.no_grad():
             t = torch.linspace(0.0, 1.0, GUARD_SAMPLES, dtype=self.iso_weight.dtype)
             x = torch.stack(torch.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)           # [P, 2] x >= 0
-            sig = torch.sigmoid(x @ self.iso_weight.t() + self.iso_bias)                     # [P, k]
+            sig = torch.sigmoid(self.iso_preactivation(x))                                   # [P, k]
             slope = self.iso_linear + (sig * self.iso_out) @ self.iso_weight                  # [P, 2] ∂(Ψ/μ_s)/∂x
             curvature = (sig * (1.0 - sig) * self.iso_out) @ self.iso_weight.pow(2)          # [P, 2] ∂²/∂x_i²
             y = torch.linspace(-1.0, 1.0, 2 * GUARD_SAMPLES - 1, dtype=self.vol_weight.dtype).unsqueeze(-1)
