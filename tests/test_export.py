@@ -172,8 +172,9 @@ def test_export_with_another_time_step(exported, tmp_path):
 
 def test_a_law_iterated_to_a_tolerance_is_served_with_its_tangent_kept_and_its_updates_searched():
     """``served_law_settings``: export steps a law model whose law iterates to a tolerance with its
-    tangent kept, its Newton updates line-searched and a looser tolerance tightened to 1e-7 (a chord
-    stops further from the solution at the same tolerance) unless the command line says otherwise
+    tangent kept, its chord updates Anderson-mixed with the last 2 (session 102), its Newton updates
+    line-searched and a looser tolerance tightened to 1e-7 (a chord stops further from the solution
+    at the same tolerance) unless the command line says otherwise
     (``rollout.prior_*``, each key on its own) or the checkpoint already does (under the sim press
     the bunny's fresh, unsearched step cut steps for up to 16 s after the tool's release;
     docs/accuracy.md, session 97). A fixed budget keeps its step (the settings would change what it
@@ -184,35 +185,42 @@ def test_a_law_iterated_to_a_tolerance_is_served_with_its_tangent_kept_and_its_u
     from thermognn.train.checkpoint import SERVED_LAW_STEP, served_law_settings, served_law_step
 
     law = {"scene": "bunny", "prior": {"law": 1, "law_max": 16, "law_rtol": 1e-7, "law_cuts": 4}, "config": ""}
-    assert served_law_step(law) == {"prior_tangent": "kept", "prior_line_search": 6}
+    assert served_law_step(law) == {"prior_tangent": "kept", "prior_anderson": 2, "prior_line_search": 6}
     assert SERVED_LAW_STEP["prior_newton_rtol"] == 1e-7 and SERVED_LAW_STEP["prior_newton_max"] == 16
     cfg = load_config([])
     served, note = served_step(cfg, law)
     assert OmegaConf.select(served, "rollout.prior_tangent") == "kept" and cfg.rollout.prior_tangent is None
     assert OmegaConf.select(served, "rollout.prior_line_search") == 6
+    assert OmegaConf.select(served, "rollout.prior_anderson") == 2
     assert note.startswith("a law iterated to a tolerance is served with rollout.prior_tangent=kept "
-                           "rollout.prior_line_search=6 (")
-    assert "rollout.prior_tangent=fresh rollout.prior_line_search=0 exports the step as trained" in note
+                           "rollout.prior_line_search=6 rollout.prior_anderson=2 (")
+    assert ("rollout.prior_tangent=fresh rollout.prior_line_search=0 rollout.prior_anderson=0 exports the step as "
+            "trained") in note
     # the command line's choice stands, each key on its own
     fresh = load_config(["rollout.prior_tangent=fresh"])
     served, note = served_step(fresh, law)
     assert served.rollout.prior_tangent == "fresh" and served.rollout.prior_line_search == 6
+    assert served.rollout.prior_anderson is None                     # (mixing needs the kept tangent)
     assert "rollout.prior_tangent=kept" not in note and "rollout.prior_line_search=0 exports" in note
+    unmixed = load_config(["rollout.prior_anderson=0"])
+    assert served_law_settings(law, unmixed) == {"prior_tangent": "kept", "prior_line_search": 6}
     chosen = load_config(["rollout.prior_tangent=fresh", "rollout.prior_line_search=0"])
     assert served_step(chosen, law) == (chosen, "")
     # a checkpoint that searches already (the liver's) is given the kept tangent only
     searched = {**law, "prior": {**law["prior"], "law_search": 6}}
-    assert served_law_settings(searched, cfg) == {"prior_tangent": "kept"}
-    assert served_law_settings({**law, "prior": {**law["prior"], "law_search": 6, "law_tangent": "kept"}}, cfg) == {}
+    assert served_law_settings(searched, cfg) == {"prior_tangent": "kept", "prior_anderson": 2}
+    kept = {**law, "prior": {**law["prior"], "law_search": 6, "law_tangent": "kept"}}
+    assert served_law_settings(kept, cfg) == {"prior_anderson": 2}
+    assert served_law_settings({**kept, "prior": {**kept["prior"], "law_anderson": 3}}, cfg) == {}
     # a looser tolerance (the shell's 1e-4, 12 at most) is tightened where the tangent is kept, and
     # only where the command line sets neither the tolerance nor the most updates
     loose = {**law, "prior": {**law["prior"], "law_max": 12, "law_rtol": 1e-4}}
-    assert served_law_settings(loose, cfg) == {"prior_tangent": "kept", "prior_line_search": 6,
+    assert served_law_settings(loose, cfg) == {"prior_tangent": "kept", "prior_line_search": 6, "prior_anderson": 2,
                                                "prior_newton_rtol": 1e-7, "prior_newton_max": 16}
     assert "rollout.prior_newton_rtol=0.0001 rollout.prior_newton_max=12 exports" in served_step(cfg, loose)[1]
     assert served_law_settings(loose, fresh) == {"prior_line_search": 6}
     assert served_law_settings(loose, load_config(["rollout.prior_newton_rtol=1e-5"])) == {
-        "prior_tangent": "kept", "prior_line_search": 6}
+        "prior_tangent": "kept", "prior_line_search": 6, "prior_anderson": 2}
     # a fixed budget (trained, or the one the command line iterates), a budget fit and a graph
     # network keep their step
     budget = {**law, "prior": {"law": 2, "law_max": 2}}

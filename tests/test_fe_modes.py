@@ -5,6 +5,7 @@ import dataclasses
 import io
 import json
 import math
+import re
 import tempfile
 from pathlib import Path
 
@@ -1676,6 +1677,109 @@ def test_law_prior_keeps_its_tangent_while_it_contracts():
         prior_settings(OmegaConf.create({"prior": "linear", "prior_law": True, "prior_tangent": "kept"}))
     with pytest.raises(ValueError, match=r"the law prior's tangent: 'kept', expected one of fresh \| kept, and kept "):
         build(iterations=1, tangent="kept")
+
+
+def test_law_prior_mixes_its_chord_updates_by_anderson():
+    """``model.prior_anderson`` (``HyperelasticNewmarkPrior(tangent="kept", anderson=m)``) on the FE
+    solid's own data (the damped 1 N bend, viscous Ogden): each chord update mixed with up to m
+    earlier ones of the same tangent (Anderson's method) converges to the FE rollout as plain
+    chords do, forming fewer tangents (a mixed update may contract less before one is formed);
+    a step under a load 3 times the data's, from a state of the data, lands where fresh tangents
+    land it; a batch of two loads steps each as alone; at rest the mixing stays finite and forms no
+    tangent past the first. The mixing itself, from one earlier iterate: the new iterate mixes the
+    two iterates' chord images with the weights whose updates mix to the least norm; a sample
+    whose updates do not change mixes nothing. Scripted, the
+    carried step follows the rollouts; the config records it, export serves 2, and the values it
+    cannot take are named."""
+    torch = pytest.importorskip("torch")
+    from omegaconf import OmegaConf
+
+    from thermognn.core.errors import ConfigError
+    from thermognn.core.state import describe_step
+    from thermognn.train.checkpoint import SERVED_LAW_STEP, model_step, served_law_step
+    from thermognn.train.hybrid import prior_settings
+
+    graph, prony, build = _ogden_bend_priors(steps=12)
+    layout, traj, dt, X, linear, node_type, edges, z, f = graph
+    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
+    u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
+    n = int(linear.free.sum())
+    G0 = torch.zeros(len(f), n, dtype=torch.float64)
+    plain = build(iterations=1, max_iterations=40, newton_rtol=1e-12, tangent="kept")
+    mixed = build(iterations=1, max_iterations=40, newton_rtol=1e-12, tangent="kept", anderson=2)
+    assert plain.kept_contraction == 0.5 and mixed.kept_contraction == 0.7
+    _prior_rollout(plain, u, v, f, G0, None)
+    U, V, Sig = _prior_rollout(mixed, u, v, f, G0, None)
+    assert rel(U, u) < 1e-11 and rel(V, v) < 1e-10 and rel(Sig, sigma) < 1e-10         # the FE's rollout
+    assert mixed.newton_taken.tolist()[1:] == [len(f) - 1, 0, 0]
+    assert 1 <= int(mixed.tangents_formed) < int(plain.tangents_formed)
+    # from a state of the data under 3 times its next load, a tangent kept from the data's load
+    s0 = 3
+    fresh = build(iterations=1, max_iterations=40, newton_rtol=1e-12)
+    uf, vf = fresh.gather(u[s0:s0 + 1]), fresh.gather(v[s0:s0 + 1])
+    h = fresh.internal_variables(uf)
+    a = fresh.initial_acceleration(uf, vf, fresh.gather(f[s0:s0 + 1]), G0[:1])
+    gentle, strong = fresh.gather(f[s0 + 1:s0 + 2]), 3.0 * fresh.gather(f[s0 + 1:s0 + 2])
+    exact = fresh.step(uf, vf, a, strong, G0[:1], G0[:1], h)
+    mixed.step(uf, vf, a, gentle, G0[:1], G0[:1], h)
+    hard = mixed.step(uf, vf, a, strong, G0[:1], G0[:1], h)
+    assert rel(hard[0], exact[0]) < 1e-9 and rel(hard[1], exact[1]) < 1e-8
+    # a batch of two: per sample, as alone
+    ub, vb, ab, hb = (torch.cat([x, x]) for x in (uf, vf, a, h))
+    both = mixed.step(ub, vb, ab, torch.cat([gentle, strong]), G0[:2], G0[:2], hb)
+    for k, load in enumerate((gentle, strong)):
+        alone = fresh.step(uf, vf, a, load, G0[:1], G0[:1], h)
+        assert rel(both[0][k:k + 1], alone[0]) < 1e-9 and rel(both[1][k:k + 1], alone[1]) < 1e-8
+    # at rest, and at rest with float32 round-off in the displacement
+    rest = build(iterations=1, max_iterations=40, newton_rtol=1e-12, tangent="kept", anderson=2)
+    zero = torch.zeros(1, n, dtype=torch.float64)
+    noise = 1e-9 * torch.randn(1, n, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    for start in (zero, zero, noise, noise):
+        out = rest.step(start, zero, zero, zero, zero, zero, rest.internal_variables(start))
+        assert all(bool(torch.isfinite(x).all()) for x in out)
+    assert int(rest.tangents_formed) == 1 and rest.newton_taken.tolist()[2] == 0
+    # the mixing, from one earlier iterate, on a linear residual r(x) = A x − b with the chord's
+    # update d = K⁻¹ r(x) (subtracted from x), γ the least-squares fit of d1 by d1 − d0
+    gen = torch.Generator().manual_seed(5)
+    A = torch.eye(4, dtype=torch.float64) + 0.3 * torch.rand(4, 4, dtype=torch.float64, generator=gen)
+    K = torch.eye(4, dtype=torch.float64) + 0.1 * torch.rand(4, 4, dtype=torch.float64, generator=gen)
+    b = torch.rand(4, dtype=torch.float64, generator=gen)
+    x0, x1 = torch.zeros(4, dtype=torch.float64), torch.rand(4, dtype=torch.float64, generator=gen)
+    d0, d1 = torch.linalg.solve(K, A @ x0 - b), torch.linalg.solve(K, A @ x1 - b)
+    move = mixed.anderson_update(d1[None], (x1 - x0)[None, :, None], (d1 - d0)[None, :, None])[0]
+    gamma = float((d1 - d0) @ d1 / ((d1 - d0) @ (d1 - d0)))
+    assert torch.allclose(move, d1 + gamma * ((x1 - x0) - (d1 - d0)), rtol=1e-12, atol=0.0)
+    # the new iterate mixes the two iterates' chord images x − d with the weights whose updates
+    # mix to the least norm
+    assert torch.allclose(x1 - move, (1 - gamma) * (x1 - d1) + gamma * (x0 - d0), rtol=0.0, atol=1e-12)
+    assert float(((1 - gamma) * d1 + gamma * d0).norm()) <= float(d1.norm())
+    still = mixed.anderson_update(d1[None], torch.zeros(1, 4, 1, dtype=torch.float64),
+                                  torch.zeros(1, 4, 1, dtype=torch.float64))
+    assert torch.equal(still[0], d1)
+    # scripted (serve's dense factors, the executor's optimisation off as serve steps it)
+    _carried_steps_follow_rollouts(build(iterations=1, max_iterations=40, newton_rtol=1e-12, tangent="kept",
+                                         anderson=2), graph, width=len(prony) * mixed.cell_columns, optimized=False)
+
+    cfg = {"prior": "linear", "prior_law": True, "prior_newton": 1, "prior_newton_max": 16, "prior_newton_rtol": 1e-7,
+           "prior_tangent": "kept"}
+    settings = prior_settings(OmegaConf.create({**cfg, "prior_anderson": 2}))
+    assert settings["law_anderson"] == 2 and model_step({"prior": settings})["law_anderson"] == 2
+    assert ", its chord updates Anderson-mixed with up to 2 earlier ones" in describe_step(model_step({"prior": settings}))
+    assert "law_anderson" not in prior_settings(OmegaConf.create(cfg))
+    assert SERVED_LAW_STEP["prior_anderson"] == 2
+    assert served_law_step({"prior": {"law": 1, "law_max": 16, "law_rtol": 1e-7, "law_tangent": "kept",
+                                      "law_search": 6}}) == {"prior_anderson": 2}
+    assert served_law_step({"prior": {**settings, "law_search": 6}}) == {}
+    for bad, said in ((5, "model.prior_anderson = 5, expected an integer 0 to 4"),
+                      (True, "model.prior_anderson = True, expected an integer 0 to 4"),
+                      (1.5, "model.prior_anderson = 1.5, expected an integer 0 to 4")):
+        with pytest.raises(ConfigError, match=re.escape(said)):
+            prior_settings(OmegaConf.create({**cfg, "prior_anderson": bad}))
+    with pytest.raises(ConfigError, match=r"model.prior_anderson = 2 needs model.prior_tangent = kept"):
+        prior_settings(OmegaConf.create({**cfg, "prior_tangent": "fresh", "prior_anderson": 2}))
+    with pytest.raises(ValueError, match=r"the law prior's Anderson mixing: 2, expected 0 \(none\) to 4 earlier chord "
+                                         r"updates, and more than 0 only with the tangent kept"):
+        build(iterations=1, max_iterations=8, anderson=2)
 
 
 def test_correction_inputs_are_what_the_budgeted_step_moved_from_its_predictor():

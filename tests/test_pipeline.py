@@ -690,7 +690,8 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
                 res.stdout[-2000:]
             # evaluated as export serves it too (served_law_step): its tangent kept, its updates searched
             assert ("evaluate: as served (the law prior's step 1 to 4 Newton iterations to 1e-08, cut down to Δt/16, "
-                    "its tangent kept, its updates line-searched (6 halvings), as export gives it)") in res.stdout, \
+                    "its tangent kept, its chord updates Anderson-mixed with up to 2 earlier ones, its updates "
+                    "line-searched (6 halvings), as export gives it)") in res.stdout, \
                 res.stdout[-2000:]
         else:
             assert "export: a law iterated to a tolerance is served with rollout.prior_tangent=kept" in res.stdout

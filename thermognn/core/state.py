@@ -136,6 +136,8 @@ def describe_step(step) -> str:
                      + (", its sub-steps loaded linearly between the step's loads"
                         if step.get("law_cut_loads") == "linear" else "")
                      + (", its tangent kept while it contracts" if step.get("law_tangent") == "kept" else "")
+                     + (f", its chord updates Anderson-mixed with up to {int(step['law_anderson'])} earlier ones"
+                        if step.get("law_anderson") else "")
                      + (f", its updates line-searched (up to {int(step['law_search'])} halvings)"
                         if step.get("law_search") else "")
                      + ")")

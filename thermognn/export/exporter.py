@@ -179,8 +179,8 @@ def served_rollout(cfg, ckpt: dict, ds: Dataset | None = None):
 
 def served_step(cfg, ckpt: dict):
     """``cfg`` with the ``rollout.prior_*`` keys of ``served_law_settings`` set (a law model iterated
-    to a tolerance: its tangent kept, its updates line-searched, a looser tolerance tightened to
-    1e-7), and a line saying so ("" where nothing changed) with the overrides that export the step
+    to a tolerance: its tangent kept, its chord updates Anderson-mixed, its updates line-searched, a
+    looser tolerance tightened to 1e-7), and a line saying so ("" where nothing changed) with the overrides that export the step
     as trained."""
     want = served_law_settings(ckpt, cfg)
     if not want:
@@ -189,8 +189,9 @@ def served_step(cfg, ckpt: dict):
     for key, value in want.items():
         OmegaConf.update(served, f"rollout.{key}", value, force_add=True)
     law = ckpt["prior"]
-    trained = {"prior_tangent": "fresh", "prior_line_search": 0, "prior_newton_rtol": law.get("law_rtol"),
-               "prior_newton_max": law.get("law_max")}
+    trained = {"prior_tangent": law.get("law_tangent") or "fresh", "prior_line_search": law.get("law_search") or 0,
+               "prior_newton_rtol": law.get("law_rtol"), "prior_newton_max": law.get("law_max"),
+               "prior_anderson": law.get("law_anderson") or 0}
 
     def overrides(values: dict) -> str:                 # as typed on the command line
         return " ".join(f"rollout.{k}={v:g}" if isinstance(v, float) else f"rollout.{k}={v}" for k, v in values.items())

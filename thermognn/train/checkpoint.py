@@ -128,7 +128,8 @@ def model_from_checkpoint(ckpt: dict, dataset=None):
 ROLLOUT_KEYS = ("integrator", "implicit_iterations", "kinematics")
 #: ... and how a law-prior model's law is stepped (``rollout.<key>``, as ``model.<key>``)
 LAW_ROLLOUT_KEYS = ("prior_newton", "prior_newton_max", "prior_newton_rtol", "prior_step_cuts", "prior_tangent",
-                    "prior_line_search", "prior_cut_loads", "prior_rule", "prior_hht", "prior_substeps")
+                    "prior_line_search", "prior_cut_loads", "prior_rule", "prior_hht", "prior_substeps",
+                    "prior_anderson")
 
 
 def law_phrase(prior: dict) -> str:
@@ -144,6 +145,8 @@ def law_phrase(prior: dict) -> str:
         text += (", its sub-steps loaded between the step's loads" if prior.get("law_cut_loads") == "linear"
                  and int(prior.get("law_substeps", 1)) == 1 else "")
     text += ", its tangent kept" if prior.get("law_tangent") == "kept" else ""
+    text += (f", its chord updates Anderson-mixed with up to {int(prior['law_anderson'])} earlier ones"
+             if prior.get("law_anderson") else "")
     text += f", its updates line-searched ({int(prior['law_search'])} halvings)" if prior.get("law_search") else ""
     text += ", the energy rule in time" if prior.get("law_rule") == "energy" else ""
     return text + (f", HHT's dissipation α = -{float(prior['law_hht']):g}" if prior.get("law_hht") else "")
@@ -176,14 +179,14 @@ def with_law_rollout(ckpt: dict, want: dict) -> tuple[dict, str]:
            "prior_step_cuts": prior.get("law_cuts", 0), "prior_tangent": prior.get("law_tangent", "fresh"),
            "prior_line_search": prior.get("law_search", 0), "prior_cut_loads": prior.get("law_cut_loads", "end"),
            "prior_rule": prior.get("law_rule", "newmark"), "prior_hht": prior.get("law_hht", 0.0),
-           "prior_substeps": prior.get("law_substeps", 1)}
+           "prior_substeps": prior.get("law_substeps", 1), "prior_anderson": prior.get("law_anderson", 0)}
     law.update({k: v for k, v in want.items() if v is not None})
     try:
         stepped = prior_settings(OmegaConf.create(law))
     except ConfigError as exc:                  # named as they were set
         raise ConfigError(re.sub(r"model\.(" + "|".join(LAW_ROLLOUT_KEYS) + r")\b", r"rollout.\1", str(exc))) from None
     keys = ("law", "law_max", "law_rtol", "law_cuts", "law_tangent", "law_search", "law_cut_loads", "law_rule",
-            "law_hht", "law_substeps")
+            "law_hht", "law_substeps", "law_anderson")
     new = {**{k: v for k, v in prior.items() if k not in keys}, **{k: stepped[k] for k in keys if k in stepped}}
     if law_phrase(new) == law_phrase(prior):
         return ckpt, ""
@@ -231,15 +234,18 @@ def served_law_hht(ckpt: dict, scene=None, ds=None) -> tuple[float | None, str]:
 #: float32 states an exported model carries round at about 6e-8, so a tighter one buys serve
 #: nothing). ``served_law_step``; docs/accuracy.md, session 97: under the sim press the bunny's fresh,
 #: unsearched step took 2.1 s a step and cut steps for up to 16 s after the tool's release, kept and
-#: searched 0.39 s and none
-SERVED_LAW_STEP = {"prior_tangent": "kept", "prior_line_search": 6, "prior_newton_rtol": 1e-7, "prior_newton_max": 16}
+#: searched 0.39 s and none; and its chord updates Anderson-mixed with the last 2 (session 102: the
+#: liver's body under the press 1.29x faster by the median step, 1.43x by the mean; the bunny's
+#: 1.17x by the mean; the shell's as fast)
+SERVED_LAW_STEP = {"prior_tangent": "kept", "prior_line_search": 6, "prior_newton_rtol": 1e-7, "prior_newton_max": 16,
+                   "prior_anderson": 2}
 
 
 def served_law_step(ckpt: dict) -> dict:
     """The ``rollout.prior_*`` settings (SERVED_LAW_STEP's) a law model is served with beyond its
     checkpoint's: {} where none apply (not a law model, a fixed Newton budget, which the step's
     settings would change, a network fitted to its budget's misses, or a checkpoint that already
-    keeps its tangent to 1e-7 and searches). A converged step stays where it was (within the
+    keeps its tangent to 1e-7, mixes its chord updates and searches). A converged step stays where it was (within the
     tolerance); what they change is how fast, and whether a step after a sudden release converges
     at all."""
     from omegaconf import OmegaConf
@@ -253,6 +259,8 @@ def served_law_step(ckpt: dict) -> dict:
     want = {}
     if (law.get("law_tangent") or "fresh") == "fresh":
         want["prior_tangent"] = SERVED_LAW_STEP["prior_tangent"]
+    if not law.get("law_anderson"):
+        want["prior_anderson"] = SERVED_LAW_STEP["prior_anderson"]
     if not law.get("law_search"):
         want["prior_line_search"] = SERVED_LAW_STEP["prior_line_search"]
     if float(law.get("law_rtol") or 0.0) > SERVED_LAW_STEP["prior_newton_rtol"]:
@@ -281,6 +289,8 @@ def served_law_settings(ckpt: dict, cfg) -> dict:
 
     want = {k: offered[k] for k in ("prior_tangent", "prior_line_search") if k in offered and k in still and not given(k)}
     kept = (want.get("prior_tangent") or stepped["prior"].get("law_tangent")) == "kept"
+    if kept and "prior_anderson" in offered and "prior_anderson" in still and not given("prior_anderson"):
+        want["prior_anderson"] = offered["prior_anderson"]
     if (kept and "prior_newton_rtol" in offered and "prior_newton_rtol" in still and not given("prior_newton_rtol")
             and not given("prior_newton_max")):
         want["prior_newton_rtol"], want["prior_newton_max"] = offered["prior_newton_rtol"], offered["prior_newton_max"]
@@ -366,7 +376,8 @@ def model_step(ckpt: dict) -> dict:
     "material" where its stress is the material's law, "law": the Newton iterations a step of the
     law prior, "law_max": the most it takes where a step has not converged, "law_rtol": to what,
     "law_cuts": how many times a step that still has not is halved, "law_tangent": "kept" where its
-    tangent is kept between iterations and steps, "law_search": the halvings of its line search,
+    tangent is kept between iterations and steps, "law_anderson": how many earlier chord updates a
+    kept tangent's update is mixed with, "law_search": the halvings of its line search,
     "law_cut_loads": "linear" where a cut step's sub-steps are loaded between the step's loads,
     "law_substeps": how many sub-steps every step is taken as (``rollout.prior_substeps``),
     "law_rule": "energy" where the trapezoid is corrected by its step potential's discrete gradient,
@@ -388,6 +399,7 @@ def model_step(ckpt: dict) -> dict:
                 **({"law_rtol": float(prior["law_rtol"])} if prior.get("law_rtol") else {}),
                 **({"law_cuts": int(prior["law_cuts"])} if prior.get("law_cuts") else {}),
                 **({"law_tangent": str(prior["law_tangent"])} if prior.get("law_tangent") else {}),
+                **({"law_anderson": int(prior["law_anderson"])} if prior.get("law_anderson") else {}),
                 **({"law_search": int(prior["law_search"])} if prior.get("law_search") else {}),
                 **({"law_cut_loads": "linear"} if prior.get("law_cut_loads") == "linear" else {}),
                 **({"law_substeps": int(prior["law_substeps"])} if int(prior.get("law_substeps", 1)) > 1 else {}),

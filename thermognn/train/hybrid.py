@@ -553,6 +553,16 @@ def prior_settings(cfg_model) -> dict:
         raise ConfigError(f"model.prior_tangent = kept needs model.prior_law = true and model.prior_newton_max > "
                           f"model.prior_newton (= {newton}): a kept tangent iterates each step to "
                           f"model.prior_newton_rtol")
+    from .law_prior import MAX_ANDERSON
+
+    anderson = OmegaConf.select(cfg_model, "prior_anderson", default=0)
+    anderson = 0 if anderson is None else anderson
+    if isinstance(anderson, bool) or not isinstance(anderson, int) or not 0 <= anderson <= MAX_ANDERSON:
+        raise ConfigError(f"model.prior_anderson = {anderson!r}, expected an integer 0 to {MAX_ANDERSON} (how many "
+                          f"earlier chord updates of a step the law prior mixes each with, Anderson's method; 0: none)")
+    if anderson and tangent != "kept":
+        raise ConfigError(f"model.prior_anderson = {anderson} needs model.prior_tangent = kept: it mixes the kept "
+                          f"tangent's chord updates")
     from .law_prior import MAX_HALVINGS
 
     search = OmegaConf.select(cfg_model, "prior_line_search", default=0)
@@ -647,6 +657,8 @@ def prior_settings(cfg_model) -> dict:
                     settings["law_cut_loads"] = "linear"
             if tangent == "kept":                 # its tangent kept between iterations and steps
                 settings["law_tangent"] = "kept"
+                if anderson:                      # its chord updates Anderson-mixed (absent: not)
+                    settings["law_anderson"] = int(anderson)
         if search:                                # its Newton updates line-searched (absent otherwise)
             settings["law_search"] = int(search)
         if rule != "newmark":                     # its time rule (absent: the data's Newmark rule)
@@ -686,7 +698,7 @@ def neo_hookean_of(ds) -> Tuple[float, float]:
 def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material: bool = False,
                 law: int = 0, law_max: Optional[int] = None, law_rtol: Optional[float] = None,
                 law_cuts: int = 0, law_tangent: str = "fresh", law_search: int = 0, law_hht: float = 0.0,
-                law_rule: str = "newmark", law_substeps: int = 1,
+                law_rule: str = "newmark", law_substeps: int = 1, law_anderson: int = 0,
                 learned_law: Optional[Sequence[int]] = None,
                 prony: Optional[Sequence[Sequence[float]]] = None) -> NewmarkPrior:
     """The dataset's ``/linear`` as a NewmarkPrior (float64), relaxing as its viscous solid does
@@ -694,7 +706,8 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
     (:class:`CorotatedNewmarkPrior`), its stress the material's law with ``material``, or with
     ``law`` > 0 the dataset's own hyperelastic law stepped with that many Newton iterations, and up
     to ``law_max`` where a step has not converged to ``law_rtol``, halved up to ``law_cuts`` times
-    where it still has not, its tangent ``law_tangent`` (fresh | kept), its updates line-searched
+    where it still has not, its tangent ``law_tangent`` (fresh | kept), a kept tangent's chord
+    updates Anderson-mixed with up to ``law_anderson`` earlier ones, its updates line-searched
     with up to ``law_search`` halvings (0: none; ``prior_settings`` records them)
     (:class:`thermognn.train.law_prior.HyperelasticNewmarkPrior`), its law with ``learned_law``
     (hidden units) a learned strain energy (:mod:`thermognn.train.learned_law`; its weights come
@@ -743,7 +756,8 @@ def build_prior(ds, dt: float, relax: bool = False, corotated: int = 0, material
                                             solid_law, iterations=int(law), max_iterations=law_max,
                                             newton_rtol=law_rtol, step_cuts=int(law_cuts), tangent=law_tangent,
                                             line_search=int(law_search), hht=float(law_hht),
-                                            rule=str(law_rule), substeps=int(law_substeps))
+                                            rule=str(law_rule), substeps=int(law_substeps),
+                                            anderson=int(law_anderson))
         if corotated:
             return CorotatedNewmarkPrior(linear, len(ds.mesh.nodes), float(dt), ds.mesh.nodes, tets, lam, mu,
                                          sweeps=int(corotated), neo_hookean=neo_hookean_of(ds) if material else None,
@@ -766,6 +780,7 @@ def prior_model(net: TIGNN, settings: dict, ds, dt: float) -> LinearPriorModel:
                                              float(settings.get("law_hht", 0.0)),
                                              str(settings.get("law_rule", "newmark")),
                                              int(settings.get("law_substeps", 1)),
+                                             int(settings.get("law_anderson", 0)),
                                              settings.get("law_hidden") if settings.get("law_material") == "learned"
                                              else None,
                                              settings["law_prony"] if isinstance(settings.get("law_prony"), list)

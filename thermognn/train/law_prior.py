@@ -116,6 +116,13 @@ TANGENTS = ("fresh", "kept")
 #: share of the one it started from, else the tangent is formed afresh there and the update redone
 #: (an update with a tangent formed where it starts is Newton's, and always taken)
 KEPT_CONTRACTION = 0.5
+#: ``anderson`` > 0: the most earlier chord updates an update is mixed with (Anderson's method on the
+#: chord's fixed-point map; ``kept_iterations``), and the share of its start's residual norm such a
+#: mixed update must leave before the tangent is formed afresh: the mixing converges where a plain
+#: chord contracts slowly, so a tangent is formed less often (the liver's body under the sim press,
+#: docs/accuracy.md session 102: 62 tangents formed in 150 steps where plain chords formed 158)
+MAX_ANDERSON = 4
+ANDERSON_CONTRACTION = 0.7
 
 
 def _eye(F: Tensor) -> Tensor:
@@ -420,7 +427,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                  lam: float, mu: float, law: NeoHookean | Ogden | StrainEnergy, iterations: int = 1,
                  max_iterations: Optional[int] = None, newton_rtol: Optional[float] = None,
                  step_cuts: int = 0, tangent: str = "fresh", line_search: int = 0, hht: float = 0.0,
-                 rule: str = "newmark", substeps: int = 1, dtype: torch.dtype = torch.float64) -> None:
+                 rule: str = "newmark", substeps: int = 1, anderson: int = 0,
+                 dtype: torch.dtype = torch.float64) -> None:
         if not isinstance(law, (NeoHookean, Ogden, StrainEnergy)):
             raise ValueError(f"the law prior steps a NeoHookean, Ogden or learned law, not {law!r}")
         if int(iterations) < 1:
@@ -439,6 +447,10 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                 max_iterations is not None and int(max_iterations) > int(iterations))):
             raise ValueError(f"the law prior's tangent: {tangent!r}, expected one of {' | '.join(TANGENTS)}, and kept "
                              f"only with max_iterations > iterations (a tolerance ends each step)")
+        if isinstance(anderson, bool) or not 0 <= int(anderson) <= MAX_ANDERSON or (int(anderson) > 0
+                                                                                    and tangent != "kept"):
+            raise ValueError(f"the law prior's Anderson mixing: {anderson!r}, expected 0 (none) to {MAX_ANDERSON} "
+                             f"earlier chord updates, and more than 0 only with the tangent kept")
         if isinstance(substeps, bool) or int(substeps) not in SUBSTEPS:
             raise ValueError(f"the law prior's sub-steps: {substeps!r}, expected one of {list(SUBSTEPS)} (the data's "
                              f"scene.time.substeps)")
@@ -509,7 +521,11 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         # dense path's in kept_* (``factor``'s six), the eager CPU's sparse LUs in _kept_lus, for a
         # batch of kept_batch samples (0: none kept); training's steps form theirs as "fresh"
         self.kept_tangent = tangent == "kept"
-        self.kept_contraction = KEPT_CONTRACTION
+        # ``anderson`` > 0: each chord update mixed with up to that many earlier ones of the step
+        # (``anderson_update``), and a fresh tangent formed only where a mixed update leaves more
+        # than ANDERSON_CONTRACTION of its start's residual norm
+        self.anderson = int(anderson)
+        self.kept_contraction = ANDERSON_CONTRACTION if self.anderson > 0 else KEPT_CONTRACTION
         self.kept_batch = 0
         self._kept_lus: list = []
         self._start_memo = None         # eager CPU: the last step start and its factors (``_eager_first_iteration``)
@@ -1260,6 +1276,18 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         ratio to the update before (the chord's contraction; a small update of a slowly
         contracting chord is not yet converged).
 
+        With ``anderson`` = m > 0 each update past the first two with a tangent is Anderson's
+        mixing of the chord's update with up to m earlier ones made with the same tangent
+        (``anderson_update``): the iterates of a slowly contracting chord then converge faster, and
+        a tangent is formed afresh only where a mixed update leaves more than ANDERSON_CONTRACTION
+        of its start's residual norm. The first two stay plain, and their ratio (the chord's
+        contraction ρ, as carried) judges a mixed update: converged where the chord's own update
+        from its iterate (the one the mixing starts from) times ρ/(1 − ρ) is below the tolerance.
+        The mixed iterates' own ratios rise and fall: judged by them, the shell's served rollout
+        stopped short of the root (7x further from the converged law), and judged by a mixed
+        update's size alone, as Newton's are, the liver's took most of the updates mixing saves. A
+        Newton update, with a tangent formed where it starts, is never mixed.
+
         A model step steps the prior twice from the same start, the second time under loads that
         differ by its network's remainders (``LinearPriorModel.advance``): the second one starts
         from where the first ended (``kept_end``), not from the predictor, and its first update
@@ -1282,10 +1310,27 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         done = torch.zeros(B, dtype=torch.bool, device=u1.device)
         abandoned = False
         taken = 0
+        # ``anderson``: the differences of the iterates and of their chord updates since the kept
+        # tangent was formed (or this step began), the latest last: [B, n, j] m, j <= anderson
+        iterates = u1.new_zeros(B, u1.shape[1], 0)
+        updates = u1.new_zeros(B, u1.shape[1], 0)
+        last_u, last_du = u1, u1                             # the latest iterate and its chord update
+        have_last = False
+        plain = 0                                            # updates taken unmixed with this tangent
         while taken < self.max_iterations:
             du = self.kept_solve(residual)
             size = du.abs().amax(1)                                                        # [B] m
-            trial = self.admissible(u1, du)
+            move = du
+            mixed = False
+            if self.anderson > 0:
+                if have_last:
+                    iterates = torch.cat([iterates, (u1 - last_u).unsqueeze(2)], 2)[:, :, -self.anderson:]
+                    updates = torch.cat([updates, (du - last_du).unsqueeze(2)], 2)[:, :, -self.anderson:]
+                    if plain >= 2:                           # the chord's own ratio measured first
+                        move = self.anderson_update(du, iterates, updates)
+                        mixed = True
+                last_u, last_du, have_last = u1, du, True
+            trial = self.admissible(u1, move)
             r_trial, F_trial = self.step_residual(trial, v0, a0, predictor, extra, fixed)
             contracts = self.contracts(r_trial, residual)
             # a converged sample's residual, or one an update below NEWTON_ATOL leaves (a body at
@@ -1296,6 +1341,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                 fresh = True
                 last, carried = torch.zeros_like(last), torch.zeros_like(carried)
                 du = self.kept_solve(residual)
+                iterates, updates = iterates[:, :, :0], updates[:, :, :0]   # mixed only with this tangent's
+                last_u, last_du, mixed, plain = u1, du, False, 0
                 size = du.abs().amax(1)
                 trial = self.admissible(u1, du)
                 r_trial, F_trial = self.step_residual(trial, v0, a0, predictor, extra, fixed)
@@ -1313,7 +1360,13 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
                 measured = last > 0
                 rate = torch.where(measured, size / torch.where(measured, last, torch.ones_like(last)), carried)
                 done = (size <= self.newton_atol) | ((rate > 0) & (rate < 1.0) & (size * rate <= scale * (1.0 - rate)))
-                carried = torch.where(measured, rate, carried)
+                if mixed:       # a mixed one's: the chord's own ρ (the mixed iterates' ratios rise and fall)
+                    done = (size <= self.newton_atol) | ((carried > 0) & (carried < 1.0)
+                                                         & (size * carried <= scale * (1.0 - carried)))
+                else:
+                    carried = torch.where(measured, rate, carried)
+            if not mixed:
+                plain += 1
             u1, residual, F, last, fresh = trial, r_trial, F_trial, size, False
             if taken >= self.iterations and bool(done.all()):
                 break
@@ -1321,6 +1374,24 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             return u1, predictor, S_iso0, taken, torch.ones_like(done), True
         self.kept_from, self.kept_end, self.kept_rate = key, u1, carried
         return u1, predictor, S_iso0, taken, ~done, False
+
+    def anderson_update(self, du: Tensor, iterates: Tensor, updates: Tensor) -> Tensor:
+        """Anderson's mixing (Walker & Ni 2011, "type II") of the chord update du [B, n] m, which
+        ``kept_iterations`` subtracts from the iterate, with the earlier iterates' differences
+        ``iterates`` [B, n, j] m and their chord updates' differences ``updates`` [B, n, j] m:
+        du + (iterates − updates) γ, γ [B, j] fitting du by ``updates`` in least squares (per
+        sample; the normal equations, j <= MAX_ANDERSON, regularised by 1e-12 of their trace).
+        With j = 1 and a linear residual it is the secant update along the last step."""
+        normal = updates.transpose(1, 2) @ updates                                          # [B, j, j] m²
+        right = updates.transpose(1, 2) @ du.unsqueeze(2)                                   # [B, j, 1] m²
+        j = normal.shape[1]
+        # [B] m²: the regularisation, and at least about the smallest normal number (a sample at
+        # rest, whose updates do not change, mixes nothing: γ = 0)
+        floor = 1e-300 if du.dtype == torch.float64 else 1e-36
+        ridge = 1e-12 * normal.diagonal(dim1=1, dim2=2).sum(1) + floor
+        eye = torch.eye(j, dtype=du.dtype, device=du.device).unsqueeze(0)                 # [1, j, j]
+        gamma = torch.linalg.solve(normal + ridge.view(-1, 1, 1) * eye, right)              # [B, j, 1]
+        return du + ((iterates - updates) @ gamma).squeeze(2)
 
     def contracts(self, r_new: Tensor, r_old: Tensor) -> Tensor:
         """Per sample [B] bool, whether an update left a residual norm of at most ``kept_contraction``
