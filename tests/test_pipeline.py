@@ -700,8 +700,10 @@ def test_law_prior_trains_evaluates_and_exports(tmp_path, tiny_block, capsys):
     assert converged["cut_steps"] == 0
     for g in ("q", "v", "sigma"):
         assert converged[f"whole_{g}"] < 0.5 * converged[f"newton1_fe_whole_{g}"], (g, converged)
-        # served so, the same converged law: its steps stop at the same tolerance
-        assert converged[f"served_whole_{g}"] == pytest.approx(converged[f"whole_{g}"], rel=1e-3), (g, converged)
+        # served so, the same converged law: its steps stop at the same tolerance (1e-8), where its
+        # mixed chord updates (session 102) land within it elsewhere (v 3.20e-7 against 3.16e-7)
+        assert converged[f"served_whole_{g}"] == pytest.approx(converged[f"whole_{g}"], rel=1e-3, abs=2e-8), \
+            (g, converged)
     assert converged["served_hht"] == 0.0 and converged["served_unconverged_steps"] == 0
     step = verify(most / "model.pt")["step"]
     assert step["law_tangent"] == "kept" and step["law_search"] == 6 and step["law_max"] == 4
