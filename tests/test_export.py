@@ -204,6 +204,12 @@ def test_a_law_iterated_to_a_tolerance_is_served_with_its_tangent_kept_and_its_u
     assert "rollout.prior_tangent=kept" not in note and "rollout.prior_line_search=0 exports" in note
     unmixed = load_config(["rollout.prior_anderson=0"])
     assert served_law_settings(law, unmixed) == {"prior_tangent": "kept", "prior_line_search": 6}
+    # more mixing asked of a law trained fresh: on the kept tangent export gives it
+    from thermognn.train.checkpoint import with_rollout
+
+    more = load_config(["rollout.prior_anderson=3"])
+    assert served_law_settings(law, more) == {"prior_tangent": "kept", "prior_line_search": 6}
+    assert with_rollout(law, served_step(more, law)[0])[0]["prior"]["law_anderson"] == 3
     chosen = load_config(["rollout.prior_tangent=fresh", "rollout.prior_line_search=0"])
     assert served_step(chosen, law) == (chosen, "")
     # a checkpoint that searches already (the liver's) is given the kept tangent only

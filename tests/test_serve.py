@@ -797,17 +797,22 @@ def test_serve_checks_body_flags(exported_model, tmp_path):
 
 def test_serve_notes_a_law_served_without_its_kept_tangent_or_line_search():
     """A law iterated to a tolerance exported before session 97 (a fresh tangent at every update, no
-    line search) gets one line at serve's start naming what it lacks and the remedy; a file exported
-    kept and searched, a fixed Newton budget and a graph network get none."""
+    line search), or before session 102 (unmixed chords), gets one line at serve's start naming what
+    it lacks and the remedy; a file exported kept, searched and mixed, a fixed Newton budget and a
+    graph network get none."""
     from thermognn.serve.runner import served_step_note
 
     law = {"prior": "linear", "law": 1, "law_max": 16, "law_rtol": 1e-7}
     note = served_step_note({"step_settings": law}, "runs/bunny/model.pt")
     assert note.startswith("runs/bunny/model.pt steps its law to a tolerance without its tangent kept or its "
-                           "updates line-searched: export it again (thermognn export)"), note
-    searched = served_step_note({"step_settings": {**law, "law_search": 6}}, "m.pt")
+                           "updates line-searched or its chord updates Anderson-mixed: export it again "
+                           "(thermognn export)"), note
+    assert note.endswith("rollout.prior_line_search=0 or rollout.prior_anderson=0 was meant"), note
+    searched = served_step_note({"step_settings": {**law, "law_search": 6, "law_anderson": 2}}, "m.pt")
     assert "without its tangent kept:" in searched and "line-searched:" not in searched
-    for quiet in ({**law, "law_tangent": "kept", "law_search": 6}, {"prior": "linear", "law": 2},
+    unmixed = served_step_note({"step_settings": {**law, "law_search": 6, "law_tangent": "kept"}}, "m.pt")
+    assert "without its chord updates Anderson-mixed:" in unmixed          # exported in sessions 97-101
+    for quiet in ({**law, "law_tangent": "kept", "law_search": 6, "law_anderson": 2}, {"prior": "linear", "law": 2},
                   {"integrator": "euler", "kinematics": "exact"}, None):
         assert served_step_note({"step_settings": quiet}, "m.pt") == "", quiet
 

@@ -458,17 +458,21 @@ def served_step_note(geometry: dict, model_path) -> str:
     update or without a line search, as files exported before session 97 are (``thermognn export``
     now keeps the tangent and searches the updates: under the sim press the bunny's body stepped 5x
     faster, and cut no step after the tool's release where the fresh, unsearched one took up to
-    16 s a step); "" otherwise (no law, a fixed Newton budget, or a file exported so already)."""
+    16 s a step), or with unmixed chord updates, as files exported before session 102 are (the
+    liver's body 1.43x faster by its mean step mixed); "" otherwise (no law, a fixed Newton budget,
+    or a file exported so already)."""
     step = geometry.get("step_settings") or {}
     if not law_iterates(step):
         return ""
     missing = [what for what, off in (("its tangent kept", step.get("law_tangent") != "kept"),
-                                      ("its updates line-searched", not step.get("law_search"))) if off]
+                                      ("its updates line-searched", not step.get("law_search")),
+                                      ("its chord updates Anderson-mixed", not step.get("law_anderson"))) if off]
     if not missing:
         return ""
     return (f"{model_path} steps its law to a tolerance without {' or '.join(missing)}: export it again "
             f"(thermognn export), which serves it so (the bunny's body 5x faster under the sim press, no step "
-            f"cut after a release), unless rollout.prior_tangent=fresh or rollout.prior_line_search=0 was meant")
+            f"cut after a release; since session 102 the liver's 1.4x faster by its mean step), unless "
+            f"rollout.prior_tangent=fresh, rollout.prior_line_search=0 or rollout.prior_anderson=0 was meant")
 
 
 def _print_summary(summary: dict) -> None:

@@ -281,11 +281,18 @@ def served_law_settings(ckpt: dict, cfg) -> dict:
     offered = served_law_step(ckpt)
     if not offered:
         return {}
-    stepped, _ = with_rollout(ckpt, cfg)
-    still = served_law_step(stepped)
 
     def given(key: str) -> bool:
         return OmegaConf.select(cfg, f"rollout.{key}", default=None) is not None
+
+    # the step as the command line makes it, but for the mixing it asks for, which needs the
+    # kept tangent this may give it (rollout.prior_anderson=3 alone on a law trained fresh)
+    unmixed = cfg
+    if given("prior_anderson"):
+        unmixed = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+        OmegaConf.update(unmixed, "rollout.prior_anderson", None, force_add=True)
+    stepped, _ = with_rollout(ckpt, unmixed)
+    still = served_law_step(stepped)
 
     want = {k: offered[k] for k in ("prior_tangent", "prior_line_search") if k in offered and k in still and not given(k)}
     kept = (want.get("prior_tangent") or stepped["prior"].get("law_tangent")) == "kept"
