@@ -1365,6 +1365,23 @@ def _ogden_bend_priors(steps: int):
     return graph, prony, build
 
 
+def _ogden_bend_fields(steps: int):
+    """``_ogden_bend_priors`` with the data's fields: (graph, prony, build, (u, v [S, N, 3] m, m/s,
+    σ [S, N, 6] Pa, f [S, N, 3] N, zero remainders G0 [S, n] N))."""
+    import torch
+
+    graph, prony, build = _ogden_bend_priors(steps=steps)
+    X, linear, z, f = graph[3], graph[4], graph[7], graph[8]
+    u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
+    G0 = torch.zeros(len(f), int(linear.free.sum()), dtype=torch.float64)
+    return graph, prony, build, (u, v, sigma, f, G0)
+
+
+def _rel(a, b) -> float:
+    """‖a − b‖ / ‖b‖."""
+    return float((a - b).norm() / b.norm())
+
+
 def test_law_prior_iterates_past_its_budget_until_the_step_converges():
     """``model.prior_newton_max`` (``HyperelasticNewmarkPrior(max_iterations=...)``) on the FE
     solid's own data (the damped 1 N bend, viscous Ogden): one Newton iteration a step and up to 8
@@ -1565,26 +1582,22 @@ def test_law_prior_keeps_its_tangent_while_it_contracts():
     from thermognn.train.checkpoint import model_step
     from thermognn.train.hybrid import prior_settings
 
-    graph, prony, build = _ogden_bend_priors(steps=12)
-    layout, traj, dt, X, linear, node_type, edges, z, f = graph
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
-    u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
-    n = int(linear.free.sum())
-    G0 = torch.zeros(len(f), n, dtype=torch.float64)
+    graph, prony, build, (u, v, sigma, f, G0) = _ogden_bend_fields(steps=12)
+    n = G0.shape[1]
     steps = len(f) - 1
     kept = build(iterations=1, max_iterations=40, newton_rtol=1e-12, tangent="kept")
     U, V, Sig = _prior_rollout(kept, u, v, f, G0, None)
-    assert rel(U, u) < 1e-11 and rel(V, v) < 1e-10 and rel(Sig, sigma) < 1e-10         # the FE's rollout
+    assert _rel(U, u) < 1e-11 and _rel(V, v) < 1e-10 and _rel(Sig, sigma) < 1e-10         # the FE's rollout
     taken, counted, unconverged, cut = kept.newton_taken.tolist()
     assert counted == steps and unconverged == 0 and cut == 0 and taken >= 2 * steps   # chords: 2 at least
     assert 1 <= int(kept.tangents_formed) < steps                                       # tangents kept
     fresh = build(iterations=1, max_iterations=8)
     V_fresh = _prior_rollout(fresh, u, v, f, G0, None)[1]
-    assert rel(V_fresh, v) < 1e-10 and int(fresh.tangents_formed) >= fresh.newton_taken.tolist()[0]
+    assert _rel(V_fresh, v) < 1e-10 and int(fresh.tangents_formed) >= fresh.newton_taken.tolist()[0]
     loose = build(iterations=1, max_iterations=40, newton_rtol=1e-4, tangent="kept")
     V_loose = _prior_rollout(loose, u, v, f, G0, None)[1]
     V_one = _prior_rollout(build(iterations=1), u, v, f, G0, None)[1]
-    assert loose.newton_taken.tolist()[0] < taken and rel(V, v) < rel(V_loose, v) < rel(V_one, v)
+    assert loose.newton_taken.tolist()[0] < taken and _rel(V, v) < _rel(V_loose, v) < _rel(V_one, v)
 
     # from a state of the data, under 30 times its next load
     s0 = 3
@@ -1596,7 +1609,7 @@ def test_law_prior_keeps_its_tangent_while_it_contracts():
     hard = kept.step(uf, vf, a, strong, G0[:1], G0[:1], h)
     assert int(kept.tangents_formed) > formed
     exact = build(iterations=1, max_iterations=40).step(uf, vf, a, strong, G0[:1], G0[:1], h)
-    assert rel(hard[0], exact[0]) < 1e-9 and rel(hard[1], exact[1]) < 1e-8
+    assert _rel(hard[0], exact[0]) < 1e-9 and _rel(hard[1], exact[1]) < 1e-8
     # at rest, unloaded, and at rest with float32 round-off in the displacement (an exported
     # model's carried state, 1e-9 m): no tangent is formed past the first, and no step is cut short
     rest = build(iterations=1, max_iterations=40, newton_rtol=1e-12, tangent="kept")
@@ -1624,7 +1637,7 @@ def test_law_prior_keeps_its_tangent_while_it_contracts():
         uf30, vf30, a30, h30 = fresh40.step(uf30, vf30, a30, load, G0[:1], G0[:1], h30)
         fresh40.forget()
         if fresh40.newton_taken.tolist()[2] == counts[0]:                  # fresh tangents converged
-            assert agile.newton_taken.tolist()[2] == counts[1] and rel(mine[0], uf30) < 1e-9, k
+            assert agile.newton_taken.tolist()[2] == counts[1] and _rel(mine[0], uf30) < 1e-9, k
     assert again_fresh
     # the same start again under remainders ~1e-6 of the loads: from where the first step ended
     G1 = 1e-6 * float(strong.abs().max()) * torch.randn(1, n, dtype=torch.float64,
@@ -1636,7 +1649,7 @@ def test_law_prior_keeps_its_tangent_while_it_contracts():
     assert kept.kept_batch == 0 and kept.kept_end.numel() == 0
     before = kept.newton_taken.tolist()[0]
     cold = kept.step(uf, vf, a, strong, G0[:1], G1, h)
-    assert warm < kept.newton_taken.tolist()[0] - before and rel(again[0], cold[0]) < 1e-9
+    assert warm < kept.newton_taken.tolist()[0] - before and _rel(again[0], cold[0]) < 1e-9
     # with gradients: fresh tangents, the fresh prior's step to the bit
     fresh1 = build(iterations=1, max_iterations=40, newton_rtol=1e-12)
     ug = uf.clone().requires_grad_(True)
@@ -1649,7 +1662,7 @@ def test_law_prior_keeps_its_tangent_while_it_contracts():
     assert kept.kept_batch == 2
     for k, load in enumerate((gentle, 2.0 * gentle)):
         alone = fresh1.step(uf, vf, a, load, G0[:1], G0[:1], h)
-        assert rel(both[0][k:k + 1], alone[0]) < 1e-9 and rel(both[1][k:k + 1], alone[1]) < 1e-8
+        assert _rel(both[0][k:k + 1], alone[0]) < 1e-9 and _rel(both[1][k:k + 1], alone[1]) < 1e-8
     formed = int(kept.tangents_formed)
     kept.step(uf, vf, a, gentle, G0[:1], G0[:1], h)
     assert kept.kept_batch == 1 and int(kept.tangents_formed) > formed
@@ -1660,7 +1673,7 @@ def test_law_prior_keeps_its_tangent_while_it_contracts():
     before = kept.newton_taken.tolist()
     chords = kept.step(uf, vf, a, strong, G0[:1], G0[:1], h)
     after = kept.newton_taken.tolist()
-    assert after[0] - before[0] > 40 and after[2] == before[2] and rel(chords[0], exact[0]) < 1e-9
+    assert after[0] - before[0] > 40 and after[2] == before[2] and _rel(chords[0], exact[0]) < 1e-9
     kept.kept_contraction = 0.5
     _carried_steps_follow_rollouts(build(iterations=1, max_iterations=40, newton_rtol=1e-12, tangent="kept"), graph,
                                    width=len(prony) * kept.cell_columns)
@@ -1699,18 +1712,14 @@ def test_law_prior_mixes_its_chord_updates_by_anderson():
     from thermognn.train.checkpoint import SERVED_LAW_STEP, model_step, served_law_step
     from thermognn.train.hybrid import prior_settings
 
-    graph, prony, build = _ogden_bend_priors(steps=12)
-    layout, traj, dt, X, linear, node_type, edges, z, f = graph
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
-    u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
-    n = int(linear.free.sum())
-    G0 = torch.zeros(len(f), n, dtype=torch.float64)
+    graph, prony, build, (u, v, sigma, f, G0) = _ogden_bend_fields(steps=12)
+    n = G0.shape[1]
     plain = build(iterations=1, max_iterations=40, newton_rtol=1e-12, tangent="kept")
     mixed = build(iterations=1, max_iterations=40, newton_rtol=1e-12, tangent="kept", anderson=2)
     assert plain.kept_contraction == 0.5 and mixed.kept_contraction == 0.7
     _prior_rollout(plain, u, v, f, G0, None)
     U, V, Sig = _prior_rollout(mixed, u, v, f, G0, None)
-    assert rel(U, u) < 1e-11 and rel(V, v) < 1e-10 and rel(Sig, sigma) < 1e-10         # the FE's rollout
+    assert _rel(U, u) < 1e-11 and _rel(V, v) < 1e-10 and _rel(Sig, sigma) < 1e-10         # the FE's rollout
     assert mixed.newton_taken.tolist()[1:] == [len(f) - 1, 0, 0]
     assert 1 <= int(mixed.tangents_formed) < int(plain.tangents_formed)
     # from a state of the data under 3 times its next load, a tangent kept from the data's load
@@ -1723,13 +1732,13 @@ def test_law_prior_mixes_its_chord_updates_by_anderson():
     exact = fresh.step(uf, vf, a, strong, G0[:1], G0[:1], h)
     mixed.step(uf, vf, a, gentle, G0[:1], G0[:1], h)
     hard = mixed.step(uf, vf, a, strong, G0[:1], G0[:1], h)
-    assert rel(hard[0], exact[0]) < 1e-9 and rel(hard[1], exact[1]) < 1e-8
+    assert _rel(hard[0], exact[0]) < 1e-9 and _rel(hard[1], exact[1]) < 1e-8
     # a batch of two: per sample, as alone
     ub, vb, ab, hb = (torch.cat([x, x]) for x in (uf, vf, a, h))
     both = mixed.step(ub, vb, ab, torch.cat([gentle, strong]), G0[:2], G0[:2], hb)
     for k, load in enumerate((gentle, strong)):
         alone = fresh.step(uf, vf, a, load, G0[:1], G0[:1], h)
-        assert rel(both[0][k:k + 1], alone[0]) < 1e-9 and rel(both[1][k:k + 1], alone[1]) < 1e-8
+        assert _rel(both[0][k:k + 1], alone[0]) < 1e-9 and _rel(both[1][k:k + 1], alone[1]) < 1e-8
     # at rest, and at rest with float32 round-off in the displacement
     rest = build(iterations=1, max_iterations=40, newton_rtol=1e-12, tangent="kept", anderson=2)
     zero = torch.zeros(1, n, dtype=torch.float64)
