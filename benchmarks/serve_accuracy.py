@@ -9,8 +9,11 @@ whole-path relative error of the force on the user and of the body's displacemen
 reference (and the force's over each period of the path, each press, where ``--seconds`` runs
 longer than one); its magnitude's alone; the force's envelope (``--envelope``, a moving
 average) against the reference's, and each model's own step-to-step jitter about it (``lockstep.compare``); the
-largest force error beside the largest force; and the model call's median and p99 time (one
-process, ``--threads``, the physics process's default 1).
+largest force error beside the largest force; and the body step's median, mean and p99 time (one
+process, ``--threads``, the physics process's default 1), with a law's Newton updates. With
+``--rounds R`` the models are pressed R times in turn (a model's force is the same every round)
+and each time figure is the median over the rounds: a quiet comparison of step times on a noisy
+machine (docs/accuracy.md, session 102: the liver law's mixed chords, ``rollout.prior_anderson``).
 
     .venv/bin/python benchmarks/serve_accuracy.py --reference runs/liver/kept.pt \
         runs/liver/model.pt runs/liver/two.pt --path press scene=liver
@@ -46,6 +49,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--envelope", type=float, default=0.1,
                     help="the force's envelope: a centred moving average over this long [s] (odd steps)")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--rounds", type=int, default=1, help="press the models this many times in turn (times: medians)")
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args, overrides = ap.parse_known_args(argv)
 
@@ -68,24 +72,34 @@ def main(argv: list[str] | None = None) -> list[dict]:
           f"the force's envelope over "
           f"{envelope_steps} steps")
     reference = press_rollout(args.reference, **run)
+    pressed = {model: [] for model in args.models}            # each model's rollouts, round after round
+    for _ in range(max(1, args.rounds)):
+        for model in args.models:
+            pressed[model].append(press_rollout(model, **run))
     rows = []
     for model in [args.reference, *args.models]:
-        r = reference if model == args.reference else press_rollout(model, **run)
-        row = {"model": str(model), **compare(r, reference, envelope_steps), "step_ms_median": float(np.median(r.step_ms)),
-               "step_ms_p99": float(np.percentile(r.step_ms, 99))}
+        rounds = [reference] if model == args.reference else pressed[model]
+        r = rounds[0]
+        row = {"model": str(model), **compare(r, reference, envelope_steps),
+               **{f"step_ms_{name}": float(np.median([stat(x.step_ms) for x in rounds]))
+                  for name, stat in (("median", np.median), ("mean", np.mean),
+                                     ("p99", lambda ms: np.percentile(ms, 99)))},
+               "rounds": len(rounds)}
         period_steps = max(1, int(round(args.period / dt)))   # the force's error over each period of the path
         periods = range(0, min(len(r.times), len(reference.times)), period_steps)
         row["force_per_period"] = [period_force_error(r.force, reference.force, p, p + period_steps) for p in periods]
         env, env_ref = force_envelope(r.force, envelope_steps), force_envelope(reference.force, envelope_steps)
         row["envelope_per_period"] = [period_force_error(env, env_ref, p, p + period_steps) for p in periods]
-        if r.law_counts is not None:                # a law prior's steps: not converged, cut
-            row.update(law_steps=int(r.law_counts[1]), law_unconverged=int(r.law_counts[2]),
-                       law_cut=int(r.law_counts[3]))
+        if r.law_counts is not None:                # a law prior's steps: Newton updates, not converged, cut
+            row.update(law_updates=int(r.law_counts[0]), law_steps=int(r.law_counts[1]),
+                       law_unconverged=int(r.law_counts[2]), law_cut=int(r.law_counts[3]))
         rows.append(row)
         print(f"  {str(model):48s} force {100 * row['force']:9.3g} %  peak error {row['peak_force_error_N']:9.3g} N "
               f"of {row['peak_force_N']:.3f} N  displacement {100 * row['displacement']:9.3g} %  "
-              f"{row['step_ms_median']:7.1f} ms (p99 {row['step_ms_p99']:.1f})  {row['steps']} steps"
-              + (f"  law steps not converged {row['law_unconverged']}, cut {row['law_cut']}" if "law_steps" in row else "")
+              f"{row['step_ms_median']:7.1f} ms (mean {row['step_ms_mean']:.1f}, p99 {row['step_ms_p99']:.1f}"
+              + (f", medians of {row['rounds']} rounds" if row["rounds"] > 1 else "") + f")  {row['steps']} steps"
+              + (f"  law updates {row['law_updates']}, steps not converged {row['law_unconverged']}, cut {row['law_cut']}"
+                 if "law_steps" in row else "")
               + ("" if row["finite"] else "  NOT FINITE")
               + ("" if row["healthy"] else f"  CELLS CRUSHED OR INVERTED (body reset {row['resets']}x)")
               + ("" if row["first_beyond_states"] is None
