@@ -1314,8 +1314,7 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         # tangent was formed (or this step began), the latest last: [B, n, j] m, j <= anderson
         iterates = u1.new_zeros(B, u1.shape[1], 0)
         updates = u1.new_zeros(B, u1.shape[1], 0)
-        last_u, last_du = u1, u1                             # the latest iterate and its chord update
-        have_last = False
+        last_u, last_du = u1, u1              # the latest iterate and its chord update (set by the first)
         plain = 0                                            # updates taken unmixed with this tangent
         while taken < self.max_iterations:
             du = self.kept_solve(residual)
@@ -1323,13 +1322,13 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             move = du
             mixed = False
             if self.anderson > 0:
-                if have_last:
+                if taken > 0:
                     iterates = torch.cat([iterates, (u1 - last_u).unsqueeze(2)], 2)[:, :, -self.anderson:]
                     updates = torch.cat([updates, (du - last_du).unsqueeze(2)], 2)[:, :, -self.anderson:]
                     if plain >= 2:                           # the chord's own ratio measured first
                         move = self.anderson_update(du, iterates, updates)
                         mixed = True
-                last_u, last_du, have_last = u1, du, True
+                last_u, last_du = u1, du
             trial = self.admissible(u1, move)
             r_trial, F_trial = self.step_residual(trial, v0, a0, predictor, extra, fixed)
             contracts = self.contracts(r_trial, residual)
@@ -1359,12 +1358,11 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
             else:                                            # a chord's: its size times ρ / (1 − ρ)
                 measured = last > 0
                 rate = torch.where(measured, size / torch.where(measured, last, torch.ones_like(last)), carried)
-                done = (size <= self.newton_atol) | ((rate > 0) & (rate < 1.0) & (size * rate <= scale * (1.0 - rate)))
                 if mixed:       # a mixed one's: the chord's own ρ (the mixed iterates' ratios rise and fall)
-                    done = (size <= self.newton_atol) | ((carried > 0) & (carried < 1.0)
-                                                         & (size * carried <= scale * (1.0 - carried)))
+                    rate = carried
                 else:
                     carried = torch.where(measured, rate, carried)
+                done = (size <= self.newton_atol) | ((rate > 0) & (rate < 1.0) & (size * rate <= scale * (1.0 - rate)))
             if not mixed:
                 plain += 1
             u1, residual, F, last, fresh = trial, r_trial, F_trial, size, False
@@ -1381,7 +1379,8 @@ class HyperelasticNewmarkPrior(CorotatedNewmarkPrior):
         ``iterates`` [B, n, j] m and their chord updates' differences ``updates`` [B, n, j] m:
         du + (iterates − updates) γ, γ [B, j] fitting du by ``updates`` in least squares (per
         sample; the normal equations, j <= MAX_ANDERSON, regularised by 1e-12 of their trace).
-        With j = 1 and a linear residual it is the secant update along the last step."""
+        With j = 1 the new iterate mixes the two iterates' chord images u − du with the weights
+        whose updates mix to the least norm."""
         normal = updates.transpose(1, 2) @ updates                                          # [B, j, j] m²
         right = updates.transpose(1, 2) @ du.unsqueeze(2)                                   # [B, j, 1] m²
         j = normal.shape[1]
