@@ -284,6 +284,11 @@ def test_generate_stores_time_resolution(tmp_path, monkeypatch):
     assert d.ok_names == ["traj_0"] and d.time_resolution is None
 
 
+def _rel(a, b) -> float:
+    """‖a − b‖ / ‖b‖."""
+    return float((a - b).norm() / b.norm())
+
+
 def _prior_rollout(prior, u, v, f, G, H):
     """A NewmarkPrior's (or CorotatedNewmarkPrior's) rollout from the first of the displacements
     u, velocities v [S, N, 3] under the loads f [S, N, 3], with the remainders G [S, n] and H
@@ -352,14 +357,13 @@ def test_newmark_prior_with_the_exact_remainders_is_the_fe_step():
     assert float(G[0].abs().max()) == 0.0
     assert float(G.norm() / prior.gather(f).norm()) > 0.05
 
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     U, V, Sig = _prior_rollout(prior, u, v, f, G, H)
-    assert rel(U, u) < 1e-9 and rel(V, v) < 1e-9 and rel(Sig, sigma) < 1e-9
+    assert _rel(U, u) < 1e-9 and _rel(V, v) < 1e-9 and _rel(Sig, sigma) < 1e-9
     U, V, Sig = _prior_rollout(prior, u, v, f, torch.zeros_like(G), None)
     lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
-    assert rel(U, lin[..., 0:3] - torch.as_tensor(X)) < 1e-10 and rel(V, lin[..., 3:6]) < 1e-10
-    assert rel(Sig, lin[..., layout.slice("sigma")]) < 1e-10
-    assert rel(U, u) > 1e-2                                   # the remainders are what it lacked
+    assert _rel(U, lin[..., 0:3] - torch.as_tensor(X)) < 1e-10 and _rel(V, lin[..., 3:6]) < 1e-10
+    assert _rel(Sig, lin[..., layout.slice("sigma")]) < 1e-10
+    assert _rel(U, u) > 1e-2                                   # the remainders are what it lacked
     linear.integrator = "quasi_static"
     with pytest.raises(ValueError, match="quasi_static"):
         NewmarkPrior(linear, len(X), dt)
@@ -377,7 +381,6 @@ def test_relaxing_prior_with_the_exact_remainders_is_the_viscous_fe_step():
     torch = pytest.importorskip("torch")
     from thermognn.train.prior import NewmarkPrior
 
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     terms = ((0.4, 4e-3), (0.2, 2e-2))
     share = {}
     for load in (1e-3, 1.0):
@@ -396,11 +399,11 @@ def test_relaxing_prior_with_the_exact_remainders_is_the_viscous_fe_step():
         G, H = prior.remainders(u, v, sigma, f)
 
         U, V, Sig = _prior_rollout(prior, u, v, f, G, H)
-        assert rel(U, u) < 1e-9 and rel(V, v) < 1e-9 and rel(Sig, sigma) < 1e-9, load
+        assert _rel(U, u) < 1e-9 and _rel(V, v) < 1e-9 and _rel(Sig, sigma) < 1e-9, load
         U, V, Sig = _prior_rollout(prior, u, v, f, torch.zeros_like(G), None)
         lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
-        assert rel(U, lin[..., 0:3] - torch.as_tensor(X)) < 1e-10 and rel(V, lin[..., 3:6]) < 1e-10
-        assert rel(Sig, lin[..., layout.slice("sigma")]) < 1e-10
+        assert _rel(U, lin[..., 0:3] - torch.as_tensor(X)) < 1e-10 and _rel(V, lin[..., 3:6]) < 1e-10
+        assert _rel(Sig, lin[..., layout.slice("sigma")]) < 1e-10
     for k in (0, 1):       # G and H relative to the load and stress: ∝ load (relaxing), not (unrelaxed)
         assert share[1e-3, True][k] < 3e-3 * share[1.0, True][k], share
         assert share[1e-3, False][k] > 3e-2 * share[1.0, False][k], share
@@ -432,7 +435,6 @@ def test_relaxing_prior_model_steps_its_carried_internal_variables():
     # (the network sees positions only: one seeing σ takes G at a step's end from the σ of the
     # last H, so a step from a stored state differs from the rollout's by more than round-off)
     model = LinearPriorModel(net, NewmarkPrior(linear, len(X), dt, relax=True), ref, order=2)
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
 
     graph = Graph(ref, edges, node_type, torch.zeros(0, 3, dtype=torch.long))
@@ -441,7 +443,7 @@ def test_relaxing_prior_model_steps_its_carried_internal_variables():
     with torch.enable_grad():
         zero = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
         zero_step, _ = one_step_errors(model, graph, fe, layout, dt)
-    assert rel(zero, lin) < 1e-12 and rel(zero[..., 6:12], lin[..., 6:12]) < 1e-10
+    assert _rel(zero, lin) < 1e-12 and _rel(zero[..., 6:12], lin[..., 6:12]) < 1e-10
     net.load_state_dict(saved)
     # evaluate's linearised FE one step (linear_fe: the prior alone) is the zero network's, whatever the weights
     linear_step, _ = one_step_errors(model, graph, fe, layout, dt, linear_fe=True)
@@ -449,13 +451,13 @@ def test_relaxing_prior_model_steps_its_carried_internal_variables():
     assert min(linear_step.values()) > 1e-4
     with torch.enable_grad():
         batched = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
-        assert rel(batched[..., 3:6], lin[..., 3:6]) > 1e-6              # the network corrects something
+        assert _rel(batched[..., 3:6], lin[..., 3:6]) > 1e-6              # the network corrects something
         for stepper in (model, torch.jit.script(model)):
             states = [stepper.carry(z[0], f[0], edges, node_type, ref)]  # [N, D + 6 + 9]
             assert states[0].shape == (len(X), 12 + 6 + 9)
             for k in range(1, len(f)):
                 states.append(stepper.step(states[-1], f[k], edges, node_type, ref, torch.tensor(dt)))
-            assert rel(torch.stack(states)[..., :12], batched) < 1e-9
+            assert _rel(torch.stack(states)[..., :12], batched) < 1e-9
         own = [TrajectoryTensors("own", batched, f, torch.arange(len(f)) * dt)]
         errors, _ = one_step_errors(model, graph, own, layout, dt)
         assert max(errors.values()) < 1e-8, errors
@@ -564,7 +566,6 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
     net = TIGNN(12, [3, 4, 5], hidden=8, message_passing=1, velocity_edges=True)
     net.set_stats({"dzdt_std": torch.full((12,), 1e-2)})       # remainders of ~1e-2 N, Pa
     model = LinearPriorModel(net, NewmarkPrior(linear, len(X), dt), torch.as_tensor(X))
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
 
     # rollout (validation, evaluate) steps with the weights frozen, so no step's solve hangs on
     # their graph to the end, and gives them back trainable: the same states as the batched rollout
@@ -578,7 +579,7 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
     with torch.enable_grad():
         pred = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
     lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
-    assert rel(pred, lin) < 1e-12 and rel(pred[..., 3:6], lin[..., 3:6]) < 1e-10
+    assert _rel(pred, lin) < 1e-12 and _rel(pred[..., 3:6], lin[..., 3:6]) < 1e-10
     # one step from each state of its own rollout, with the Newmark acceleration recovered from
     # the velocities there (evaluate's one-step error), is that rollout's step; from the FE's not
     graph = Graph(ref, edges, node_type, torch.zeros(0, 3, dtype=torch.long))
@@ -643,7 +644,7 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
     net.load_state_dict(saved)                                 # a network that corrects something
     with torch.enable_grad():
         batched = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
-        assert rel(batched[..., 3:6], lin[..., 3:6]) > 1e-6
+        assert _rel(batched[..., 3:6], lin[..., 3:6]) > 1e-6
         scripted = torch.jit.script(model)
         for stepper in (model, scripted):
             carried = stepper.carry(z[0], f[0], edges, node_type, ref)           # [N, D + 6]
@@ -652,7 +653,7 @@ def test_linear_prior_model_is_the_linearised_fe_model_and_its_carried_step_its_
             for k in range(1, len(f)):
                 states.append(stepper.step(states[-1], f[k], edges, node_type, ref, torch.tensor(dt)))
             stepped = torch.stack(states)[..., :12]
-            assert rel(stepped, batched) < 1e-9 and rel(stepped[..., 3:6], batched[..., 3:6]) < 1e-8   # round-off
+            assert _rel(stepped, batched) < 1e-9 and _rel(stepped[..., 3:6], batched[..., 3:6]) < 1e-8   # round-off
 
     # anchored: the remainders vanish at the unloaded reference state, as the true ones do
     rest = torch.cat([torch.as_tensor(X), torch.zeros(len(X), 9, dtype=torch.float64)], 1).unsqueeze(0)
@@ -682,7 +683,6 @@ def test_second_order_remainders_make_gentle_loads_exactly_linear():
     layout, traj, dt, X, linear, node_type, edges, z, f = _bent_block_graph()
     ref = torch.as_tensor(X)
     lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
 
     def model_of(order):
         torch.manual_seed(0)
@@ -707,7 +707,7 @@ def test_second_order_remainders_make_gentle_loads_exactly_linear():
         for eps in (1.0, 1e-2, 1e-3):
             with torch.enable_grad():
                 pred = model.rollouts(z[:1], eps * f.unsqueeze(0), edges, node_type, ref, len(f) - 1, False)[0]
-            gaps.append(rel(pred[..., 3:6], eps * lin[..., 3:6]))     # (the linear model scales with the load)
+            gaps.append(_rel(pred[..., 3:6], eps * lin[..., 3:6]))     # (the linear model scales with the load)
         assert gaps[0] > 1e-4, gaps                                  # the network corrects something
         if order == 1:
             assert gaps[2] > 0.3 * gaps[1], gaps
@@ -716,7 +716,7 @@ def test_second_order_remainders_make_gentle_loads_exactly_linear():
             with torch.enable_grad():      # r(z₀, 0) as ``anchor`` kept it, and evaluated afresh
                 kept = model.remainders(z[-1:], f[-1:], edges, node_type, ref, False)
                 fresh = model.remainders(z[-1:], f[-1:], edges, node_type, ref, True)
-            assert rel(kept[0], fresh[0].detach()) < 1e-12 and rel(kept[1], fresh[1].detach()) < 1e-12
+            assert _rel(kept[0], fresh[0].detach()) < 1e-12 and _rel(kept[1], fresh[1].detach()) < 1e-12
     buffer = io.BytesIO()
     torch.jit.save(torch.jit.script(model), buffer)          # as export writes it, with what anchor kept
     buffer.seek(0)
@@ -725,7 +725,7 @@ def test_second_order_remainders_make_gentle_loads_exactly_linear():
         carried = model.carry(z[0], f[0], edges, node_type, ref)
         a = model.step(carried, f[1], edges, node_type, ref, torch.tensor(dt))
         b = scripted.step(carried, f[1], edges, node_type, ref, torch.tensor(dt))
-    assert rel(b, a) < 1e-12
+    assert _rel(b, a) < 1e-12
 
 
 def _two_bent_bodies(corotated: bool):
@@ -856,8 +856,7 @@ def test_corotated_solid_is_the_linearised_one_frozen_and_nearer_the_fe_where_ce
 def _corotated_bend():
     """The damped 12 mm bend (``_bent_block_graph``) as a corotated prior takes it: (``make``,
     which builds its CorotatedNewmarkPrior from the bend's moduli and cells with the prior's
-    keyword options, the graph tuple, its cells [T, 4], u, v [S, N, 3], σ [S, N, 6], the relative
-    error ``rel``)."""
+    keyword options, the graph tuple, its cells [T, 4], u, v [S, N, 3], σ [S, N, 6])."""
     import torch
 
     from thermognn.train.prior import CorotatedNewmarkPrior
@@ -868,8 +867,7 @@ def _corotated_bend():
     tets = _bent_block(1.0, "newmark")[0].cells[:, :4]
     make = lambda **options: CorotatedNewmarkPrior(linear, len(X), dt, X, tets, kappa - 2 * mu / 3, mu,  # noqa: E731
                                                    **options)
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
-    return make, graph, tets, z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12], rel
+    return make, graph, tets, z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
 
 
 def test_the_corotated_solid_reports_where_it_turns_a_cell_inside_out():
@@ -908,7 +906,7 @@ def test_training_windows_that_turn_a_cell_inside_out_are_left_out_of_the_loss()
     from thermognn.train.model import TIGNN
     from thermognn.train.prior import NewmarkPrior
 
-    make, graph, _, _, _, _, _ = _corotated_bend()
+    make, graph, _, _, _, _ = _corotated_bend()
     layout, traj, dt, X, linear, node_type, edges, z, f = graph
     g = Graph(torch.as_tensor(X, dtype=torch.float32), edges, node_type, torch.zeros(0, 3, dtype=torch.long))
     times = torch.arange(len(f)) * dt
@@ -951,20 +949,20 @@ def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders
     rest = torch.eye(3, dtype=torch.float64).unsqueeze(0).requires_grad_(True)
     assert torch.autograd.gradcheck(lambda A: polar_rotation(A), (rest,))
 
-    make, graph, s_tets, u, v, sigma, rel = _corotated_bend()
+    make, graph, s_tets, u, v, sigma = _corotated_bend()
     layout, traj, dt, X, linear, node_type, edges, z, f = graph
     prior = make(sweeps=8)
     G, H = prior.remainders(u, v, sigma, f)
     U, V, Sig = _prior_rollout(prior, u, v, f, G, H)
-    assert rel(U, u) < 1e-8 and rel(V, v) < 1e-7 and rel(Sig, sigma) < 1e-8
+    assert _rel(U, u) < 1e-8 and _rel(V, v) < 1e-7 and _rel(Sig, sigma) < 1e-8
     G_lin, H_lin = NewmarkPrior(linear, len(X), dt).remainders(u, v, sigma, f)
     assert float(G.norm()) < 0.5 * float(G_lin.norm()) and float(H.norm()) < 0.5 * float(H_lin.norm())
     prior = make(sweeps=3)
     U, V, Sig = _prior_rollout(prior, u, v, f, torch.zeros_like(G), None)
     fe = torch.as_tensor(CorotatedSolid.of(linear, X, s_tets, max_sweeps=3, tol=0.0)
                          .rollout_states(traj.z, traj.force, X, layout, dt))
-    assert rel(U, fe[..., 0:3] - torch.as_tensor(X)) < 1e-10 and rel(V, fe[..., 3:6]) < 1e-10
-    assert rel(Sig, fe[..., 6:12]) < 1e-10
+    assert _rel(U, fe[..., 0:3] - torch.as_tensor(X)) < 1e-10 and _rel(V, fe[..., 3:6]) < 1e-10
+    assert _rel(Sig, fe[..., 6:12]) < 1e-10
     threads = torch.get_num_threads()                                 # a batch steps as its samples alone,
     torch.set_num_threads(2)                                          # with two threads too (solve_each)
     try:
@@ -976,13 +974,13 @@ def test_corotated_prior_is_the_corotated_fe_model_and_with_the_exact_remainders
                                       prior.internal_variables(prior.gather(u[k:k + 1])))[0] for k in (1, 2)])
     finally:
         torch.set_num_threads(threads)
-    assert rel(pair, alone) < 1e-12
+    assert _rel(pair, alone) < 1e-12
     bad = prior.gather(u[1:2]) * float("nan")                          # a state gone non-finite
     with pytest.raises(RuntimeError, match="corotated prior: a non-finite state"):
         prior.step(bad, bad, bad, prior.gather(f[1:2]), G[:1], G[1:2], prior.internal_variables(bad))
 
     model, batched = _carried_steps_follow_rollouts(prior, graph)
-    assert rel(batched[..., 3:6], fe[..., 3:6]) > 1e-6                     # the network corrects something
+    assert _rel(batched[..., 3:6], fe[..., 3:6]) > 1e-6                     # the network corrects something
     ref = torch.as_tensor(X, dtype=torch.float32)
     with torch.enable_grad():               # rollouts back-propagate through the rotations and the solves
         loss = model.rollouts(z[:1], f.unsqueeze(0), edges, node_type, ref, 3, True)[0, -1, :, 3:6].square().sum()
@@ -1043,7 +1041,6 @@ def test_relaxing_corotated_prior_is_the_relaxing_corotated_fe_model():
     mu, kappa = linear.shear_modulus, linear.bulk_modulus
     make = lambda sweeps: CorotatedNewmarkPrior(linear, len(X), dt, X, tets, kappa - 2 * mu / 3, mu,  # noqa: E731
                                                 sweeps=sweeps, relax=True)
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
     prior = make(3)
     assert prior.n_terms == 2 and prior.internal_columns() == [("prony_cells_1", prior.cell_columns),
@@ -1052,20 +1049,20 @@ def test_relaxing_corotated_prior_is_the_relaxing_corotated_fe_model():
     d = 1e-3 * torch.randn(1, len(X), 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     Fd = prior.deformation_gradients(torch.as_tensor(X).unsqueeze(0) + d)
     K_iso = torch.as_tensor(element_stiffness(X, tets, kappa - 2 * mu / 3, mu)[1])
-    assert rel(prior.cell_force(prior.deviatoric_stress(torch.eye(3, dtype=torch.float64).expand_as(Fd), Fd)),
+    assert _rel(prior.cell_force(prior.deviatoric_stress(torch.eye(3, dtype=torch.float64).expand_as(Fd), Fd)),
                torch.einsum("tij,btj->bti", K_iso, d[:, torch.as_tensor(tets)].reshape(1, len(tets), 12))) < 1e-12
 
     G0 = torch.zeros(len(f), prior.n_free, dtype=torch.float64)
     U, V, Sig = _prior_rollout(prior, u, v, f, G0, None)
     fe = torch.as_tensor(CorotatedSolid.of(linear, X, tets, max_sweeps=3, tol=0.0)
                          .rollout_states(traj.z, traj.force, X, layout, dt))
-    assert rel(U, fe[..., 0:3] - torch.as_tensor(X)) < 1e-12 and rel(V, fe[..., 3:6]) < 1e-12
+    assert _rel(U, fe[..., 0:3] - torch.as_tensor(X)) < 1e-12 and _rel(V, fe[..., 3:6]) < 1e-12
     lin = torch.as_tensor(linear.rollout_states(traj.z, traj.force, X, layout, dt))
-    assert rel(Sig, fe[..., 6:12]) < 0.05 < rel(fe[..., 6:12], lin[..., 6:12])      # measured 0.034; 0.20
+    assert _rel(Sig, fe[..., 6:12]) < 0.05 < _rel(fe[..., 6:12], lin[..., 6:12])      # measured 0.034; 0.20
     prior8 = make(8)
     G, H = prior8.remainders(u, v, sigma, f)
     U, V, Sig = _prior_rollout(prior8, u, v, f, G, H)
-    assert rel(U, u) < 1e-6 and rel(V, v) < 1e-6 and rel(Sig, sigma) < 1e-6      # the sweeps' convergence
+    assert _rel(U, u) < 1e-6 and _rel(V, v) < 1e-6 and _rel(Sig, sigma) < 1e-6      # the sweeps' convergence
     G_lin, H_lin = NewmarkPrior(linear, len(X), dt, relax=True).remainders(u, v, sigma, f)
     assert float(G.norm()) < 0.2 * float(G_lin.norm()) and float(H.norm()) < 0.2 * float(H_lin.norm())
     h = torch.randn(2, 2, 6 * len(tets), generator=torch.Generator().manual_seed(2), dtype=torch.float64)
@@ -1102,9 +1099,8 @@ def test_corotated_step_solves_sparse_on_the_cpu_as_dense():
         loss = u1.square().sum() + 3.0 * v1.sum() + 1e-12 * h1.square().sum()
         return (u1, v1) + torch.autograd.grad(loss, (G, u0))
 
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     dense, sparse = step(False), step(True)
-    assert all(rel(s, d) < 1e-12 for s, d in zip(sparse, dense)), [rel(s, d) for s, d in zip(sparse, dense)]
+    assert all(_rel(s, d) < 1e-12 for s, d in zip(sparse, dense)), [_rel(s, d) for s, d in zip(sparse, dense)]
     A = prior.pattern.matrix(np.ones(len(prior.pattern.indices))).toarray()
     assert A[np.asarray(linear.mass.toarray() != 0)].all()
     assert int(prior.pair_slot.max()) < len(prior.pattern.indices) == int((A != 0).sum())
@@ -1133,15 +1129,15 @@ def test_material_stress_prior_is_the_neo_hookean_law_and_the_fe_stress_exactly(
     rest = eye.unsqueeze(0).clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda A: neo_hookean_cauchy(A, c10, d1), (rest,))
 
-    make, graph, _, u, v, sigma, rel = _corotated_bend()
+    make, graph, _, u, v, sigma = _corotated_bend()
     f = graph[-1]
     linear_stress, law = make(sweeps=8), make(sweeps=8, neo_hookean=(c10, d1))
     G, H = law.remainders(u, v, sigma, f)
     G_lin, H_lin = linear_stress.remainders(u, v, sigma, f)
-    assert rel(G, G_lin) == 0.0                                        # the force is the corotated one still
+    assert _rel(G, G_lin) == 0.0                                        # the force is the corotated one still
     assert float(H.norm()) < 1e-10 * float(sigma.norm()) < float(H_lin.norm())
     U, V, Sig = _prior_rollout(law, u, v, f, G, None)                 # no H: σ from the law of U
-    assert rel(U, u) < 1e-8 and rel(V, v) < 1e-7 and rel(Sig, sigma) < 1e-8
+    assert _rel(U, u) < 1e-8 and _rel(V, v) < 1e-7 and _rel(Sig, sigma) < 1e-8
 
 
 @pytest.mark.parametrize("law,prony", [
@@ -1204,7 +1200,6 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
     lam, mu = linear.lame()
     make = lambda k: HyperelasticNewmarkPrior(linear, len(X), dt, X, tets, lam, mu,  # noqa: E731
                                               law_from_config(material)[0], iterations=k)
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
     G0 = torch.zeros(len(f), int(linear.free.sum()), dtype=torch.float64)
     for k in (1, 2):
@@ -1213,13 +1208,13 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
         U, V, Sig = _prior_rollout(prior, u, v, f, G0, None)
         fe = torch.as_tensor(HyperelasticSolid.of(linear, X, tets, material, iterations=k)
                              .rollout_states(traj.z, traj.force, X, layout, dt))
-        assert rel(U, fe[..., 0:3] - torch.as_tensor(X)) < 1e-10 and rel(V, fe[..., 3:6]) < 1e-9
-        assert rel(Sig, fe[..., 6:12]) < 1e-9
+        assert _rel(U, fe[..., 0:3] - torch.as_tensor(X)) < 1e-10 and _rel(V, fe[..., 3:6]) < 1e-9
+        assert _rel(Sig, fe[..., 6:12]) < 1e-9
         if k == 1:
-            assert 1e-4 < rel(V, v) < 0.05                                  # measured 2.3e-3
+            assert 1e-4 < _rel(V, v) < 0.05                                  # measured 2.3e-3
     prior = make(6)
     U, V, Sig = _prior_rollout(prior, u, v, f, G0, None)
-    assert rel(U, u) < 1e-12 and rel(V, v) < 1e-12 and rel(Sig, sigma) < 1e-12
+    assert _rel(U, u) < 1e-12 and _rel(V, v) < 1e-12 and _rel(Sig, sigma) < 1e-12
     assert int(prior.shortened) == 0                      # the data's steps are taken whole
     G, H = prior.remainders(u, v, sigma, f)
     assert float(G.abs().max()) < 1e-10 * float(f.abs().max()) and float(H.abs().max()) < 1e-12 * float(sigma.abs().max())
@@ -1236,7 +1231,7 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
         assert float(prior.remainders(u, v, sigma, f)[1].abs().max()) < 1e-12 * float(sigma.abs().max())  # H kept
         assert float(Gb.norm()) > 1e-7 * float(f.norm())          # not round-off (k = 1: 1.6e-6 of the loads)
         U, V, Sig = _prior_rollout(prior, u, v, f, prior.gather(Gb), None)
-        assert rel(U, u) < 1e-9 and rel(V, v) < 1e-8 and rel(Sig, sigma) < 1e-9, (k, rel(U, u), rel(V, v))
+        assert _rel(U, u) < 1e-9 and _rel(V, v) < 1e-8 and _rel(Sig, sigma) < 1e-9, (k, _rel(U, u), _rel(V, v))
     # the CPU's sparse LU and the dense solve (TorchScript, GPU) step alike
     prior = make(2)
     uf, vf = prior.gather(u[3:4]), prior.gather(v[3:4])
@@ -1244,7 +1239,7 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
     a = prior.initial_acceleration(uf, vf, prior.gather(f[3:4]), G0[:1])
     sparse_step = prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0]
     prior.sparse_cpu = False
-    assert rel(prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0], sparse_step) < 1e-12
+    assert _rel(prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0], sparse_step) < 1e-12
     # ... and so does the dense path's block-tridiagonal factor (the shell's and the bunny's; forced
     # here, where a dense LU is as cheap), by its solve and by the step start it keeps
     dense_blocks = prior.band_blocks
@@ -1252,17 +1247,17 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
     assert prior.band_blocks >= 2 and prior.band_width < prior.n_free
     b = torch.randn(2, prior.n_free, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
     pairs = prior.tangent_pairs(prior.cells(uf), 1.0, 1.0, None).expand(2, -1)
-    assert rel(prior.solve(pairs, b), prior.law_solve(pairs, b)) < 1e-12
+    assert _rel(prior.solve(pairs, b), prior.law_solve(pairs, b)) < 1e-12
     prior.forget()
-    assert rel(prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0], sparse_step) < 1e-12
+    assert _rel(prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0], sparse_step) < 1e-12
     assert prior.memo_band_X.shape == (1, prior.band_blocks, prior.band_width, prior.band_width)
     # ... and its one level of nested dissection (the liver's: two halves and a separator), forced too
     prior.set_band(0.0, float("inf"))
     m, sep = prior.dissection_half, prior.dissection_separator
     assert prior.band_blocks == 0 and m > 0 and 0 < sep < prior.n_free and 2 * m + sep >= prior.n_free
-    assert rel(prior.solve(pairs, b), prior.law_solve(pairs, b)) < 1e-12
+    assert _rel(prior.solve(pairs, b), prior.law_solve(pairs, b)) < 1e-12
     prior.forget()
-    assert rel(prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0], sparse_step) < 1e-12
+    assert _rel(prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)[0], sparse_step) < 1e-12
     assert prior.memo_sep_lu.shape == (1, sep, sep) and prior.memo_band_X.shape == (1, 2 * m, sep)
     prior.set_band(0.0)                                   # nothing below no flops: the dense LU
     assert prior.band_blocks == 0 == dense_blocks and prior.dissection_half == 0
@@ -1293,14 +1288,14 @@ def test_law_prior_is_the_budgeted_fe_solid_and_its_remainders_of_the_data_vanis
         again = prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G1, h)
         prior.forget()
         fresh = prior.step(uf, vf, a, prior.gather(f[4:5]), G0[:1], G1, h)
-        assert rel(again[0] - first[0], fresh[0] - first[0]) < 1e-9 and rel(again[1], fresh[1]) < 1e-12
-        assert rel(again[3], fresh[3]) < 1e-12 if prior.n_terms else True
+        assert _rel(again[0] - first[0], fresh[0] - first[0]) < 1e-9 and _rel(again[1], fresh[1]) < 1e-12
+        assert _rel(again[3], fresh[3]) < 1e-12 if prior.n_terms else True
         moved = uf.clone()
         prior.step(moved, vf, a, prior.gather(f[4:5]), G0[:1], G0[:1], h)
         moved.mul_(1.01)                                      # in place: the kept start is stale
         in_place = prior.step(moved, vf, a, prior.gather(f[4:5]), G0[:1], G1, h)
         prior.forget()
-        assert rel(in_place[0], prior.step(moved, vf, a, prior.gather(f[4:5]), G0[:1], G1, h)[0]) < 1e-12
+        assert _rel(in_place[0], prior.step(moved, vf, a, prior.gather(f[4:5]), G0[:1], G1, h)[0]) < 1e-12
     prior.forget()
     prior.sparse_cpu = True
     # a load far beyond the data's (a haptic tool's contact, issue 4's extreme inputs): the Newton
@@ -1377,11 +1372,6 @@ def _ogden_bend_fields(steps: int):
     return graph, prony, build, (u, v, sigma, f, G0)
 
 
-def _rel(a, b) -> float:
-    """‖a − b‖ / ‖b‖."""
-    return float((a - b).norm() / b.norm())
-
-
 def test_law_prior_iterates_past_its_budget_until_the_step_converges():
     """``model.prior_newton_max`` (``HyperelasticNewmarkPrior(max_iterations=...)``) on the FE
     solid's own data (the damped 1 N bend, viscous Ogden): one Newton iteration a step and up to 8
@@ -1402,20 +1392,19 @@ def test_law_prior_iterates_past_its_budget_until_the_step_converges():
     graph, prony, build = _ogden_bend_priors(steps=12)
     layout, traj, dt, X, linear, node_type, edges, z, f = graph
     make = lambda k, most=None: build(iterations=k, max_iterations=most)  # noqa: E731
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     u, v, sigma = z[..., 0:3] - torch.as_tensor(X), z[..., 3:6], z[..., 6:12]
     G0 = torch.zeros(len(f), int(linear.free.sum()), dtype=torch.float64)
     fixed, adaptive = make(1), make(1, 8)
     U1, V1, _ = _prior_rollout(fixed, u, v, f, G0, None)
     U, V, Sig = _prior_rollout(adaptive, u, v, f, G0, None)
-    assert rel(V1, v) > 1e-4                                              # one iteration a step: not the FE's
-    assert rel(U, u) < 1e-11 and rel(V, v) < 1e-10 and rel(Sig, sigma) < 1e-10
+    assert _rel(V1, v) > 1e-4                                              # one iteration a step: not the FE's
+    assert _rel(U, u) < 1e-11 and _rel(V, v) < 1e-10 and _rel(Sig, sigma) < 1e-10
     taken, steps, unconverged, cut = adaptive.newton_taken.tolist()
     assert steps == len(f) - 1 and steps < taken < 8 * steps and unconverged == 0 and cut == 0
     assert fixed.newton_taken.tolist() == [len(f) - 1, len(f) - 1, 0, 0]
     looser = build(iterations=1, max_iterations=8, newton_rtol=1e-3)
     V3 = _prior_rollout(looser, u, v, f, G0, None)[1]                     # a looser tolerance: fewer, less exact
-    assert looser.newton_taken.tolist()[0] < taken and rel(V, v) < rel(V3, v) < rel(V1, v)
+    assert looser.newton_taken.tolist()[0] < taken and _rel(V, v) < _rel(V3, v) < _rel(V1, v)
     short = make(1, 2)                                                    # 2 at most: not converged, counted
     _prior_rollout(short, u, v, f, G0, None)
     assert short.newton_taken.tolist()[2] > 0
@@ -1498,22 +1487,21 @@ def test_law_prior_cuts_a_step_that_has_not_converged_into_the_fe_s_half_steps()
     layout, traj, dt, X, linear, node_type, edges, z, f = graph
     make = lambda step, most, rtol=None, cuts=0: build(  # noqa: E731
         step, max_iterations=most, newton_rtol=rtol, step_cuts=cuts)
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     never = NEVER
     U, V, _ = _prior_rollout(cut, u, v, f, G, None)
     # (measured 6.0 %: the bend's load ramps over its 8 steps, and every step cut here holds it at its end)
-    assert torch.isfinite(U).all() and rel(V, v) < 0.1
+    assert torch.isfinite(U).all() and _rel(V, v) < 0.1
     uf, vf = half.gather(u[:1]), half.gather(v[:1])
     h = half.internal_variables(uf)
     a = half.initial_acceleration(uf, vf, half.gather(f[:1]), G[:1])
-    assert rel(a, cut.initial_acceleration(uf, vf, cut.gather(f[:1]), G[:1])) < 1e-12   # (dt-free)
+    assert _rel(a, cut.initial_acceleration(uf, vf, cut.gather(f[:1]), G[:1])) < 1e-12   # (dt-free)
     us, vs = [uf], [vf]
     for k in range(1, len(f)):
         f1, Gm = half.gather(f[k:k + 1]), 0.5 * (G[k - 1:k] + G[k:k + 1])
         uf, vf, a, h = half.step(uf, vf, a, f1, G[k - 1:k], Gm, h)
         uf, vf, a, h = half.step(uf, vf, a, f1, Gm, G[k:k + 1], h)
         us, vs = us + [uf], vs + [vf]
-    assert rel(U, half.scatter(torch.cat(us))) < 1e-10 and rel(V, half.scatter(torch.cat(vs))) < 1e-9
+    assert _rel(U, half.scatter(torch.cat(us))) < 1e-10 and _rel(V, half.scatter(torch.cat(vs))) < 1e-9
     steps = len(f) - 1
     # each step: the full step's 2, then the two halves' 2 each; none converged at the floor
     assert cut.newton_taken.tolist() == [6 * steps, steps, steps, steps]
@@ -1530,7 +1518,7 @@ def test_law_prior_cuts_a_step_that_has_not_converged_into_the_fe_s_half_steps()
     for k in (0, 1):
         batch.forget()
         alone = batch.step(ub[k:k + 1], vb[k:k + 1], ab[k:k + 1], fb[k:k + 1], G[3:4], G[4:5], hb[k:k + 1])
-        assert all(rel(x[k:k + 1], y) < 1e-11 for x, y in zip(both, alone)), k
+        assert all(_rel(x[k:k + 1], y) < 1e-11 for x, y in zip(both, alone)), k
     assert batch.newton_taken.tolist()[3] == 2                         # the second alone: cut again
     # steps that converge are never cut: the rollout without cuts, to the bit
     plain, cutting = make(dt, 8), make(dt, 8, cuts=4)
@@ -1845,8 +1833,7 @@ def test_correction_inputs_are_what_the_budgeted_step_moved_from_its_predictor()
                           f[s + 1:s + 2], edges, node_type, ref, False)
     del model.remainders
     inputs = model.step_inputs(z, f, torch.zeros_like(z[..., 0:3]))                # [S, N, 12]
-    rel = lambda x, y: float((x - y).norm() / y.norm())                             # noqa: E731
-    assert rel(torch.cat(fed), inputs[1:]) < 1e-10 and rel(torch.cat(fed)[..., 3:6], inputs[1:, :, 3:6]) < 1e-9
+    assert _rel(torch.cat(fed), inputs[1:]) < 1e-10 and _rel(torch.cat(fed)[..., 3:6], inputs[1:, :, 3:6]) < 1e-9
     assert float(inputs[0, :, 3:6].abs().max()) == 0.0 and torch.equal(inputs[0, :, 0:3], z[0, :, 0:3])
     assert float((inputs[1:, :, 3:6] - seen[1:, :, 3:6]).norm()) > 1e-3 * float(seen[1:, :, 3:6].norm())  # the budget's w
     net.set_stats({"dzdt_std": torch.full((12,), 1e-2)})
@@ -2044,7 +2031,6 @@ def test_law_prior_loads_a_cut_steps_sub_steps_between_the_step_s_loads():
 
     graph, prony, build, u, v, G, cut, half = _bend_cut_once()
     layout, traj, dt, X, linear, node_type, edges, z, f = graph
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     uc, vc = cut.gather(u[:1]), cut.gather(v[:1])
     hc = cut.internal_variables(uc)
     ac = cut.initial_acceleration(uc, vc, cut.gather(f[:1]), G[:1])
@@ -2056,12 +2042,12 @@ def test_law_prior_loads_a_cut_steps_sub_steps_between_the_step_s_loads():
         Gm = 0.5 * (G[k - 1:k] + G[k:k + 1])
         uf, vf, a, h = half.step(uf, vf, a, 0.5 * (f0 + f1), G[k - 1:k], Gm, h)
         uf, vf, a, h = half.step(uf, vf, a, f1, Gm, G[k:k + 1], h)
-        assert rel(uc, uf) < 1e-10 and rel(vc, vf) < 1e-9, k
+        assert _rel(uc, uf) < 1e-10 and _rel(vc, vf) < 1e-9, k
     assert cut.newton_taken.tolist()[3] == len(f)                 # every step cut (and the held one)
     ramped = cut.step(cut.gather(u[:1]), cut.gather(v[:1]), cut.initial_acceleration(
         cut.gather(u[:1]), cut.gather(v[:1]), cut.gather(f[:1]), G[:1]), cut.gather(f[1:2]), G[:1], G[1:2],
         cut.internal_variables(cut.gather(u[:1])), cut.gather(f[:1]))
-    assert rel(ramped[1], held[1]) > 1e-3                         # (a ramp's loads matter)
+    assert _rel(ramped[1], held[1]) > 1e-3                         # (a ramp's loads matter)
     _carried_steps_follow_rollouts(build(dt, max_iterations=2, newton_rtol=NEVER, step_cuts=1), graph,
                                    width=len(prony) * cut.cell_columns, cut_loads="linear", optimized=False)
 
@@ -2101,7 +2087,6 @@ def test_law_prior_substeps_take_every_step_as_the_data_s_fe_sub_steps():
 
     graph, prony, build, u, v, G, cut, half = _bend_cut_once()
     layout, traj, dt, X, linear, node_type, edges, z, f = graph
-    rel = lambda a, b: float((a - b).norm() / b.norm())  # noqa: E731
     for k, fine in ((2, half), (4, build(dt / 4, max_iterations=2, newton_rtol=NEVER))):
         sub = build(dt, max_iterations=2, newton_rtol=NEVER, substeps=k)
         us = sub.gather(u[:1])
@@ -2116,13 +2101,13 @@ def test_law_prior_substeps_take_every_step_as_the_data_s_fe_sub_steps():
                 w0, w1 = (j - 1) / k, j / k
                 uf, vf, a, h = fine.step(uf, vf, a, f0 + w1 * (f1 - f0), G[s - 1:s] + w0 * (G[s:s + 1] - G[s - 1:s]),
                                          G[s - 1:s] + w1 * (G[s:s + 1] - G[s - 1:s]), h)
-            assert rel(us, uf) < 1e-10 and rel(vs, vf) < 1e-9, (k, s)
+            assert _rel(us, uf) < 1e-10 and _rel(vs, vf) < 1e-9, (k, s)
         assert sub.newton_taken.tolist()[:2] == [2 * k * (len(f) - 1), len(f) - 1]
         if k == 2:                                       # scripted, the same step
             stepper = torch.jit.script(PriorStep(build(dt, max_iterations=2, newton_rtol=NEVER, substeps=2)))
             with torch.jit.optimized_execution(False), torch.no_grad():
                 got = stepper.prior.step(*start[:3], f1, G[s - 1:s], G[s:s + 1], start[3], f0)
-            assert rel(got[0], us) < 1e-12 and rel(got[1], vs) < 1e-12
+            assert _rel(got[0], us) < 1e-12 and _rel(got[1], vs) < 1e-12
     with pytest.raises(ValueError, match=r"sub-steps: 3, expected one of \[1, 2, 4, 8, 16\]"):
         build(dt, substeps=3)
 
